@@ -1,0 +1,1 @@
+"""Packaged cell configurations (TOML). ``sim.toml`` is the default cell."""

@@ -1,0 +1,54 @@
+"""cellcal.devices: the Camera3D and RobotArm interfaces, data types, errors, registry, safety.
+
+Depends on numpy/scipy only; never on a vendor SDK, a driver or a simulator.
+"""
+
+from .arm import RobotArm
+from .base import BackendContext, Device
+from .camera import Camera3D
+from .errors import (
+    CalibrationError,
+    CalibrationQualityError,
+    CellcalError,
+    ConfigError,
+    DeviceConnectionError,
+    DeviceError,
+    DeviceTimeoutError,
+    MissingDependencyError,
+    NotConnectedError,
+    ProtocolError,
+    RegistryError,
+    SafetyError,
+    VendorError,
+)
+from .pose import Pose
+from .registry import BackendEntry, Registry, default_registry
+from .types import ArmStatus, DeviceInfo, Frame, Intrinsics
+
+__all__ = [
+    "ArmStatus",
+    "BackendContext",
+    "BackendEntry",
+    "CalibrationError",
+    "CalibrationQualityError",
+    "Camera3D",
+    "CellcalError",
+    "ConfigError",
+    "Device",
+    "DeviceConnectionError",
+    "DeviceError",
+    "DeviceInfo",
+    "DeviceTimeoutError",
+    "Frame",
+    "Intrinsics",
+    "MissingDependencyError",
+    "NotConnectedError",
+    "Pose",
+    "ProtocolError",
+    "Registry",
+    "RegistryError",
+    "RobotArm",
+    "SafetyError",
+    "VendorError",
+    "default_registry",
+]

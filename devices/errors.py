@@ -1,0 +1,136 @@
+"""The one exception tree of cellcal.
+
+Every error cellcal raises on purpose derives from :class:`CellcalError`, so a
+cell application can catch the library's failures with one ``except`` clause and
+still tell them apart::
+
+    CellcalError
+    ├── ConfigError                 bad configuration file / section / key
+    ├── RegistryError               unknown or duplicate backend name
+    ├── MissingDependencyError      a backend's optional extra is not installed
+    ├── DeviceError                 anything a device did or failed to do
+    │   ├── DeviceConnectionError   could not connect, or the link dropped
+    │   ├── DeviceTimeoutError      an I/O call exceeded its timeout
+    │   ├── NotConnectedError       device used before connect() / after close()
+    │   ├── ProtocolError           malformed bytes on a vendor wire
+    │   └── VendorError             the device reported an error code
+    ├── SafetyError                 a command outside the safety envelope
+    └── CalibrationError            bad input to, or failure of, a calibration
+        └── CalibrationQualityError a result failed a quality gate
+
+Messages are one line and name what was wrong, so the CLI can print ``str(err)``
+as-is.
+"""
+
+from __future__ import annotations
+
+import builtins
+
+
+class CellcalError(Exception):
+    """Root of every error raised by cellcal."""
+
+
+class ConfigError(CellcalError, ValueError):
+    """A configuration value is missing, unknown, of the wrong type or out of range.
+
+    Args:
+        message: What was expected.
+        source: The file (or other origin) of the configuration, if known.
+        key: Dotted key path inside the document, e.g. ``"arm.speed_m_s"``.
+    """
+
+    def __init__(self, message: str, *, source: str | None = None, key: str | None = None):
+        self.source = source
+        self.key = key
+        self.reason = message
+        parts = []
+        if source:
+            parts.append(str(source))
+        if key:
+            parts.append(f"key '{key}'")
+        prefix = ": ".join(parts)
+        super().__init__(f"{prefix}: {message}" if prefix else message)
+
+
+class RegistryError(CellcalError):
+    """A backend name is unknown, registered twice, or its entry point fails to load."""
+
+
+class MissingDependencyError(CellcalError, ImportError):
+    """A backend needs an optional dependency (an extra) that is not installed."""
+
+    def __init__(self, what: str, extra: str):
+        self.extra = extra
+        super().__init__(f"{what} is not installed; install it with: pip install 'cellcal[{extra}]'")
+
+
+class DeviceError(CellcalError):
+    """Base of all device-side failures."""
+
+
+class DeviceConnectionError(DeviceError, builtins.ConnectionError):
+    """Connecting failed, or an established link to a device was lost."""
+
+
+class DeviceTimeoutError(DeviceError, builtins.TimeoutError):
+    """A device I/O call did not complete within its timeout."""
+
+
+class NotConnectedError(DeviceError):
+    """A device was used before ``connect()`` or after ``close()``."""
+
+
+class ProtocolError(DeviceError):
+    """Bytes received from a device do not follow its wire protocol.
+
+    Args:
+        message: What was wrong.
+        offset: Byte offset in the message or stream where it was detected.
+    """
+
+    def __init__(self, message: str, *, offset: int | None = None):
+        self.offset = offset
+        super().__init__(f"{message} (at byte offset {offset})" if offset is not None else message)
+
+
+class VendorError(DeviceError):
+    """The device reported an error through its own error-code channel.
+
+    Args:
+        vendor: Short vendor/backend name, e.g. ``"xarm"``.
+        code: The vendor's numeric error code.
+        meaning: Human-readable meaning of the code.
+    """
+
+    def __init__(self, vendor: str, code: int, meaning: str):
+        self.vendor = vendor
+        self.code = code
+        self.meaning = meaning
+        super().__init__(f"{vendor} error {code}: {meaning}")
+
+
+class SafetyError(CellcalError):
+    """A motion command lies outside the configured safety envelope; nothing moved."""
+
+
+class CalibrationError(CellcalError, ValueError):
+    """Bad input to a calibration computation, or a calibration that cannot be computed."""
+
+
+class CalibrationQualityError(CalibrationError):
+    """A calibration result failed a quality gate.
+
+    Args:
+        gate: Name of the gate, e.g. ``"inlier_fraction"``.
+        value: The measured value.
+        threshold: The configured threshold it failed.
+        message: Optional extra explanation.
+    """
+
+    def __init__(self, gate: str, value: float, threshold: float, message: str = ""):
+        self.gate = gate
+        self.value = value
+        self.threshold = threshold
+        text = f"quality gate '{gate}' failed: {value:.6g} vs threshold {threshold:.6g}"
+        super().__init__(f"{text}; {message}" if message else text)

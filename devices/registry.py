@@ -1,0 +1,194 @@
+"""Backend registry: names -> device classes, from entry points or explicit registration.
+
+Built-in and third-party backends are found the same way: through the entry-point
+groups ``cellcal.cameras`` and ``cellcal.arms`` (see ADR 0005). A vendor package
+declares, in its ``pyproject.toml``::
+
+    [project.entry-points."cellcal.cameras"]
+    acme = "acme_cellcal.camera:AcmeCamera"
+
+Entry points are only *listed* at start-up; a backend's module (and through it the
+vendor SDK) is imported when the backend is first used, so ``import cellcal.core``
+stays light. Two distributions claiming one name is an error, never a silent pick.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata as md
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from .arm import RobotArm
+from .base import BackendContext, Device
+from .camera import Camera3D
+from .errors import ConfigError, RegistryError
+
+Kind = Literal["camera", "arm"]
+GROUPS: dict[Kind, str] = {"camera": "cellcal.cameras", "arm": "cellcal.arms"}
+_BASES: dict[Kind, type[Device]] = {"camera": Camera3D, "arm": RobotArm}
+
+
+@dataclass(frozen=True)
+class BackendEntry:
+    """One registered backend.
+
+    Attributes:
+        kind: ``"camera"`` or ``"arm"``.
+        name: Name used in configs (``backend = "..."``).
+        target: ``"module:Class"`` it loads from.
+        origin: Where it comes from: the distribution name and version, or ``"runtime"``.
+    """
+
+    kind: Kind
+    name: str
+    target: str
+    origin: str
+
+
+class Registry:
+    """Maps backend names to device classes for cameras and arms."""
+
+    def __init__(self, *, discover: bool = True):
+        self._entries: dict[tuple[Kind, str], BackendEntry] = {}
+        self._loaded: dict[tuple[Kind, str], type[Device]] = {}
+        self._lock = threading.Lock()
+        self._discovered = not discover
+
+    # ------------------------------------------------------------ registration
+    def register(self, kind: Kind, name: str, cls: type[Device], *, origin: str = "runtime") -> None:
+        """Register a device class under ``name`` at run time.
+
+        Raises:
+            RegistryError: If the name is taken, or ``cls`` is not a subclass of the interface.
+        """
+        self._discover()
+        base = _BASES[kind]
+        if not (isinstance(cls, type) and issubclass(cls, base)):
+            raise RegistryError(f"{kind} backend '{name}' must subclass {base.__name__}, got {cls!r}")
+        with self._lock:
+            key = (kind, name)
+            if key in self._entries:
+                raise RegistryError(
+                    f"duplicate {kind} backend '{name}': already registered by {self._entries[key].origin}"
+                )
+            self._entries[key] = BackendEntry(kind, name, f"{cls.__module__}:{cls.__qualname__}", origin)
+            self._loaded[key] = cls
+
+    def unregister(self, kind: Kind, name: str) -> None:
+        """Remove a backend (mainly for tests)."""
+        with self._lock:
+            self._entries.pop((kind, name), None)
+            self._loaded.pop((kind, name), None)
+
+    def _discover(self) -> None:
+        if self._discovered:
+            return
+        with self._lock:
+            if self._discovered:
+                return
+            found: dict[tuple[Kind, str], BackendEntry] = {}
+            for kind, group in GROUPS.items():
+                for ep in md.entry_points(group=group):
+                    dist = getattr(ep, "dist", None)
+                    origin = f"{dist.name} {dist.version}" if dist is not None else "unknown distribution"
+                    key = (kind, ep.name)
+                    if key in found and found[key].target != ep.value:
+                        raise RegistryError(
+                            f"duplicate {kind} backend '{ep.name}': provided by {found[key].origin} "
+                            f"({found[key].target}) and by {origin} ({ep.value})"
+                        )
+                    found[key] = BackendEntry(kind, ep.name, ep.value, origin)
+            self._entries.update(found)
+            self._discovered = True
+
+    # ------------------------------------------------------------ lookup
+    def entries(self, kind: Kind | None = None) -> list[BackendEntry]:
+        """All registered backends, sorted by kind then name."""
+        self._discover()
+        return sorted((e for e in self._entries.values() if kind is None or e.kind == kind),
+                      key=lambda e: (e.kind, e.name))
+
+    def names(self, kind: Kind) -> list[str]:
+        """Registered backend names of one kind."""
+        return [e.name for e in self.entries(kind)]
+
+    def get(self, kind: Kind, name: str) -> type[Device]:
+        """The device class registered as ``name``, importing its module if needed.
+
+        Raises:
+            RegistryError: If no such backend exists or its module fails to import.
+        """
+        self._discover()
+        key = (kind, name)
+        with self._lock:
+            if key in self._loaded:
+                return self._loaded[key]
+            entry = self._entries.get(key)
+        if entry is None:
+            known = ", ".join(self.names(kind)) or "(none)"
+            raise RegistryError(f"unknown {kind} backend '{name}'; registered: {known}")
+        module_name, _, attr = entry.target.partition(":")
+        try:
+            obj: Any = importlib_import(module_name)
+            for part in attr.split("."):
+                obj = getattr(obj, part)
+        except ImportError as exc:
+            raise RegistryError(f"{kind} backend '{name}' ({entry.target}) failed to import: {exc}") from exc
+        except AttributeError as exc:
+            raise RegistryError(f"{kind} backend '{name}': {entry.target} not found") from exc
+        base = _BASES[kind]
+        if not (isinstance(obj, type) and issubclass(obj, base)):
+            raise RegistryError(f"{kind} backend '{name}' ({entry.target}) is not a {base.__name__}")
+        with self._lock:
+            self._loaded[key] = obj
+        return obj
+
+    def create(self, kind: Kind, section: Mapping[str, Any], context: BackendContext | None = None) -> Device:
+        """Build an unconnected device from a config section holding ``backend = "name"``.
+
+        Raises:
+            ConfigError: If ``backend`` is missing or names no registered backend, or the
+                backend rejects its section.
+        """
+        context = context or BackendContext(section=kind)
+        name = section.get("backend")
+        if not isinstance(name, str):
+            raise ConfigError(f"missing 'backend' (a string; one of: {', '.join(self.names(kind))})",
+                              source=context.source, key=f"{context.section}.backend")
+        try:
+            cls = self.get(kind, name)
+        except RegistryError as exc:
+            raise ConfigError(str(exc), source=context.source, key=f"{context.section}.backend") from None
+        return cls.from_config(section, context)
+
+    def create_camera(self, section: Mapping[str, Any], context: BackendContext | None = None) -> Camera3D:
+        """:meth:`create` for cameras, typed."""
+        dev = self.create("camera", section, context)
+        assert isinstance(dev, Camera3D)
+        return dev
+
+    def create_arm(self, section: Mapping[str, Any], context: BackendContext | None = None) -> RobotArm:
+        """:meth:`create` for arms, typed."""
+        dev = self.create("arm", section, context)
+        assert isinstance(dev, RobotArm)
+        return dev
+
+
+def importlib_import(module_name: str) -> Any:
+    """Import a module by name (a seam for tests)."""
+    import importlib
+
+    return importlib.import_module(module_name)
+
+
+_default: Registry | None = None
+
+
+def default_registry() -> Registry:
+    """The process-wide registry, discovering entry points on first use."""
+    global _default
+    if _default is None:
+        _default = Registry()
+    return _default
