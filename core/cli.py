@@ -13,7 +13,12 @@ import sys
 from collections.abc import Sequence
 from importlib import import_module
 
-from cellcal.devices.errors import CalibrationError, CellcalError, ConfigError
+from cellcal.devices.errors import (
+    CalibrationError,
+    CalibrationQualityError,
+    CellcalError,
+    ConfigError,
+)
 
 #: Subcommand modules, in the order they appear in ``cellcal --help``.
 SUBCOMMANDS = ("cli_calibrate", "cli_devices", "cli_paper")
@@ -57,10 +62,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("cellcal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except CalibrationQualityError as exc:
+        print(f"cellcal: error: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
     except (ConfigError, CalibrationError) as exc:
-        if type(exc).__name__ == "CalibrationQualityError":
-            print(f"cellcal: error: {exc}", file=sys.stderr)
-            return EXIT_FAILURE
         print(f"cellcal: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except CellcalError as exc:
