@@ -22,6 +22,13 @@ from .errors import CalibrationError
 FloatArray = NDArray[np.float64]
 
 
+def _rotate(rotation: Rotation, vectors: ArrayLike) -> FloatArray:
+    """``rotation.apply`` that also accepts read-only arrays (scipy >= 1.15 rejects them)."""
+    arr = np.array(vectors, dtype=np.float64)  # always a fresh, writeable copy
+    out: FloatArray = rotation.apply(arr)
+    return out
+
+
 def _as_vector3(value: ArrayLike, what: str) -> FloatArray:
     try:
         arr = np.asarray(value, dtype=np.float64)
@@ -97,24 +104,25 @@ class Pose:
     def __matmul__(self, other: Pose) -> Pose:
         if not isinstance(other, Pose):
             return NotImplemented
-        return Pose(self.rotation * other.rotation, self.rotation.apply(other.translation) + self.translation)
+        t = _rotate(self.rotation, other.translation) + self.translation
+        return Pose(self.rotation * other.rotation, t)
 
     def inv(self) -> Pose:
         """The inverse transform."""
         r_inv = self.rotation.inv()
-        return Pose(r_inv, -r_inv.apply(self.translation))
+        return Pose(r_inv, -_rotate(r_inv, self.translation))
 
     def apply(self, points: ArrayLike) -> FloatArray:
         """Transform points (shape (3,) or (N, 3), metres) from the source to the target frame."""
         p = np.asarray(points, dtype=np.float64)
         if p.shape[-1:] != (3,) or p.ndim > 2:
             raise CalibrationError(f"points must have shape (3,) or (N, 3), got {p.shape}")
-        out: FloatArray = self.rotation.apply(p) + self.translation
+        out: FloatArray = _rotate(self.rotation, p) + self.translation
         return out
 
     def apply_vector(self, vectors: ArrayLike) -> FloatArray:
         """Rotate direction vectors (no translation)."""
-        out: FloatArray = self.rotation.apply(np.asarray(vectors, dtype=np.float64))
+        out: FloatArray = _rotate(self.rotation, vectors)
         return out
 
     # ------------------------------------------------------------------ views
