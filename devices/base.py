@@ -9,6 +9,7 @@ part, and cannot forget a contract rule (a closed device raising
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 from abc import ABC, abstractmethod
@@ -122,10 +123,8 @@ class Device(ABC):
                 try:
                     self._connect(t)
                 except BaseException:
-                    try:
+                    with contextlib.suppress(Exception):  # best effort; the first error matters
                         self._close()
-                    except Exception:  # noqa: BLE001 - best effort; the first error matters
-                        pass
                     raise
                 self._connected = True
         return self

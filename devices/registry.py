@@ -27,7 +27,7 @@ from .errors import ConfigError, RegistryError
 
 Kind = Literal["camera", "arm"]
 GROUPS: dict[Kind, str] = {"camera": "cellcal.cameras", "arm": "cellcal.arms"}
-_BASES: dict[Kind, type[Device]] = {"camera": Camera3D, "arm": RobotArm}
+_BASES: dict[Kind, type[Device]] = {"camera": Camera3D, "arm": RobotArm}  # type: ignore[type-abstract]
 
 
 @dataclass(frozen=True)
