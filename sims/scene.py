@@ -1,0 +1,201 @@
+"""The simulated scene: the measuring plane and box-shaped work objects lying on it.
+
+Everything here is in the *world* frame, which in the simulated cell is the robot
+base frame, metres. Ray casting is vectorised over rays (numpy, no per-ray Python
+loop): one call handles a whole 224x172 depth image.
+
+Plane frame: origin at :attr:`Scene.plane_point_m`, z along the plane's unit normal,
+x along the world x axis projected into the plane (world y if x is nearly parallel
+to the normal), y = z × x. Boxes are placed in this frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from cellcal.devices.errors import CalibrationError
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+FloatArray = NDArray[np.float64]
+
+#: Rays with |cos(angle to the plane normal)| below this count as parallel to the plane.
+_PARALLEL_EPS = 1e-12
+#: Hits closer than this to the ray origin are ignored (the origin lying on a surface).
+_T_MIN_M = 1e-9
+
+
+def _vec3(value: ArrayLike, what: str) -> FloatArray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise CalibrationError(f"{what} must be 3 finite numbers, got {value!r}")
+    return arr
+
+
+@dataclass(frozen=True)
+class Box:
+    """A box-shaped work object standing on the measuring plane.
+
+    Attributes:
+        center_xy_m: Centre of the box's footprint in the plane frame (x, y), metres.
+        size_m: Edge lengths (along the box's x, y and the plane normal), metres, > 0.
+        yaw_rad: Rotation of the box about the plane normal, radians.
+    """
+
+    center_xy_m: tuple[float, float]
+    size_m: tuple[float, float, float]
+    yaw_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        c = np.asarray(self.center_xy_m, dtype=np.float64)
+        s = np.asarray(self.size_m, dtype=np.float64)
+        if c.shape != (2,) or not np.all(np.isfinite(c)):
+            raise CalibrationError(f"Box.center_xy_m must be 2 finite numbers, got {self.center_xy_m!r}")
+        if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise CalibrationError(f"Box.size_m must be 3 positive numbers, got {self.size_m!r}")
+        if not np.isfinite(self.yaw_rad):
+            raise CalibrationError(f"Box.yaw_rad must be finite, got {self.yaw_rad!r}")
+        object.__setattr__(self, "center_xy_m", (float(c[0]), float(c[1])))
+        object.__setattr__(self, "size_m", (float(s[0]), float(s[1]), float(s[2])))
+        object.__setattr__(self, "yaw_rad", float(self.yaw_rad))
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """The measuring plane (world frame, metres) and boxes lying on it.
+
+    Attributes:
+        plane_point_m: A point on the plane, world frame, metres, shape (3,).
+        plane_normal: Unit normal of the plane, world frame (normalised on construction).
+        boxes: Work objects standing on the plane (on the side the normal points to).
+    """
+
+    plane_point_m: FloatArray = field(default_factory=lambda: np.zeros(3))
+    plane_normal: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    boxes: tuple[Box, ...] = ()
+
+    def __post_init__(self) -> None:
+        p = _vec3(self.plane_point_m, "Scene.plane_point_m")
+        n = _vec3(self.plane_normal, "Scene.plane_normal")
+        norm = float(np.linalg.norm(n))
+        if norm < 1e-9:
+            raise CalibrationError("Scene.plane_normal must be non-zero")
+        n = n / norm
+        for a in (p, n):
+            a.setflags(write=False)
+        object.__setattr__(self, "plane_point_m", p)
+        object.__setattr__(self, "plane_normal", n)
+        object.__setattr__(self, "boxes", tuple(self.boxes))
+        # Plane frame basis (columns x, y, z in world coordinates).
+        ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = ref - n * float(ref @ n)
+        x /= np.linalg.norm(x)
+        y = np.cross(n, x)
+        r_world_plane = np.column_stack([x, y, n])
+        object.__setattr__(self, "_r_world_plane", r_world_plane)
+        # Per box: rotation world<-box (3x3), centre (3,), half extents (3,).
+        rots, centres, halves = [], [], []
+        for b in self.boxes:
+            if not isinstance(b, Box):
+                raise CalibrationError(f"Scene.boxes must hold Box objects, got {type(b).__name__}")
+            r_plane_box = Rotation.from_euler("z", b.yaw_rad).as_matrix()
+            rots.append(r_world_plane @ r_plane_box)
+            local = np.array([b.center_xy_m[0], b.center_xy_m[1], b.size_m[2] / 2.0])
+            centres.append(p + r_world_plane @ local)
+            halves.append(np.asarray(b.size_m) / 2.0)
+        object.__setattr__(self, "_box_rot", np.array(rots).reshape(-1, 3, 3))
+        object.__setattr__(self, "_box_centre", np.array(centres).reshape(-1, 3))
+        object.__setattr__(self, "_box_half", np.array(halves).reshape(-1, 3))
+
+    @property
+    def plane_rotation(self) -> FloatArray:
+        """3x3 rotation world <- plane frame (columns: plane x, y, normal)."""
+        out: FloatArray = self._r_world_plane.copy()  # type: ignore[attr-defined]
+        return out
+
+    def plane_to_world(self, xyz_plane_m: ArrayLike) -> FloatArray:
+        """Map points from the plane frame to the world frame (metres, (3,) or (N, 3))."""
+        p = np.asarray(xyz_plane_m, dtype=np.float64)
+        out: FloatArray = p @ self._r_world_plane.T + self.plane_point_m  # type: ignore[attr-defined]
+        return out
+
+    def signed_distance_to_plane(self, points_m: ArrayLike) -> FloatArray:
+        """Signed distance (m) of world points from the plane, positive on the normal's side."""
+        p = np.asarray(points_m, dtype=np.float64)
+        out: FloatArray = (p - self.plane_point_m) @ self.plane_normal
+        return out
+
+    # ------------------------------------------------------------------ ray casting
+    def raycast(self, origin: ArrayLike, dirs: ArrayLike) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Cast rays from one origin against the plane and the boxes.
+
+        Args:
+            origin: Ray origin, world frame, metres, shape (3,).
+            dirs: Ray directions, world frame, shape (N, 3); need not be unit length
+                (``t`` is then in units of the direction's length).
+
+        Returns:
+            ``(t, normal, hit)``: ``t`` (N,) the ray parameter of the nearest hit
+            (metres along unit directions), ``inf`` where nothing is hit; ``normal``
+            (N, 3) the unit surface normal at the hit, oriented against the ray
+            (``dot(dir, normal) <= 0``), NaN where nothing is hit; ``hit`` (N,) bool.
+
+        Raises:
+            CalibrationError: On malformed shapes or non-finite values.
+        """
+        o = _vec3(origin, "ray origin")
+        d = np.asarray(dirs, dtype=np.float64)
+        if d.ndim != 2 or d.shape[1] != 3:
+            raise CalibrationError(f"ray directions must have shape (N, 3), got {d.shape}")
+        if not np.all(np.isfinite(d)):
+            raise CalibrationError("ray directions must be finite")
+        n_rays = d.shape[0]
+        n = self.plane_normal
+
+        # --- the plane: t = (p0 - o).n / (d.n)
+        denom = d @ n
+        num = float((self.plane_point_m - o) @ n)
+        parallel = np.abs(denom) < _PARALLEL_EPS
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_best = np.where(parallel, np.inf, num / np.where(parallel, 1.0, denom))
+        t_best = np.where(t_best > _T_MIN_M, t_best, np.inf)
+        normals = np.broadcast_to(n, (n_rays, 3)).copy()
+
+        # --- the boxes: slab method in each box's own frame
+        for rot, centre, half in zip(self._box_rot, self._box_centre, self._box_half, strict=True):  # type: ignore[attr-defined]
+            o_l = rot.T @ (o - centre)
+            d_l = d @ rot  # == (rot.T @ d.T).T
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inv = 1.0 / d_l
+                t1 = (-half - o_l) * inv
+                t2 = (half - o_l) * inv
+            t_lo = np.fmin(t1, t2)  # NaN (0 * inf on a slab boundary) is ignored by fmin/fmax
+            t_hi = np.fmax(t1, t2)
+            t_near = np.nanmax(np.where(np.isnan(t_lo), -np.inf, t_lo), axis=1)
+            t_far = np.nanmin(np.where(np.isnan(t_hi), np.inf, t_hi), axis=1)
+            hit = (t_near <= t_far) & (t_near > _T_MIN_M) & np.isfinite(t_near)
+            closer = hit & (t_near < t_best)
+            if not np.any(closer):
+                continue
+            axis = np.argmax(np.where(np.isnan(t_lo), -np.inf, t_lo), axis=1)
+            idx = np.nonzero(closer)[0]
+            n_local = np.zeros((idx.size, 3))
+            n_local[np.arange(idx.size), axis[idx]] = -np.sign(d_l[idx, axis[idx]])
+            normals[idx] = n_local @ rot.T
+            t_best = np.where(closer, t_near, t_best)
+
+        hit_any = np.isfinite(t_best)
+        # Orient normals against the ray; NaN where nothing was hit.
+        flip = np.einsum("ij,ij->i", normals, d) > 0
+        normals[flip] *= -1.0
+        normals[~hit_any] = np.nan
+        return t_best, normals, hit_any
+
+
+def scene_from_boxes(plane_point_m: Sequence[float], plane_normal: Sequence[float],
+                     boxes: Sequence[Box] = ()) -> Scene:
+    """Convenience constructor: ``Scene`` from plain sequences."""
+    return Scene(np.asarray(plane_point_m, dtype=np.float64), np.asarray(plane_normal, dtype=np.float64),
+                 tuple(boxes))
