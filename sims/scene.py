@@ -15,9 +15,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from cellcal.devices.errors import CalibrationError
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
+
+from cellcal.devices.errors import CalibrationError
 
 FloatArray = NDArray[np.float64]
 

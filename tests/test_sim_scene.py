@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from cellcal.devices.errors import CalibrationError
 from cellcal.sims.scene import Box, Scene
 

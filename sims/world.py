@@ -1,0 +1,320 @@
+"""The simulated world: scene + true camera mount + true arm state + simulated clock.
+
+One :class:`SimWorld` couples the simulated camera to the simulated arm: the camera
+renders from ``world.camera_pose()`` = true flange pose @ true mount, so moving the
+arm moves the camera. Every backend built from one configuration document shares the
+same world through :func:`world_from_context` (``context.shared["sim.world"]``).
+
+World frame == robot base frame (metres). The document's ``[sim]`` table
+(:class:`SimConfig`) sets the plane, the boxes, the initial flange pose, the seed and
+optionally a mount that overrides the document's ``[mount]`` table
+(:class:`MountConfig`: the hand-eye transform flange -> camera, which the lead's
+calibrator reads as its *nominal* mount; the sim uses it as the *true* one unless
+``[sim.mount]`` says otherwise, which is how a mount error is simulated).
+
+Simulated time: :class:`SimClock` counts simulated seconds. It advances only through
+simulated events (arm motions, camera frame periods), never by itself, so results do
+not depend on the machine's speed. A motion's progress is taken from wall time scaled
+by the arm's ``time_scale`` while it runs, and the clock is advanced to the motion's
+simulated time whenever the arm state is looked at.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from cellcal.devices.base import BackendContext
+from cellcal.devices.config import parse_section
+from cellcal.devices.errors import ConfigError
+from cellcal.devices.pose import Pose
+
+from .scene import Box, Scene
+
+#: Key of the shared world in ``BackendContext.shared``.
+SHARED_KEY = "sim.world"
+
+
+# ---------------------------------------------------------------------- config
+@dataclass(frozen=True)
+class MountConfig:
+    """The hand-eye transform flange -> camera (the document's ``[mount]`` table).
+
+    The rotation follows :meth:`Pose.from_xyz_rpy`: fixed-axis roll, pitch, yaw,
+    ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``; the pose maps camera coordinates into flange
+    coordinates (``T_flange_camera``).
+    """
+
+    translation_m: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 0.0), metadata={"ge": -2.0, "le": 2.0, "doc": "camera origin in the flange frame, m"})
+    rpy_deg: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0, "doc": "roll, pitch, yaw, degrees"})
+
+    def pose(self) -> Pose:
+        """``T_flange_camera``."""
+        return Pose.from_xyz_rpy(np.asarray(self.translation_m), np.radians(self.rpy_deg))
+
+
+@dataclass(frozen=True)
+class BoxConfig:
+    """One work object of ``[[sim.boxes]]`` (see :class:`~cellcal.sims.scene.Box`)."""
+
+    center_xy_m: tuple[float, float] = field(metadata={"ge": -10.0, "le": 10.0,
+                                                       "doc": "footprint centre in the plane frame, m"})
+    size_m: tuple[float, float, float] = field(metadata={"gt": 0.0, "le": 5.0, "doc": "edge lengths, m"})
+    yaw_deg: float = field(default=0.0, metadata={"ge": -360.0, "le": 360.0,
+                                                  "doc": "rotation about the plane normal, degrees"})
+
+    def box(self) -> Box:
+        """The scene object."""
+        return Box(self.center_xy_m, self.size_m, float(np.radians(self.yaw_deg)))
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The ``[sim]`` table: the simulated cell's ground truth."""
+
+    plane_point_m: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0, "doc": "a point on the plane, base frame, m"})
+    plane_normal: tuple[float, float, float] = field(
+        default=(0.0, 0.0, 1.0), metadata={"ge": -1e6, "le": 1e6, "doc": "plane normal, base frame (normalised)"})
+    boxes: list[BoxConfig] = field(default_factory=list, metadata={"doc": "work objects on the plane"})
+    mount: MountConfig | None = field(default=None, metadata={
+        "doc": "true flange->camera mount; default: the document's [mount] table"})
+    initial_flange_translation_m: tuple[float, float, float] = field(
+        default=(0.3, 0.0, 0.5), metadata={"ge": -2.0, "le": 2.0, "doc": "flange position at start, base frame, m"})
+    initial_flange_rpy_deg: tuple[float, float, float] = field(
+        default=(180.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0,
+                                             "doc": "flange orientation at start (tool pointing down), degrees"})
+    seed: int | None = field(default=None, metadata={"ge": 0, "doc": "seed of the world; default [cell] seed"})
+
+    def __post_init__(self) -> None:
+        if float(np.linalg.norm(self.plane_normal)) < 1e-9:
+            raise ConfigError("must be a non-zero vector", key="sim.plane_normal")
+
+    def scene(self) -> Scene:
+        """The scene this config describes."""
+        return Scene(np.asarray(self.plane_point_m, dtype=np.float64),
+                     np.asarray(self.plane_normal, dtype=np.float64),
+                     tuple(b.box() for b in self.boxes))
+
+    def initial_flange_pose(self) -> Pose:
+        """``T_base_flange`` at start."""
+        return Pose.from_xyz_rpy(np.asarray(self.initial_flange_translation_m),
+                                 np.radians(self.initial_flange_rpy_deg))
+
+
+def parse_mount(table: Mapping[str, Any] | None, *, source: str | None = None,
+                where: str = "mount") -> MountConfig:
+    """Read the document's ``[mount]`` table (keys ``translation_m``, ``rpy_deg``).
+
+    Other keys in that table belong to the calibrator and are skipped here (it
+    validates them); the two keys the sim needs are checked strictly.
+
+    Raises:
+        ConfigError: If ``translation_m`` or ``rpy_deg`` is malformed.
+    """
+    table = dict(table or {})
+    known = {"translation_m", "rpy_deg"}
+    cfg: MountConfig = parse_section(MountConfig, {k: v for k, v in table.items() if k in known},
+                                     where=where, source=source)
+    return cfg
+
+
+# ---------------------------------------------------------------------- clock and arm state
+class SimClock:
+    """Simulated time: seconds since the world was made, plus a Unix epoch offset."""
+
+    def __init__(self, start_epoch_s: float | None = None) -> None:
+        self._lock = threading.Lock()
+        self._epoch0 = time.time() if start_epoch_s is None else float(start_epoch_s)
+        self._elapsed = 0.0
+
+    @property
+    def elapsed_s(self) -> float:
+        """Simulated seconds since the start."""
+        with self._lock:
+            return self._elapsed
+
+    def now(self) -> float:
+        """Simulated time as seconds since the Unix epoch."""
+        with self._lock:
+            return self._epoch0 + self._elapsed
+
+    def advance(self, dt_s: float) -> float:
+        """Move time forward by ``dt_s`` >= 0 seconds; returns the new elapsed time."""
+        with self._lock:
+            self._elapsed += max(0.0, float(dt_s))
+            return self._elapsed
+
+    def advance_to(self, elapsed_s: float) -> float:
+        """Move time forward to ``elapsed_s`` (never backwards); returns the new elapsed time."""
+        with self._lock:
+            self._elapsed = max(self._elapsed, float(elapsed_s))
+            return self._elapsed
+
+
+class Motion(Protocol):
+    """A planned flange trajectory (see :class:`cellcal.sims.arm.LinearMotion`)."""
+
+    @property
+    def duration_s(self) -> float: ...
+
+    def pose_at(self, t_s: float) -> Pose: ...
+
+
+class SimArmModel:
+    """The true state of the simulated arm: flange pose and the motion under way.
+
+    Thread-safe. While a motion runs, its simulated time is
+    ``(wall time since start) / time_scale`` (capped at its duration); with
+    ``time_scale == 0`` a motion completes the moment it starts.
+    """
+
+    def __init__(self, flange_pose: Pose, clock: SimClock) -> None:
+        self.lock = threading.RLock()
+        self._pose = flange_pose
+        self._clock = clock
+        self._motion: Motion | None = None
+        self._time_scale = 0.0
+        self._sim_start = 0.0
+        self._wall_start = 0.0
+        self._motion_t = 0.0
+
+    @property
+    def clock(self) -> SimClock:
+        """The world's clock."""
+        return self._clock
+
+    def start_motion(self, motion: Motion, time_scale: float) -> None:
+        """Start ``motion`` now (replacing any motion under way at its current pose)."""
+        with self.lock:
+            self._update()
+            self._motion = motion
+            self._time_scale = max(0.0, float(time_scale))
+            self._sim_start = self._clock.elapsed_s
+            self._wall_start = time.monotonic()
+            self._motion_t = 0.0
+            self._update()
+
+    def _update(self) -> None:
+        m = self._motion
+        if m is None:
+            return
+        if self._time_scale <= 0.0 or m.duration_s <= 0.0:
+            t = m.duration_s
+        else:
+            t = min(m.duration_s, (time.monotonic() - self._wall_start) / self._time_scale)
+        self._motion_t = t
+        self._pose = m.pose_at(t)
+        self._clock.advance_to(self._sim_start + t)
+        if t >= m.duration_s:
+            self._motion = None
+
+    def flange_pose(self) -> Pose:
+        """True flange pose in the base frame now (``T_base_flange``)."""
+        with self.lock:
+            self._update()
+            return self._pose
+
+    def set_flange_pose(self, pose: Pose) -> None:
+        """Teleport the flange (cancels any motion); for set-up and tests."""
+        with self.lock:
+            self._motion = None
+            self._pose = pose
+
+    def is_moving(self) -> bool:
+        """Whether a motion is under way."""
+        with self.lock:
+            self._update()
+            return self._motion is not None
+
+    def progress(self) -> float:
+        """Fraction 0..1 of the current motion's duration done (1.0 when idle)."""
+        with self.lock:
+            self._update()
+            m = self._motion
+            if m is None:
+                return 1.0
+            return self._motion_t / m.duration_s if m.duration_s > 0 else 1.0
+
+    def remaining_s(self) -> float:
+        """Simulated seconds left in the current motion (0 when idle)."""
+        with self.lock:
+            self._update()
+            m = self._motion
+            return 0.0 if m is None else max(0.0, m.duration_s - self._motion_t)
+
+    def halt(self) -> Pose:
+        """Stop the motion where it is now; returns the flange pose it stopped at."""
+        with self.lock:
+            self._update()
+            self._motion = None
+            return self._pose
+
+
+# ---------------------------------------------------------------------- the world
+class SimWorld:
+    """Scene + true mount + true arm state + clock + seed.
+
+    Attributes:
+        scene: The measuring plane and boxes (world == base frame).
+        mount: True ``T_flange_camera``.
+        arm: True arm state.
+        clock: Simulated clock shared by every simulated device.
+        seed: Root seed; devices derive their own streams with :meth:`rng`.
+    """
+
+    def __init__(self, scene: Scene, mount: Pose, flange_pose: Pose | None = None, seed: int = 0,
+                 clock: SimClock | None = None) -> None:
+        self.scene = scene
+        self.mount = mount
+        self.clock = clock or SimClock()
+        self.arm = SimArmModel(flange_pose or SimConfig().initial_flange_pose(), self.clock)
+        self.seed = int(seed)
+
+    @classmethod
+    def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
+        """Build from a ``[sim]`` config; ``config.mount`` beats ``mount``, ``config.seed`` beats ``seed``."""
+        m = config.mount or mount or MountConfig()
+        return cls(config.scene(), m.pose(), config.initial_flange_pose(),
+                   seed if config.seed is None else config.seed)
+
+    def camera_pose(self) -> Pose:
+        """True camera pose in the base frame, ``T_base_camera = T_base_flange @ T_flange_camera``."""
+        return self.arm.flange_pose() @ self.mount
+
+    def rng(self, stream: str, seed: int | None = None) -> np.random.Generator:
+        """A generator for one named stream (``"camera"``, ``"arm"``), from ``seed`` or the world's seed."""
+        root = self.seed if seed is None else int(seed)
+        return np.random.default_rng([root, zlib.crc32(stream.encode())])
+
+
+def world_from_context(context: BackendContext | None) -> SimWorld:
+    """The single world of a configuration document, created on first use.
+
+    Reads ``context.document["sim"]`` (:class:`SimConfig`) and ``["mount"]``
+    (:class:`MountConfig`), seeds from ``[sim] seed`` or ``context.seed``, and keeps
+    the world in ``context.shared["sim.world"]`` so every simulated backend built
+    from the same context sees the same world.
+
+    Raises:
+        ConfigError: If the ``[sim]`` or ``[mount]`` table is malformed (naming the key).
+    """
+    if context is None:
+        context = BackendContext()
+    world = context.shared.get(SHARED_KEY)
+    if isinstance(world, SimWorld):
+        return world
+    doc = context.document or {}
+    sim_cfg = parse_section(SimConfig, doc.get("sim", {}), where="sim", source=context.source)
+    mount_cfg = parse_mount(doc.get("mount"), source=context.source) if "mount" in doc else None
+    world = SimWorld.from_config(sim_cfg, mount_cfg, seed=context.seed)
+    context.shared[SHARED_KEY] = world
+    return world
