@@ -13,6 +13,7 @@ Devices come from the registry; this module never names a driver or a simulator.
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -196,8 +197,10 @@ class Calibrator:
         if self.config.reference is not None:
             expected = expected_geometry(camera_pose, self.config.reference.plane_point_m,
                                          self.config.reference.plane_normal)
+        fov = plan.nominal_fov_deg
+        fov_rad = None if fov is None else (math.radians(fov[0]), math.radians(fov[1]))
         measurements = measure_frames(frames, perimeters_px=plan.perimeters_px, methods=plan.methods,
-                                      window_px=plan.window_px, expected=expected)
+                                      window_px=plan.window_px, expected=expected, nominal_fov_rad=fov_rad)
         t4 = time.perf_counter()
         return PoseRecord(index, target, reported, camera_pose, expected, measurements,
                           {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3})

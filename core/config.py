@@ -101,6 +101,9 @@ class PlanPose:
 class PlanSection:
     """``[plan]``: where to measure and how.
 
+    ``nominal_fov_deg`` is the datasheet field of view (x, y) used by the paper's
+    ``plane_fit_nominal`` method; by default the pinhole field of view of the intrinsics.
+
     Unless explicit ``poses`` are given, one camera pose is generated per height: the
     optical axis hits ``target_m`` on the reference plane at ``height`` metres, tilted
     so it makes ``inclination_deg`` with the plane, by a rotation about the camera's
@@ -121,6 +124,7 @@ class PlanSection:
     acceleration_m_s2: float = field(default=1.0, metadata={"gt": 0})
     move_timeout_s: float = field(default=60.0, metadata={"gt": 0})
     capture_timeout_s: float = field(default=2.0, metadata={"gt": 0})
+    nominal_fov_deg: tuple[float, float] | None = field(default=None, metadata={"gt": 0, "lt": 180})
 
     def __post_init__(self) -> None:
         if self.window_px % 2 != 1:
