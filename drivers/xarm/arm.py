@@ -1,0 +1,298 @@
+"""UFACTORY xArm 5/6/7 as a :class:`RobotArm`, over RS-485/USB serial.
+
+Everything SI on this class's API; millimetres and radians only on the wire (the
+conversion happens here, through :mod:`cellcal.core.transforms`). Poses are of the
+tool flange: the controller's TCP offset is assumed to be zero.
+
+A motion is one MOVE_LINE followed by state polling (GET_STATE, GET_CMDNUM,
+GET_ERROR) until the arm reports it is idle with an empty queue. Errors are never
+cleared silently: :meth:`recover` (= :meth:`clear_errors`) is the one place that runs
+the vendor's recovery sequence.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.core.transforms import pose_from_xarm, pose_to_xarm
+from cellcal.devices.arm import RobotArm
+from cellcal.devices.base import BackendContext
+from cellcal.devices.errors import (
+    CellcalError,
+    ConfigError,
+    DeviceConnectionError,
+    DeviceTimeoutError,
+    ProtocolError,
+    SafetyError,
+    VendorError,
+)
+from cellcal.devices.pose import Pose
+from cellcal.devices.types import ArmStatus, DeviceInfo
+
+from . import codes
+from .protocol import Reply
+from .registers import (
+    ALL_AXES,
+    JOINT_FLOATS,
+    MOVE_LINE_COMMON_REPLY,
+    VERSION_LEN,
+    ArmState,
+    Reg,
+    SetState,
+    VersionInfo,
+    decode_serials,
+    decode_text,
+    encode_move_line,
+    parse_version,
+    unpack_floats,
+)
+from .transport import SerialTransport
+
+_MM = 1000.0
+
+
+class XArmRobot(RobotArm):
+    """xArm over a serial line (backend ``"xarm"``).
+
+    Args:
+        config: Validated :class:`XArmRobot.Config`.
+        context: Backend context (unused; accepted for the registry).
+    """
+
+    backend_name = "xarm"
+
+    @dataclass(frozen=True)
+    class Config:
+        """The ``[arm]`` section for ``backend = "xarm"``."""
+
+        port: str = field(default="/dev/ttyUSB0", metadata={"doc": "serial device path or pyserial URL"})
+        baudrate: int = field(default=2_000_000, metadata={"gt": 0, "doc": "line speed, baud (8N1)"})
+        axes: Literal[5, 6, 7] = field(default=6, metadata={"doc": "axis count of the arm"})
+        reply_timeout_s: float = field(default=0.5, metadata={"gt": 0, "le": 10, "doc": "per-attempt reply timeout, s"})
+        retries: int = field(default=2, metadata={"ge": 0, "le": 10, "doc": "extra attempts on a bad/missing reply"})
+        enable_timeout_s: float = field(default=5.0, metadata={"gt": 0, "le": 30, "doc": "MOTION_EN timeout, s"})
+        poll_interval_s: float = field(default=0.02, metadata={"gt": 0, "le": 1, "doc": "state polling period, s"})
+        stop_timeout_s: float = field(default=2.0, metadata={"gt": 0, "le": 30, "doc": "time to confirm a stop, s"})
+        default_speed_m_s: float = field(default=0.1, metadata={"gt": 0, "le": 1.0, "doc": "default tool speed, m/s"})
+        default_acceleration_m_s2: float = field(default=1.0, metadata={"gt": 0, "le": 50.0,
+                                                                          "doc": "default tool acceleration, m/s²"})
+        max_speed_m_s: float = field(default=1.0, metadata={"gt": 0, "le": 1.0, "doc": "largest accepted speed, m/s"})
+        max_acceleration_m_s2: float = field(default=50.0, metadata={"gt": 0, "le": 50.0,
+                                                                      "doc": "largest accepted acceleration, m/s²"})
+        move_line_layout: Literal["auto", "legacy", "common"] = field(
+            default="auto", metadata={"doc": "MOVE_LINE parameter layout; auto picks by firmware version"})
+        enable_on_connect: bool = field(default=True, metadata={
+            "doc": "run motion enable, mode 0, state 0 on connect when no error is pending"})
+
+        def __post_init__(self) -> None:
+            if self.default_speed_m_s > self.max_speed_m_s:
+                raise ConfigError(f"default_speed_m_s {self.default_speed_m_s} exceeds max_speed_m_s "
+                                  f"{self.max_speed_m_s}")
+            if self.default_acceleration_m_s2 > self.max_acceleration_m_s2:
+                raise ConfigError(f"default_acceleration_m_s2 {self.default_acceleration_m_s2} exceeds "
+                                  f"max_acceleration_m_s2 {self.max_acceleration_m_s2}")
+
+    def __init__(self, config: XArmRobot.Config | None = None, context: BackendContext | None = None):
+        super().__init__()
+        self.config = config or XArmRobot.Config()
+        self.context = context
+        self._transport: SerialTransport | None = None
+        self._version: VersionInfo | None = None
+        self._robot_sn = ""
+        self._box_sn = ""
+
+    # ------------------------------------------------------------------ wire helpers
+    @property
+    def transport(self) -> SerialTransport:
+        """The open transport (for diagnostics and tests)."""
+        if self._transport is None:
+            raise DeviceConnectionError("xarm: serial transport is not open")
+        return self._transport
+
+    @property
+    def version(self) -> VersionInfo | None:
+        """What the controller said on GET_VERSION at connect."""
+        return self._version
+
+    def _call(self, reg: Reg, params: bytes = b"", *, expect_len: int | None = 0,
+              timeout: float | None = None) -> Reply:
+        return self.transport.transact(int(reg), params, expect_len=expect_len, timeout=timeout)
+
+    def _read_error(self) -> tuple[int, int]:
+        reply = self._call(Reg.GET_ERROR, expect_len=2)
+        return reply.data[0], reply.data[1]
+
+    def _read_state(self) -> int:
+        return self._call(Reg.GET_STATE, expect_len=1).data[0]
+
+    def _read_cmdnum(self) -> int:
+        return int(struct.unpack(">H", self._call(Reg.GET_CMDNUM, expect_len=2).data)[0])
+
+    def _raise_error(self, code: int) -> None:
+        raise VendorError("xarm", code, codes.error_meaning(code))
+
+    def _set_state(self, value: SetState) -> Reply:
+        return self._call(Reg.SET_STATE, bytes([int(value)]))
+
+    # ------------------------------------------------------------------ life cycle
+    def _connect(self, timeout: float) -> None:
+        cfg = self.config
+        self._transport = SerialTransport(cfg.port, cfg.baudrate, reply_timeout_s=min(cfg.reply_timeout_s, timeout),
+                                          retries=cfg.retries)
+        self._transport.open()
+        reply = self._call(Reg.GET_VERSION, expect_len=VERSION_LEN, timeout=timeout)
+        self._version = parse_version(decode_text(reply.data))
+        if self._version.axes is not None and self._version.axes != cfg.axes:
+            raise DeviceConnectionError(f"xarm: configured for {cfg.axes} axes but the arm at {cfg.port!r} reports "
+                                        f"{self._version.axes} ({self._version.text!r})")
+        try:
+            sn = self._call(Reg.GET_ROBOT_SN, expect_len=VERSION_LEN)
+            self._robot_sn, self._box_sn = decode_serials(sn.data)
+        except (ProtocolError, DeviceTimeoutError):
+            self._robot_sn, self._box_sn = self._version.robot_sn, self._version.box_sn
+        if cfg.enable_on_connect:
+            error, _warn = self._read_error()
+            if error == 0:
+                self._enable_sequence()
+
+    def _close(self) -> None:
+        transport, self._transport = self._transport, None
+        if transport is not None:
+            transport.close()
+
+    def _info(self) -> DeviceInfo:
+        v = self._version
+        fw = ".".join(str(x) for x in v.firmware) if v is not None and v.firmware else ""
+        return DeviceInfo(backend=self.backend_name, vendor="UFACTORY", model=f"xArm {self.config.axes}",
+                          serial=self._robot_sn, firmware=fw,
+                          extra={"version": v.text if v else "", "control_box_sn": self._box_sn,
+                                 "port": self.config.port, "move_line_layout": self._layout()})
+
+    def _layout(self) -> str:
+        if self.config.move_line_layout != "auto":
+            return self.config.move_line_layout
+        return "common" if self._version is not None and self._version.uses_common_move_line else "legacy"
+
+    # ------------------------------------------------------------------ recovery
+    def _enable_sequence(self) -> None:
+        self._call(Reg.MOTION_EN, bytes([ALL_AXES, 1]), timeout=self.config.enable_timeout_s)
+        self._call(Reg.SET_MODE, bytes([0]))
+        self._set_state(SetState.RUN)
+
+    def recover(self, timeout: float | None = None) -> None:
+        """The xArm recovery sequence: clean warning, clean error, motion enable, mode 0, state 0.
+
+        Same as :meth:`clear_errors`.
+
+        Raises:
+            VendorError: If an error is still pending afterwards (e.g. an emergency stop).
+        """
+        self.clear_errors(timeout)
+
+    def _clear_errors(self, timeout: float) -> None:
+        self._call(Reg.CLEAN_WAR)
+        self._call(Reg.CLEAN_ERR)
+        self._enable_sequence()
+        error, _warn = self._read_error()
+        if error:
+            self._raise_error(error)
+
+    # ------------------------------------------------------------------ reads
+    def _get_pose(self, timeout: float) -> Pose:
+        reply = self._call(Reg.GET_TCP_POSE, expect_len=24, timeout=timeout)
+        return pose_from_xarm(np.asarray(unpack_floats(reply.data, 6), dtype=np.float64))
+
+    def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
+        reply = self._call(Reg.GET_JOINT_POS, expect_len=4 * JOINT_FLOATS, timeout=timeout)
+        return np.asarray(unpack_floats(reply.data, JOINT_FLOATS)[: self.config.axes], dtype=np.float64)
+
+    def _status(self, timeout: float) -> ArmStatus:
+        error, warn = self._read_error()
+        state = self._read_state()
+        not_ready = state in (ArmState.STOPPED, ArmState.STOPPING)
+        if error:
+            message = codes.error_meaning(error)
+        elif warn:
+            message = codes.warning_meaning(warn)
+        elif not_ready:
+            message = f"not ready to move (state {state}); call clear_errors()"
+        else:
+            message = ""
+        return ArmStatus(error_code=error, warning_code=warn, message=message,
+                         can_move=error == 0 and not not_ready)
+
+    # ------------------------------------------------------------------ motion
+    def _check_ready(self, reply: Reply, what: str) -> None:
+        if reply.error_pending:
+            error, _warn = self._read_error()
+            if error:
+                self._raise_error(error)
+        if reply.not_ready:
+            state = self._read_state()
+            raise VendorError("xarm", codes.NOT_READY,
+                              f"not ready to move ({what}, state {state}); call clear_errors()")
+        if reply.invalid:
+            raise VendorError("xarm", codes.NOT_READY, f"{what} rejected by the controller (invalid command)")
+
+    def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
+        cfg = self.config
+        if speed > cfg.max_speed_m_s:
+            raise SafetyError(f"xarm: speed {speed} m/s exceeds max_speed_m_s {cfg.max_speed_m_s}")
+        if acceleration > cfg.max_acceleration_m_s2:
+            raise SafetyError(f"xarm: acceleration {acceleration} m/s^2 exceeds max_acceleration_m_s2 "
+                              f"{cfg.max_acceleration_m_s2}")
+        deadline = time.monotonic() + timeout
+        error, _warn = self._read_error()
+        if error:
+            self._raise_error(error)
+        common = self._layout() == "common"
+        params = encode_move_line(pose_to_xarm(pose), speed * _MM, acceleration * _MM, common=common)
+        reply = self._call(Reg.MOVE_LINE, params, expect_len=MOVE_LINE_COMMON_REPLY if common else 0)
+        self._check_ready(reply, "MOVE_LINE")
+        self._wait_idle(deadline, timeout)
+
+    def _wait_idle(self, deadline: float, timeout: float) -> None:
+        """Poll until the arm is idle with an empty queue; stop it and raise on timeout."""
+        idle_seen = 0
+        while True:
+            error, _warn = self._read_error()
+            if error:
+                self._raise_error(error)
+            state = self._read_state()
+            if state in (ArmState.STOPPED, ArmState.STOPPING):
+                error, _warn = self._read_error()  # the error may have latched after the read above
+                if error:
+                    self._raise_error(error)
+                raise VendorError("xarm", codes.NOT_READY,
+                                  f"arm stopped during the motion (state {state}); call clear_errors()")
+            if state == ArmState.SLEEPING and self._read_cmdnum() == 0:
+                idle_seen += 1
+                if idle_seen >= 2:
+                    return
+            else:
+                idle_seen = 0
+            if time.monotonic() >= deadline:
+                try:
+                    self._stop(self.config.stop_timeout_s)
+                except CellcalError as exc:
+                    raise DeviceTimeoutError(f"xarm: motion not finished within {timeout:.3g} s, "
+                                             f"and stopping failed: {exc}") from None
+                raise DeviceTimeoutError(f"xarm: motion not finished within {timeout:.3g} s; arm stopped")
+            time.sleep(min(self.config.poll_interval_s, max(0.0, deadline - time.monotonic())))
+
+    def _stop(self, timeout: float) -> None:
+        """Emergency-style stop: SET_STATE 4 until the state reads 4 (the arm then needs recovery)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self._set_state(SetState.STOP)
+            if self._read_state() == ArmState.STOPPED:
+                return
+            if time.monotonic() >= deadline:
+                raise DeviceTimeoutError(f"xarm: arm did not report stopped within {timeout:.3g} s")
+            time.sleep(self.config.poll_interval_s)

@@ -1,0 +1,451 @@
+"""An xArm controller on a pseudo-terminal, backed by a simulated arm.
+
+:class:`XArmEmulator` opens a pty pair (``os.openpty``) and answers UFACTORY's serial
+register protocol on the master side, so anything that opens the slave path as a
+serial port — cellcal's :class:`~cellcal.drivers.xarm.arm.XArmRobot` or UFACTORY's
+own ``xarm-python-sdk`` — talks to it as to a real controller. Motion, workspace and
+errors come from the simulated arm (:class:`ArmModel`, satisfied by
+``cellcal.sims.arm.SimRobotArm``); the emulator adds the controller's state machine
+(motion enable, mode, state, error/warning latching, command counter).
+
+Fault injection (tests): :meth:`XArmEmulator.inject` corrupts the CRC of, drops,
+truncates or stalls upcoming replies; :meth:`XArmEmulator.fail_next_move` raises a
+controller error in the middle of the next motion.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import select
+import struct
+import threading
+import tty
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cellcal.core.transforms import pose_from_xarm, pose_to_xarm
+from cellcal.devices.errors import CellcalError, ProtocolError
+from cellcal.devices.pose import Pose
+from cellcal.drivers.xarm import codes
+from cellcal.drivers.xarm.protocol import (
+    STATE_ERROR,
+    STATE_INVALID,
+    STATE_NOT_READY,
+    STATE_WARNING,
+    FrameSplitter,
+    Request,
+    encode_reply,
+    parse_request,
+)
+from cellcal.drivers.xarm.registers import (
+    ALL_AXES,
+    JOINT_FLOATS,
+    MOVE_LINE_COMMON_REPLY,
+    VERSION_LEN,
+    ArmState,
+    MoveLine,
+    Reg,
+    SetState,
+    decode_move_line,
+    pack_floats,
+)
+
+FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall"]
+
+
+class ArmModel(Protocol):
+    """What the emulator needs from the simulated arm (``SimRobotArm`` provides it)."""
+
+    def begin_move_linear(self, pose: Pose, speed_m_s: float, acceleration_m_s2: float) -> None: ...
+
+    def is_moving(self) -> bool: ...
+
+    def current_error(self) -> tuple[int, int]: ...
+
+    def set_error(self, code: int) -> None: ...
+
+    def get_pose(self, timeout: float | None = None) -> Pose: ...
+
+    def joint_positions(self, timeout: float | None = None) -> np.ndarray: ...
+
+    def stop(self, timeout: float | None = None) -> None: ...
+
+
+@dataclass
+class _Fault:
+    kind: FaultKind
+    register: int | None
+    stall_s: float
+
+
+@dataclass
+class _ScheduledError:
+    code: int
+    after_polls: int
+    armed: bool = False
+    polls: int = 0
+
+
+class XArmEmulator:
+    """Serve the xArm serial protocol on a pty, driven by a simulated arm.
+
+    Args:
+        arm: The simulated arm (connected).
+        axes: Axis count reported in the version string (5, 6 or 7).
+        firmware: Firmware version reported, ``(major, minor, revision)``; from
+            1.11.100 on the SDK sends the extended MOVE_LINE layout.
+        robot_sn: Robot serial number reported.
+        box_sn: Control-box serial number reported.
+        start_ready: Start enabled in mode 0, state 0 (a real arm starts stopped and
+            needs motion enable + set state 0).
+
+    Attributes:
+        path: The slave device path clients open (e.g. ``/dev/pts/5``), once started.
+        requests: Count of well-formed requests served, by register number.
+        bad_requests: Count of frames that failed to decode (bad CRC, ...).
+    """
+
+    def __init__(self, arm: ArmModel, *, axes: int = 6, firmware: tuple[int, int, int] = (2, 5, 0),
+                 robot_sn: str = "XS1305EMU0001", box_sn: str = "AC1305EMU0001", start_ready: bool = False):
+        if axes not in (5, 6, 7):
+            raise CellcalError(f"xarm emulator: axes must be 5, 6 or 7, got {axes}")
+        self.arm = arm
+        self.axes = axes
+        self.firmware = firmware
+        self.robot_sn = robot_sn
+        self.box_sn = box_sn
+        self.version_text = f"{axes},{axes},{robot_sn},{box_sn},v{firmware[0]}.{firmware[1]}.{firmware[2]}"
+        if len(self.version_text) >= VERSION_LEN:
+            raise CellcalError(f"xarm emulator: version string too long: {self.version_text!r}")
+        self.path = ""
+        self.requests: dict[int, int] = {}
+        self.bad_requests = 0
+        self._lock = threading.RLock()
+        self._enabled = start_ready
+        self._ready = start_ready
+        self._mode = 0
+        self._warn = 0
+        self._faults: deque[_Fault] = deque()
+        self._scheduled: _ScheduledError | None = None
+        self._master = -1
+        self._slave = -1
+        self._wake_r = -1
+        self._wake_w = -1
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._handlers: dict[int, Callable[[bytes], tuple[int, bytes]]] = {
+            Reg.GET_VERSION: self._get_version,
+            Reg.GET_ROBOT_SN: self._get_robot_sn,
+            Reg.MOTION_EN: self._motion_en,
+            Reg.SET_STATE: self._set_state,
+            Reg.GET_STATE: self._get_state,
+            Reg.GET_CMDNUM: self._get_cmdnum,
+            Reg.GET_ERROR: self._get_error,
+            Reg.CLEAN_ERR: self._clean_err,
+            Reg.CLEAN_WAR: self._clean_war,
+            Reg.SET_MODE: self._set_mode,
+            Reg.MOVE_LINE: self._move_line,
+            Reg.GET_TCP_POSE: self._get_tcp_pose,
+            Reg.GET_JOINT_POS: self._get_joint_pos,
+            Reg.GET_TCP_POSE_AA: self._get_tcp_pose_aa,
+        }
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self) -> str:
+        """Open the pty and start serving; returns the slave path."""
+        if self._thread is not None:
+            return self.path
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.path = os.ttyname(self._slave)
+        self._wake_r, self._wake_w = os.pipe()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._serve, name="xarm-emulator", daemon=True)
+        self._thread.start()
+        return self.path
+
+    def close(self) -> None:
+        """Stop serving, join the thread and close every fd; safe to call twice."""
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            self._stop.set()
+            with contextlib.suppress(OSError):
+                os.write(self._wake_w, b"x")
+            thread.join(timeout=5.0)
+        for name in ("_master", "_slave", "_wake_r", "_wake_w"):
+            fd = getattr(self, name)
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+                setattr(self, name, -1)
+
+    def __enter__(self) -> XArmEmulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def running(self) -> bool:
+        """Whether the serving thread is alive."""
+        return self._thread is not None and self._thread.is_alive()
+
+    # ------------------------------------------------------------------ fault injection
+    def inject(self, kind: FaultKind, *, count: int = 1, register: int | None = None, stall_s: float = 1.0) -> None:
+        """Spoil the next ``count`` replies (to ``register`` only, if given).
+
+        Kinds: ``corrupt_crc`` flips the CRC; ``drop`` sends nothing (the command
+        still takes effect, as when a reply is lost on the line); ``truncate`` sends
+        half the frame; ``stall`` delays the reply by ``stall_s`` seconds.
+        """
+        with self._lock:
+            for _ in range(count):
+                self._faults.append(_Fault(kind, None if register is None else int(register), float(stall_s)))
+
+    def pending_faults(self) -> int:
+        """Injected faults not yet applied."""
+        with self._lock:
+            return len(self._faults)
+
+    def fail_next_move(self, code: int, *, after_polls: int = 2) -> None:
+        """Raise controller error ``code`` during the next MOVE_LINE, after ``after_polls``
+        GET_STATE requests have seen it moving."""
+        with self._lock:
+            self._scheduled = _ScheduledError(int(code), int(after_polls))
+
+    # ------------------------------------------------------------------ state
+    def _errors(self) -> tuple[int, int]:
+        code, warn = self.arm.current_error()
+        return int(code), int(self._warn or warn)
+
+    def _state_value(self) -> int:
+        code, _ = self._errors()
+        if code or not self._ready:
+            return int(ArmState.STOPPED)
+        return int(ArmState.MOVING if self.arm.is_moving() else ArmState.SLEEPING)
+
+    def _state_byte(self) -> int:
+        code, warn = self._errors()
+        flags = 0
+        if code:
+            flags |= STATE_ERROR
+        if warn:
+            flags |= STATE_WARNING
+        if code or not self._ready or not self._enabled:
+            flags |= STATE_NOT_READY
+        return flags
+
+    def _halt(self) -> None:
+        if self.arm.is_moving():
+            with contextlib.suppress(CellcalError):
+                self.arm.stop()
+
+    def controller_state(self) -> dict[str, int | bool]:
+        """The emulated controller's state (for tests and logs)."""
+        with self._lock:
+            code, warn = self._errors()
+            return {"state": self._state_value(), "mode": self._mode, "enabled": self._enabled,
+                    "ready": self._ready, "error": code, "warn": warn}
+
+    # ------------------------------------------------------------------ handlers: (flags, data)
+    def _get_version(self, _p: bytes) -> tuple[int, bytes]:
+        return 0, self.version_text.encode("ascii").ljust(VERSION_LEN, b"\0")
+
+    def _get_robot_sn(self, _p: bytes) -> tuple[int, bytes]:
+        return 0, (self.robot_sn.encode() + b"\0" + self.box_sn.encode() + b"\0").ljust(VERSION_LEN, b"\0")
+
+    def _motion_en(self, p: bytes) -> tuple[int, bytes]:
+        if len(p) != 2 or not (1 <= p[0] <= ALL_AXES):
+            return STATE_INVALID, b""
+        if p[1]:
+            self._enabled = True
+        else:
+            self._halt()
+            self._enabled = False
+            self._ready = False
+        return 0, b""
+
+    def _set_state(self, p: bytes) -> tuple[int, bytes]:
+        if len(p) != 1:
+            return STATE_INVALID, b""
+        value = p[0]
+        if value == SetState.RUN:
+            code, _ = self._errors()
+            if self._enabled and code == 0:
+                self._ready = True
+            return 0, b""
+        if value in (SetState.STOP, SetState.DECELERATE_STOP):
+            self._halt()
+            self._ready = False
+            return 0, b""
+        return STATE_INVALID, b""
+
+    def _get_state(self, _p: bytes) -> tuple[int, bytes]:
+        sched = self._scheduled
+        if sched is not None and sched.armed and self.arm.is_moving():
+            sched.polls += 1
+            if sched.polls >= sched.after_polls:
+                self.arm.set_error(sched.code)
+                self._halt()
+                self._scheduled = None
+        return 0, bytes([self._state_value()])
+
+    def _get_cmdnum(self, _p: bytes) -> tuple[int, bytes]:
+        return 0, struct.pack(">H", 1 if self.arm.is_moving() and self._ready else 0)
+
+    def _get_error(self, _p: bytes) -> tuple[int, bytes]:
+        code, warn = self._errors()
+        return 0, bytes([code & 0xFF, warn & 0xFF])
+
+    def _clean_err(self, _p: bytes) -> tuple[int, bytes]:
+        self.arm.set_error(0)
+        self._ready = False
+        return 0, b""
+
+    def _clean_war(self, _p: bytes) -> tuple[int, bytes]:
+        self._warn = 0
+        return 0, b""
+
+    def _set_mode(self, p: bytes) -> tuple[int, bytes]:
+        if len(p) not in (1, 2):
+            return STATE_INVALID, b""
+        self._halt()
+        self._mode = p[0]
+        self._ready = False
+        return 0, b""
+
+    def _current_xarm_pose(self) -> np.ndarray:
+        return np.asarray(pose_to_xarm(self.arm.get_pose()), dtype=np.float64)
+
+    def _target_pose(self, cmd: MoveLine) -> Pose:
+        current = self._current_xarm_pose()
+        values = [c if math.isinf(v) else v for v, c in zip(cmd.pose, current, strict=True)]
+        if cmd.axis_angle:
+            rotvec = np.asarray(values[3:], dtype=np.float64)
+            if any(math.isinf(v) for v in cmd.pose[3:]):
+                rotvec = Rotation.from_euler("xyz", current[3:]).as_rotvec()
+            return Pose(Rotation.from_rotvec(rotvec), np.asarray(values[:3]) / 1000.0)
+        return pose_from_xarm(np.asarray(values, dtype=np.float64))
+
+    def _move_line(self, p: bytes) -> tuple[int, bytes]:
+        try:
+            cmd = decode_move_line(p)
+        except ProtocolError:
+            return STATE_INVALID, b""
+        extra = bytes(MOVE_LINE_COMMON_REPLY) if cmd.common else b""
+        code, _ = self._errors()
+        if code:
+            return 0, extra
+        if not self._ready or not self._enabled or self._mode != 0:
+            return 0, extra
+        if cmd.coord != 0 or any(math.isnan(v) for v in cmd.pose) \
+                or not (cmd.speed_mm_s > 0 and cmd.acc_mm_s2 > 0) \
+                or not (math.isfinite(cmd.speed_mm_s) and math.isfinite(cmd.acc_mm_s2)):
+            return STATE_INVALID, extra
+        target = self._target_pose(cmd)
+        if cmd.only_check:
+            return 0, extra
+        try:
+            self.arm.begin_move_linear(target, cmd.speed_mm_s / 1000.0, cmd.acc_mm_s2 / 1000.0)
+        except CellcalError:
+            # Outside the workspace (or otherwise refused): the controller latches an error.
+            code_now, _ = self._errors()
+            if not code_now:
+                self.arm.set_error(codes.SAFETY_BOUNDARY)
+            self._ready = False
+            return 0, extra
+        sched = self._scheduled
+        if sched is not None:
+            sched.armed = True
+        return 0, extra
+
+    def _get_tcp_pose(self, _p: bytes) -> tuple[int, bytes]:
+        return 0, pack_floats(list(self._current_xarm_pose()))
+
+    def _get_tcp_pose_aa(self, _p: bytes) -> tuple[int, bytes]:
+        pose = self.arm.get_pose()
+        return 0, pack_floats([*(pose.translation * 1000.0), *pose.rotation.as_rotvec()])
+
+    def _get_joint_pos(self, _p: bytes) -> tuple[int, bytes]:
+        joints = np.zeros(JOINT_FLOATS)
+        q = np.asarray(self.arm.joint_positions(), dtype=np.float64).ravel()[:JOINT_FLOATS]
+        joints[: q.size] = q
+        return 0, pack_floats(list(joints))
+
+    # ------------------------------------------------------------------ serving
+    def handle(self, request: Request) -> bytes:
+        """Execute one request and return the reply frame (before fault injection)."""
+        with self._lock:
+            self.requests[request.register] = self.requests.get(request.register, 0) + 1
+            handler = self._handlers.get(request.register)
+            if handler is None:
+                flags, data = STATE_INVALID, b""
+            else:
+                flags, data = handler(request.params)
+            return encode_reply(self._state_byte() | flags, data)
+
+    def _next_fault(self, register: int) -> _Fault | None:
+        with self._lock:
+            for i, fault in enumerate(self._faults):
+                if fault.register is None or fault.register == register:
+                    del self._faults[i]
+                    return fault
+        return None
+
+    def _send(self, frame: bytes, register: int) -> None:
+        fault = self._next_fault(register)
+        if fault is not None:
+            if fault.kind == "drop":
+                return
+            if fault.kind == "corrupt_crc":
+                frame = frame[:-2] + bytes([frame[-2] ^ 0xFF, frame[-1] ^ 0x5A])
+            elif fault.kind == "truncate":
+                frame = frame[: max(1, len(frame) // 2)]
+            elif fault.kind == "stall" and self._stop.wait(fault.stall_s):
+                return
+        view = memoryview(frame)
+        while view and not self._stop.is_set():
+            try:
+                n = os.write(self._master, view)
+            except BlockingIOError:
+                select.select([], [self._master], [], 0.05)
+                continue
+            except OSError:
+                return
+            view = view[n:]
+
+    def _serve(self) -> None:
+        splitter = FrameSplitter.for_requests()
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([self._master, self._wake_r], [], [], 0.5)
+            except (OSError, ValueError):
+                return
+            if self._wake_r in ready or self._stop.is_set():
+                return
+            if self._master not in ready:
+                continue
+            try:
+                data = os.read(self._master, 4096)
+            except OSError:
+                continue
+            for frame in splitter.feed(data):
+                try:
+                    request = parse_request(frame)
+                except ProtocolError:
+                    self.bad_requests += 1
+                    continue
+                try:
+                    reply = self.handle(request)
+                except Exception:
+                    self.bad_requests += 1
+                    reply = encode_reply(STATE_INVALID)
+                self._send(reply, request.register)
