@@ -1,0 +1,359 @@
+"""A simulated 5-DoF robot arm modelled on the UFACTORY xArm 5.
+
+**Workspace** (flange position in the base frame, configurable): horizontal distance
+from the base axis ``min_radius_m <= r <= reach_m`` (defaults 0.10 m and 0.70 m, the
+xArm 5's quoted reach) and ``z_min_m <= z <= z_max_m`` (defaults -0.10 m and 0.90 m).
+A target outside it is refused: the arm does not move and enters error state
+**21** ("Kinematic Error", as the xArm controller reports an unsolvable target);
+:meth:`SimRobotArm.move_linear` raises ``VendorError("sim", 21, ...)``. Orientation is
+not restricted (a real 5-DoF arm cannot reach every orientation; see the IK below).
+
+**Motion**: straight line in position, slerp in orientation, both following one
+trapezoidal speed profile over the path length
+``L = max(|Δp|, angle · 0.1 m)`` (so pure rotations take time too):
+``T = L/v + v/a`` when ``L >= v²/a``, else ``T = 2·sqrt(L/a)``. Speed and acceleration
+are clamped to the xArm 5's limits (1.0 m/s, 50 m/s²). Simulated time advances by
+``T``; the wall clock waits ``T · time_scale`` (0 = instantaneous, 1 = real time; the
+default 0.01 keeps the default run fast). A new target replaces a motion under way,
+starting from where the flange is; :meth:`SimRobotArm.stop` halts where it is.
+
+**Read-back**: :meth:`get_pose` returns the true flange pose plus Gaussian noise on
+each translation axis with ``sigma = repeatability_m / 4`` (xArm 5: ±0.1 mm), so
+readings stay within ± ``repeatability_m`` of the truth; the orientation is exact.
+The arm arrives exactly at the commanded target (the truth the camera sees).
+
+**Joints** (radians, 5 values): an analytic IK of a simplified xArm-5-like chain —
+base yaw J1 about z; shoulder J2 at height 0.267 m, upper arm 0.2895 m, forearm
+0.3512 m (J3), wrist pitch J4, and a rigid wrist-to-flange link of 0.1232 m along the
+tool axis, flange roll J5 about the tool axis. ``J1 = atan2(y, x)``; the tool axis is
+projected into the arm's vertical plane (the 5-DoF constraint) to give the wrist
+point and the tool pitch; J2/J3 solve the planar two-link problem (elbow up, the
+reach clamped to the links' range), J4 makes up the tool pitch, J5 is the residual
+roll. J1 and J5 are unwrapped towards the previous reading, so the joints are
+continuous along a motion. Angles: J2 from vertical (forward positive), J3 and J4
+relative to the previous link.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from cellcal.devices.arm import RobotArm
+from cellcal.devices.base import BackendContext
+from cellcal.devices.errors import DeviceTimeoutError, VendorError
+from cellcal.devices.pose import Pose
+from cellcal.devices.types import ArmStatus, DeviceInfo
+
+from .world import SimWorld, world_from_context
+
+# xArm-5-like geometry, metres.
+SHOULDER_HEIGHT_M = 0.267
+UPPER_ARM_M = 0.2895
+FOREARM_M = 0.3512
+WRIST_TO_FLANGE_M = math.hypot(0.076, 0.097)
+#: Effective radius converting a rotation angle into path length, metres per radian.
+ROTATION_RADIUS_M = 0.1
+#: xArm 5 TCP limits.
+MAX_SPEED_M_S = 1.0
+MAX_ACCELERATION_M_S2 = 50.0
+
+#: xArm controller error codes the sim uses (titles as the controller reports them).
+ERROR_MEANINGS: dict[int, str] = {
+    1: "Emergency Stop Button Pushed In",
+    2: "Emergency IO Triggered",
+    3: "Emergency Stop of Three-state Switch",
+    21: "Kinematic Error",
+    22: "Self-Collision Error",
+    23: "Joints Angle Exceed Limit",
+    24: "Speed Exceeds Limit",
+    25: "Planning Error",
+    31: "Collision Caused Abnormal Current",
+    35: "Safety Boundary Limit",
+}
+ERROR_OUT_OF_REACH = 21
+
+
+def error_meaning(code: int) -> str:
+    """Human-readable meaning of an xArm-like controller error code."""
+    return ERROR_MEANINGS.get(int(code), f"Controller Error {int(code)}")
+
+
+def trapezoid_duration(distance: float, speed: float, acceleration: float) -> float:
+    """Time (s) to travel ``distance`` (m) from rest to rest with a trapezoidal profile."""
+    if distance <= 0.0:
+        return 0.0
+    if distance >= speed * speed / acceleration:
+        return distance / speed + speed / acceleration
+    return 2.0 * math.sqrt(distance / acceleration)
+
+
+def trapezoid_position(t: float, distance: float, speed: float, acceleration: float) -> float:
+    """Distance (m) travelled after ``t`` seconds along the trapezoidal profile."""
+    total = trapezoid_duration(distance, speed, acceleration)
+    if t <= 0.0 or total <= 0.0:
+        return 0.0
+    if t >= total:
+        return distance
+    v_peak = min(speed, math.sqrt(distance * acceleration))
+    t_acc = v_peak / acceleration
+    d_acc = 0.5 * acceleration * t_acc * t_acc
+    if t < t_acc:
+        return 0.5 * acceleration * t * t
+    if t <= total - t_acc:
+        return d_acc + v_peak * (t - t_acc)
+    tr = total - t
+    return distance - 0.5 * acceleration * tr * tr
+
+
+class LinearMotion:
+    """A straight-line flange motion with a trapezoidal profile (see the module docstring).
+
+    Args:
+        start, target: Flange poses in the base frame.
+        speed: m/s; acceleration: m/s².
+    """
+
+    def __init__(self, start: Pose, target: Pose, speed: float, acceleration: float) -> None:
+        self.start = start
+        self.target = target
+        self.speed = float(speed)
+        self.acceleration = float(acceleration)
+        self._dp = target.translation - start.translation
+        self._drot = (start.rotation.inv() * target.rotation).as_rotvec()
+        self.length_m = max(float(np.linalg.norm(self._dp)), float(np.linalg.norm(self._drot)) * ROTATION_RADIUS_M)
+        self._duration = trapezoid_duration(self.length_m, self.speed, self.acceleration)
+
+    @property
+    def duration_s(self) -> float:
+        """Simulated duration, seconds."""
+        return self._duration
+
+    def pose_at(self, t_s: float) -> Pose:
+        """Flange pose ``t_s`` simulated seconds after the start."""
+        if t_s >= self._duration:
+            return self.target
+        s = trapezoid_position(t_s, self.length_m, self.speed, self.acceleration) / self.length_m
+        rot = self.start.rotation * Rotation.from_rotvec(s * self._drot)
+        return Pose(rot, self.start.translation + s * self._dp)
+
+
+def _wrap_near(angle: float, reference: float) -> float:
+    return angle + 2.0 * math.pi * round((reference - angle) / (2.0 * math.pi))
+
+
+def inverse_kinematics(pose: Pose, previous: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """Joint angles (rad, 5) of the simplified xArm-5-like chain for a flange pose.
+
+    Args:
+        pose: Flange pose in the base frame.
+        previous: Previous joint reading; J1 and J5 are unwrapped towards it.
+    """
+    p = pose.translation
+    rmat = pose.rotation.as_matrix()
+    j1 = math.atan2(p[1], p[0]) if math.hypot(p[0], p[1]) > 1e-9 else 0.0
+    e_r = np.array([math.cos(j1), math.sin(j1), 0.0])
+    a = rmat[:, 2]  # tool (approach) axis
+    a_r, a_z = float(a @ e_r), float(a[2])
+    alpha4 = math.atan2(a_r, a_z) if math.hypot(a_r, a_z) > 1e-9 else math.pi  # tool direction from +z
+    r = float(p @ e_r)
+    w_r = r - WRIST_TO_FLANGE_M * math.sin(alpha4)
+    w_z = float(p[2]) - WRIST_TO_FLANGE_M * math.cos(alpha4)
+    dr, dz = w_r, w_z - SHOULDER_HEIGHT_M
+    lo, hi = abs(UPPER_ARM_M - FOREARM_M) + 1e-6, UPPER_ARM_M + FOREARM_M - 1e-6
+    dist = min(max(math.hypot(dr, dz), lo), hi)
+    cos_elbow = (dist**2 - UPPER_ARM_M**2 - FOREARM_M**2) / (2.0 * UPPER_ARM_M * FOREARM_M)
+    j3 = math.acos(max(-1.0, min(1.0, cos_elbow)))  # elbow bend (forearm pitched down relative)
+    beta = math.atan2(dr, dz)  # direction shoulder->wrist from +z
+    gamma = math.atan2(FOREARM_M * math.sin(j3), UPPER_ARM_M + FOREARM_M * math.cos(j3))
+    j2 = beta - gamma
+    j4 = alpha4 - j2 - j3
+    r04 = Rotation.from_euler("zy", [j1, alpha4])  # Rz(j1) then Ry(alpha4), intrinsic => Rz @ Ry
+    resid = (r04.inv() * pose.rotation).as_matrix()
+    j5 = math.atan2(resid[1, 0], resid[0, 0])
+    j4 = math.remainder(j4, 2.0 * math.pi)
+    if previous is not None and len(previous) >= 5:
+        j1 = _wrap_near(j1, float(previous[0]))
+        j5 = _wrap_near(j5, float(previous[4]))
+    return np.array([j1, j2, j3, j4, j5], dtype=np.float64)
+
+
+def forward_position(joints: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Flange position (m, base frame) of the simplified chain for joints J1..J4 (rad)."""
+    j1, j2, j3, j4 = (float(v) for v in joints[:4])
+    r = UPPER_ARM_M * math.sin(j2) + FOREARM_M * math.sin(j2 + j3) + WRIST_TO_FLANGE_M * math.sin(j2 + j3 + j4)
+    z = (SHOULDER_HEIGHT_M + UPPER_ARM_M * math.cos(j2) + FOREARM_M * math.cos(j2 + j3)
+         + WRIST_TO_FLANGE_M * math.cos(j2 + j3 + j4))
+    return np.array([r * math.cos(j1), r * math.sin(j1), z])
+
+
+@dataclass(frozen=True)
+class SimRobotArmConfig:
+    """Config of the ``sim`` arm backend (the ``[arm]`` table)."""
+
+    reach_m: float = field(default=0.70, metadata={"gt": 0.0, "le": 5.0, "doc": "max flange radius from base axis, m"})
+    min_radius_m: float = field(default=0.10, metadata={"ge": 0.0, "le": 5.0,
+                                                        "doc": "min flange radius from the base axis, m"})
+    z_min_m: float = field(default=-0.10, metadata={"ge": -5.0, "le": 5.0, "doc": "lowest flange z, m"})
+    z_max_m: float = field(default=0.90, metadata={"ge": -5.0, "le": 5.0, "doc": "highest flange z, m"})
+    time_scale: float = field(default=0.01, metadata={"ge": 0.0, "le": 10.0,
+                                                      "doc": "wall seconds per simulated second (0 = instant)"})
+    repeatability_m: float = field(default=0.0001, metadata={"ge": 0.0, "le": 0.01,
+                                                             "doc": "pose read-back repeatability (4 sigma), m"})
+    seed: int | None = field(default=None, metadata={"ge": 0, "doc": "read-back noise seed; default: world's"})
+
+    def __post_init__(self) -> None:
+        if self.reach_m <= self.min_radius_m:
+            raise ValueError(f"reach_m ({self.reach_m}) must exceed min_radius_m ({self.min_radius_m})")
+        if self.z_max_m <= self.z_min_m:
+            raise ValueError(f"z_max_m ({self.z_max_m}) must exceed z_min_m ({self.z_min_m})")
+
+
+class SimRobotArm(RobotArm):
+    """Simulated xArm-5-like arm moving the flange of the shared :class:`SimWorld`.
+
+    Thread-safe: the non-blocking API (:meth:`begin_move_linear`, :meth:`is_moving`,
+    :meth:`motion_progress`, :meth:`current_error`, :meth:`set_error`) may be driven
+    from an emulator's server thread while others read the pose.
+
+    Args:
+        config: Backend config; None uses the defaults.
+        context: Backend context (gives the shared world); None makes a private one.
+        world: Use this world instead of the context's.
+    """
+
+    backend_name = "sim"
+    Config = SimRobotArmConfig
+
+    def __init__(self, config: SimRobotArmConfig | None = None, context: BackendContext | None = None, *,
+                 world: SimWorld | None = None) -> None:
+        super().__init__()
+        self.config = config or SimRobotArmConfig()
+        self.world = world if world is not None else world_from_context(context)
+        self._rng = self.world.rng("arm", self.config.seed)
+        self._lock = threading.RLock()
+        self._error = 0
+        self._warning = 0
+        self._joints: NDArray[np.float64] | None = None
+        self.last_motion_duration_s = 0.0
+
+    # ------------------------------------------------------------------ workspace
+    def workspace_violation(self, pose: Pose) -> str | None:
+        """Why ``pose`` is outside the workspace, or None when it is reachable."""
+        c = self.config
+        x, y, z = (float(v) for v in pose.translation)
+        r = math.hypot(x, y)
+        if r > c.reach_m:
+            return f"radius {r:.4f} m beyond the reach {c.reach_m} m"
+        if r < c.min_radius_m:
+            return f"radius {r:.4f} m inside the minimum radius {c.min_radius_m} m"
+        if not c.z_min_m <= z <= c.z_max_m:
+            return f"z {z:.4f} m outside [{c.z_min_m}, {c.z_max_m}] m"
+        return None
+
+    # ------------------------------------------------------------------ non-blocking API
+    def begin_move_linear(self, pose: Pose, speed_m_s: float, acceleration_m_s2: float) -> None:
+        """Start a straight-line motion and return at once.
+
+        If an error is pending the command is ignored (check :meth:`current_error`); if
+        the target is outside the workspace the arm does not move and enters error 21.
+        Speed and acceleration are clamped to the xArm 5's limits.
+        """
+        with self._lock:
+            if self._error:
+                return
+            if self.workspace_violation(pose) is not None:
+                self.set_error(ERROR_OUT_OF_REACH)
+                return
+            v = min(float(speed_m_s), MAX_SPEED_M_S)
+            acc = min(float(acceleration_m_s2), MAX_ACCELERATION_M_S2)
+            model = self.world.arm
+            motion = LinearMotion(model.flange_pose(), pose, v, acc)
+            self.last_motion_duration_s = motion.duration_s
+            model.start_motion(motion, self.config.time_scale)
+
+    def is_moving(self) -> bool:
+        """Whether a motion is under way."""
+        return self.world.arm.is_moving()
+
+    def motion_progress(self) -> float:
+        """Fraction 0..1 of the current motion done (1.0 when idle)."""
+        return self.world.arm.progress()
+
+    def current_error(self) -> tuple[int, int]:
+        """``(error_code, warning_code)``; 0 when clear."""
+        with self._lock:
+            return self._error, self._warning
+
+    def set_error(self, code: int, warning: int = 0) -> None:
+        """Enter an error state (fault injection); a non-zero error halts any motion."""
+        with self._lock:
+            self._error = int(code)
+            self._warning = int(warning)
+            if self._error:
+                self.world.arm.halt()
+
+    def true_flange_pose(self) -> Pose:
+        """The flange pose without read-back noise (ground truth)."""
+        return self.world.arm.flange_pose()
+
+    # ------------------------------------------------------------------ backend hooks
+    def _connect(self, timeout: float) -> None:
+        return None
+
+    def _close(self) -> None:
+        self.world.arm.halt()
+
+    def _info(self) -> DeviceInfo:
+        return DeviceInfo(backend="sim", vendor="cellcal (simulated UFACTORY)", model="xArm 5 (simulated)",
+                          serial=f"SIM-XA5-{self.world.seed:08d}", firmware="sim",
+                          extra={"axes": 5, "time_scale": self.config.time_scale})
+
+    def _get_pose(self, timeout: float) -> Pose:
+        true = self.world.arm.flange_pose()
+        with self._lock:
+            noise = self._rng.standard_normal(3) * (self.config.repeatability_m / 4.0)
+        return Pose(true.rotation, true.translation + noise)
+
+    def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
+        self.begin_move_linear(pose, speed, acceleration)
+        self._raise_if_error()
+        deadline = time.monotonic() + timeout
+        model = self.world.arm
+        while model.is_moving():
+            now = time.monotonic()
+            if now >= deadline:
+                model.halt()
+                raise DeviceTimeoutError(f"sim arm: motion did not finish within {timeout:g} s; stopped")
+            wait = model.remaining_s() * self.config.time_scale
+            time.sleep(max(1e-4, min(wait, deadline - now, 0.05)))
+        self._raise_if_error()
+
+    def _raise_if_error(self) -> None:
+        code, _ = self.current_error()
+        if code:
+            raise VendorError("sim", code, error_meaning(code))
+
+    def _stop(self, timeout: float) -> None:
+        self.world.arm.halt()
+
+    def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
+        with self._lock:
+            self._joints = inverse_kinematics(self.world.arm.flange_pose(), self._joints)
+            return self._joints.copy()
+
+    def _status(self, timeout: float) -> ArmStatus:
+        code, warn = self.current_error()
+        message = error_meaning(code) if code else (f"warning {warn}" if warn else "")
+        return ArmStatus(error_code=code, warning_code=warn, message=message, can_move=code == 0)
+
+    def _clear_errors(self, timeout: float) -> None:
+        with self._lock:
+            self._error = 0
+            self._warning = 0

@@ -1,0 +1,207 @@
+"""The simulated xArm-5-like arm: motion, timing, workspace errors, joints, coupling to the camera."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cellcal.devices.base import BackendContext
+from cellcal.devices.errors import DeviceTimeoutError, NotConnectedError, VendorError
+from cellcal.devices.pose import Pose
+from cellcal.devices.registry import default_registry
+from cellcal.sims.arm import (
+    ERROR_OUT_OF_REACH,
+    SimRobotArm,
+    SimRobotArmConfig,
+    forward_position,
+    inverse_kinematics,
+    trapezoid_duration,
+    trapezoid_position,
+)
+from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig
+from cellcal.sims.scene import Scene
+from cellcal.sims.world import SimWorld
+
+DOWN = Rotation.from_euler("x", 180.0, degrees=True)
+
+
+def make_arm(**cfg: object) -> SimRobotArm:
+    world = SimWorld(Scene(), mount=Pose.identity(), flange_pose=Pose(DOWN, np.array([0.3, 0.0, 0.5])), seed=1)
+    return SimRobotArm(SimRobotArmConfig(**cfg), world=world)  # type: ignore[arg-type]
+
+
+def test_trapezoid_profile_formulas() -> None:
+    # Long move: cruise reached. 0.2 m at 0.1 m/s, 0.5 m/s^2: 2 s + 0.2 s.
+    assert trapezoid_duration(0.2, 0.1, 0.5) == pytest.approx(2.2)
+    # Short move: triangle. 0.01 m at 0.5 m/s, 1 m/s^2: 2*sqrt(0.01) = 0.2 s.
+    assert trapezoid_duration(0.01, 0.5, 1.0) == pytest.approx(0.2)
+    # Position is continuous, monotonic and ends at the distance.
+    ts = np.linspace(0.0, 2.2, 221)
+    s = np.array([trapezoid_position(t, 0.2, 0.1, 0.5) for t in ts])
+    assert s[0] == 0.0 and s[-1] == pytest.approx(0.2)
+    assert np.all(np.diff(s) >= -1e-15)
+    assert np.max(np.diff(s)) / (ts[1] - ts[0]) == pytest.approx(0.1, rel=1e-6)  # cruise speed
+    assert trapezoid_position(1.1, 0.2, 0.1, 0.5) == pytest.approx(0.1)  # symmetric midpoint
+
+
+@pytest.mark.parametrize("time_scale", [0.0, 0.05])
+def test_move_arrives_within_repeatability_and_simulated_time_matches(time_scale: float) -> None:
+    arm = make_arm(time_scale=time_scale)
+    target = Pose(DOWN * Rotation.from_euler("x", 10.0, degrees=True), np.array([0.35, 0.1, 0.45]))
+    with arm:
+        t0 = arm.world.clock.elapsed_s
+        arm.move_linear(target, speed=0.2, acceleration=1.0, timeout=5.0)
+        elapsed = arm.world.clock.elapsed_s - t0
+        distance = float(np.linalg.norm(target.translation - [0.3, 0.0, 0.5]))
+        assert elapsed == pytest.approx(trapezoid_duration(distance, 0.2, 1.0), abs=1e-12)
+        assert arm.last_motion_duration_s == pytest.approx(elapsed)
+        assert arm.true_flange_pose().is_close(target, atol_m=1e-12, atol_rad=1e-12)
+        reads = np.array([arm.get_pose(timeout=1.0).translation for _ in range(50)])
+        err = reads - target.translation
+        assert np.max(np.abs(err)) <= 1e-4  # xArm 5: +-0.1 mm
+        assert np.std(err) == pytest.approx(0.25e-4, rel=0.3)  # sigma = repeatability / 4, not zero
+        assert arm.get_pose(timeout=1.0).angle_to(target) < 1e-12
+        assert not arm.is_moving() and arm.motion_progress() == 1.0
+
+
+def test_real_time_scale_short_move_uses_simulated_clock() -> None:
+    arm = make_arm(time_scale=1.0)
+    target = Pose(DOWN, np.array([0.305, 0.0, 0.5]))  # 5 mm at 0.05 m/s, 0.5 m/s^2: 0.1 + 0.1 = 0.2 s
+    with arm:
+        t0 = arm.world.clock.elapsed_s
+        arm.move_linear(target, speed=0.05, acceleration=0.5, timeout=5.0)
+        assert arm.world.clock.elapsed_s - t0 == pytest.approx(0.2, abs=1e-12)
+
+
+def test_non_blocking_motion_progress_and_stop() -> None:
+    arm = make_arm(time_scale=1.0)
+    start = arm.true_flange_pose()
+    target = Pose(DOWN, np.array([0.3, 0.3, 0.5]))  # 0.3 m at 0.1 m/s: 3.1 s of (real) time
+    with arm:
+        arm.begin_move_linear(target, 0.1, 1.0)
+        assert arm.is_moving()
+        assert 0.0 <= arm.motion_progress() < 0.5
+        threading.Event().wait(0.05)
+        arm.stop(timeout=1.0)
+        assert not arm.is_moving()
+        halted = arm.true_flange_pose()
+        travelled = halted.distance_to(start)
+        assert 0.0 < travelled < 0.05  # moved a little along the line, then halted
+        np.testing.assert_allclose(halted.translation[[0, 2]], [0.3, 0.5], atol=1e-12)
+        assert arm.true_flange_pose().is_close(halted)  # stays put
+
+
+def test_out_of_workspace_raises_vendor_error_and_clear_errors_recovers() -> None:
+    arm = make_arm(time_scale=0.0)
+    with arm:
+        before = arm.true_flange_pose()
+        with pytest.raises(VendorError) as info:
+            arm.move_linear(Pose(DOWN, np.array([0.8, 0.0, 0.4])), speed=0.1, acceleration=1.0, timeout=2.0)
+        assert info.value.code == ERROR_OUT_OF_REACH == 21 and info.value.vendor == "sim"
+        assert arm.true_flange_pose().is_close(before)  # nothing moved
+        status = arm.status(timeout=1.0)
+        assert status.error_code == 21 and not status.can_move and "Kinematic" in status.message
+        # While the error is pending even a reachable move is refused.
+        with pytest.raises(VendorError):
+            arm.move_linear(Pose(DOWN, np.array([0.3, 0.1, 0.4])), speed=0.1, acceleration=1.0, timeout=2.0)
+        arm.clear_errors(timeout=1.0)
+        assert arm.status(timeout=1.0).ok
+        arm.move_linear(Pose(DOWN, np.array([0.3, 0.1, 0.4])), speed=0.1, acceleration=1.0, timeout=2.0)
+        assert arm.true_flange_pose().distance_to(Pose(DOWN, np.array([0.3, 0.1, 0.4]))) < 1e-12
+        for bad in ([0.05, 0.0, 0.4], [0.3, 0.0, 0.95], [0.3, 0.0, -0.2]):
+            assert arm.workspace_violation(Pose(DOWN, np.array(bad))) is not None
+            arm.clear_errors(timeout=1.0)
+            with pytest.raises(VendorError):
+                arm.move_linear(Pose(DOWN, np.array(bad)), speed=0.1, acceleration=1.0, timeout=2.0)
+
+
+def test_injected_error_halts_a_blocking_move() -> None:
+    arm = make_arm(time_scale=1.0)
+    with arm:
+        timer = threading.Timer(0.05, arm.set_error, args=(31,))
+        timer.start()
+        try:
+            with pytest.raises(VendorError) as info:
+                arm.move_linear(Pose(DOWN, np.array([0.3, 0.3, 0.5])), speed=0.1, acceleration=1.0, timeout=5.0)
+        finally:
+            timer.join()
+        assert info.value.code == 31
+        assert not arm.is_moving()
+
+
+def test_motion_timeout_stops_the_arm() -> None:
+    arm = make_arm(time_scale=1.0)
+    with arm:
+        with pytest.raises(DeviceTimeoutError):
+            arm.move_linear(Pose(DOWN, np.array([0.3, 0.3, 0.5])), speed=0.1, acceleration=1.0, timeout=0.05)
+        assert not arm.is_moving()
+
+
+def test_closed_arm_raises_not_connected() -> None:
+    arm = make_arm()
+    for call in (lambda: arm.get_pose(timeout=1.0), lambda: arm.joint_positions(timeout=1.0),
+                 lambda: arm.status(timeout=1.0), lambda: arm.stop(timeout=1.0),
+                 lambda: arm.move_linear(Pose(DOWN, np.array([0.3, 0.0, 0.4])), speed=0.1, acceleration=1.0)):
+        with pytest.raises(NotConnectedError):
+            call()
+    arm.connect()
+    arm.close()
+    with pytest.raises(NotConnectedError):
+        arm.get_pose(timeout=1.0)
+
+
+def test_joint_positions_reproduce_the_flange_and_are_continuous() -> None:
+    arm = make_arm(time_scale=0.0)
+    with arm:
+        q = arm.joint_positions(timeout=1.0)
+        assert q.shape == (5,)
+        np.testing.assert_allclose(forward_position(q), [0.3, 0.0, 0.5], atol=1e-12)
+    # Along a sweep of the base through +-180 deg the joints move in small steps.
+    prev = None
+    steps = []
+    for yaw in np.radians(np.linspace(0.0, 400.0, 201)):
+        p = Pose(Rotation.from_euler("z", yaw) * DOWN, np.array([0.4 * math.cos(yaw), 0.4 * math.sin(yaw), 0.3]))
+        q = inverse_kinematics(p, prev)
+        np.testing.assert_allclose(forward_position(q), p.translation, atol=1e-12)
+        if prev is not None:
+            steps.append(np.max(np.abs(q - prev)))
+        prev = q
+    assert max(steps) < math.radians(5.0)
+
+
+def test_camera_follows_the_arm() -> None:
+    world = SimWorld(Scene(), mount=Pose(Rotation.identity(), np.array([0.0, 0.0, 0.03])),
+                     flange_pose=Pose(DOWN, np.array([0.3, 0.0, 0.5])), seed=2)
+    arm = SimRobotArm(SimRobotArmConfig(time_scale=0.0), world=world)
+    cam = SimCamera3D(SimCamera3DConfig(noise=False, quantisation_m=0.0, distortion=False), world=world)
+    with arm, cam:
+        centre = cam.capture(timeout=1.0).distance[85:87, 111:113].mean()
+        assert centre == pytest.approx(0.47, abs=1e-5)  # flange 0.5 m minus the 3 cm mount
+        # Raise by 0.2 m and tilt 20 deg about the flange x axis: distance along the axis = h / cos(20).
+        target = Pose(DOWN * Rotation.from_euler("x", 20.0, degrees=True), np.array([0.3, 0.0, 0.7]))
+        arm.move_linear(target, speed=0.2, acceleration=1.0, timeout=5.0)
+        frame = cam.capture(timeout=1.0)
+        cam_pose = target @ world.mount
+        expected = cam_pose.translation[2] / math.cos(math.radians(20.0))
+        assert frame.distance[85:87, 111:113].mean() == pytest.approx(expected, abs=2e-4)
+
+
+def test_registered_as_sim_backends_sharing_one_world() -> None:
+    reg = default_registry()
+    assert reg.get("camera", "sim") is SimCamera3D
+    assert reg.get("arm", "sim") is SimRobotArm
+    doc = {"sim": {"seed": 3}, "arm": {"backend": "sim", "time_scale": 0.0}, "camera": {"backend": "sim"}}
+    ctx = BackendContext(source="cell.toml", document=doc)
+    arm = reg.create_arm(doc["arm"], ctx)
+    cam = reg.create_camera(doc["camera"], ctx)
+    assert isinstance(arm, SimRobotArm) and isinstance(cam, SimCamera3D)
+    assert arm.world is cam.world and arm.world.seed == 3
+    with arm, cam:  # moving the arm is seen by the camera built from the same document
+        d0 = float(np.nanmedian(cam.capture(timeout=1.0).distance))
+        arm.move_linear(Pose(DOWN, np.array([0.3, 0.0, 0.6])), speed=0.2, acceleration=1.0, timeout=5.0)
+        d1 = float(np.nanmedian(cam.capture(timeout=1.0).distance))
+    assert d1 - d0 == pytest.approx(0.1 * d0 / 0.5, abs=3e-3)
