@@ -47,7 +47,7 @@ from scipy.spatial.transform import Rotation
 
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
-from cellcal.devices.errors import DeviceTimeoutError, VendorError
+from cellcal.devices.errors import ConfigError, DeviceTimeoutError, VendorError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 
@@ -210,9 +210,9 @@ class SimRobotArmConfig:
 
     def __post_init__(self) -> None:
         if self.reach_m <= self.min_radius_m:
-            raise ValueError(f"reach_m ({self.reach_m}) must exceed min_radius_m ({self.min_radius_m})")
+            raise ConfigError(f"reach_m ({self.reach_m}) must exceed min_radius_m ({self.min_radius_m})")
         if self.z_max_m <= self.z_min_m:
-            raise ValueError(f"z_max_m ({self.z_max_m}) must exceed z_min_m ({self.z_min_m})")
+            raise ConfigError(f"z_max_m ({self.z_max_m}) must exceed z_min_m ({self.z_min_m})")
 
 
 class SimRobotArm(RobotArm):

@@ -44,6 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 from cellcal.core.camera import pixel_grid_rays
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
@@ -129,7 +130,7 @@ class SimCamera3DConfig:
 
     def __post_init__(self) -> None:
         if self.max_range_m <= self.min_range_m:
-            raise ValueError(f"max_range_m ({self.max_range_m}) must exceed min_range_m ({self.min_range_m})")
+            raise ConfigError(f"max_range_m ({self.max_range_m}) must exceed min_range_m ({self.min_range_m})")
 
     def intrinsics(self) -> Intrinsics:
         """The intrinsics this config describes."""

@@ -205,3 +205,12 @@ def test_registered_as_sim_backends_sharing_one_world() -> None:
         arm.move_linear(Pose(DOWN, np.array([0.3, 0.0, 0.6])), speed=0.2, acceleration=1.0, timeout=5.0)
         d1 = float(np.nanmedian(cam.capture(timeout=1.0).distance))
     assert d1 - d0 == pytest.approx(0.1 * d0 / 0.5, abs=3e-3)
+
+
+def test_inconsistent_arm_config_is_a_config_error() -> None:
+    from cellcal.devices.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="reach_m"):
+        SimRobotArm.from_config({"reach_m": 0.1, "min_radius_m": 0.2}, BackendContext(section="arm"))
+    with pytest.raises(ConfigError, match=r"arm\.time_scale"):
+        SimRobotArm.from_config({"time_scale": -1.0}, BackendContext(section="arm"))
