@@ -19,21 +19,22 @@ Three methods, named as in the configuration:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame, Intrinsics
 
 from .camera import NominalFovModel
-from .paper import grid_points, law_of_cosines_angle, spherical_to_cartesian
-from .planes import Plane, fit_plane_ols
+from .paper import error_pct, grid_phi_theta, grid_points, law_of_cosines_angle, plane_fit
+from .planes import Plane, PlaneFit, fit_plane_ols
 from .sampling import Sample, sample_window
 
 
@@ -155,8 +156,7 @@ def _law_of_cosines(samples: dict[str, Sample], perimeter: int) -> Measurement:
     return Measurement("law_of_cosines", perimeter, angle_y, None, tilt_x, tilt_y, co, None)
 
 
-def _plane_measurement(method: str, perimeter: int, points: NDArray[np.float64]) -> Measurement:
-    fit = fit_plane_ols(points)
+def _plane_measurement(method: str, perimeter: int, fit: PlaneFit) -> Measurement:
     plane = fit.plane
     return Measurement(method, perimeter, plane.angle_to_optical_axis_rad(), fit.angle_to_optical_axis_sigma_rad(),
                        plane.tilt_about_x_rad(), plane.tilt_about_y_rad(), plane.distance_along_optical_axis_m(),
@@ -195,24 +195,21 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
     model = nominal_model(intr, nominal_fov_rad) if "plane_fit_nominal" in methods else None
     out: list[Measurement] = []
     for p in perimeters_px:
-        grid = grid_points(p, width_px=intr.width, height_px=intr.height)
+        grid = grid_points(p, width_px=intr.width, height_px=intr.height, cx=intr.cx, cy=intr.cy)
         samples = {g.name: sample_window(frames, intr.cx + g.dx_px, intr.cy + g.dy_px, window_px) for g in grid}
         for method in methods:
             if method == "law_of_cosines":
                 m = _law_of_cosines(samples, p)
             elif method == "plane_fit":
-                m = _plane_measurement(method, p, np.array([samples[g.name].xyz_m for g in grid]))
+                m = _plane_measurement(method, p, fit_plane_ols(np.array([samples[g.name].xyz_m for g in grid])))
             elif method == "plane_fit_nominal":
                 assert model is not None
-                dx = np.array([g.dx_px for g in grid], dtype=float)
-                dy = np.array([g.dy_px for g in grid], dtype=float)
-                phi, theta = model.phi_theta(dx, dy)
+                phi, theta = grid_phi_theta(grid, model)
                 r = np.array([samples[g.name].distance_m for g in grid])
-                m = _plane_measurement(method, p, spherical_to_cartesian(r, theta, phi))
+                m = _plane_measurement(method, p, plane_fit(r, phi, theta))
             else:
                 raise CalibrationError(f"unknown method '{method}'")
             if expected is not None:
-                err = abs(m.angle_rad - expected.angle_rad) / expected.angle_rad * 100.0
-                m = Measurement(**{**m.__dict__, "error_pct": err})
+                m = dataclasses.replace(m, error_pct=error_pct(m.angle_rad, expected.angle_rad))
             out.append(m)
     return out

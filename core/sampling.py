@@ -27,7 +27,7 @@ class Sample:
         xyz_m: Median point in the camera frame, metres, shape (3,).
         distance_m: Median radial distance, metres.
         n_valid: Number of valid pixels that went into the median.
-        pixel: The (u, v) pixel that was sampled (integer pixel centre).
+        pixel: The nearest integer pixel to the sampled location.
     """
 
     xyz_m: NDArray[np.float64]
@@ -37,34 +37,62 @@ class Sample:
 
 
 def sample_window(frames: Sequence[Frame], u: float, v: float, window_px: int = 3, *, min_valid: int = 1) -> Sample:
-    """Median of valid pixels in a ``window_px`` x ``window_px`` window over all frames.
+    """Robust sample at a sub-pixel location: median over a window and over frames.
+
+    The window holds ``window_px`` x ``window_px`` positions spaced one pixel apart and
+    centred exactly on ``(u, v)``; each position is bilinearly interpolated from its four
+    neighbouring pixels (a convex combination, so a point on a plane stays on it) and
+    counts only if every neighbour it uses is valid. The coordinate-wise median over
+    all valid positions of all frames is returned.
 
     Args:
         frames: One or more frames of the same stream (same intrinsics).
-        u: Column of the point, pixels (rounded to the nearest pixel centre).
+        u: Column of the point, pixels (sub-pixel; pixel centres at integers).
         v: Row of the point, pixels.
         window_px: Odd window size in pixels.
-        min_valid: Minimum number of valid pixels required.
+        min_valid: Minimum number of valid window positions required.
 
     Raises:
-        CalibrationError: If the window lies outside the image or holds too few valid pixels.
+        CalibrationError: If the window leaves the image or holds too few valid positions.
     """
     if not frames:
         raise CalibrationError("no frames to sample")
     if window_px < 1 or window_px % 2 != 1:
         raise CalibrationError(f"window_px must be a positive odd number, got {window_px}")
+    if not (math.isfinite(u) and math.isfinite(v)):
+        raise CalibrationError(f"sample position must be finite, got ({u}, {v})")
     h, w = frames[0].shape
-    iu, iv = math.floor(u + 0.5), math.floor(v + 0.5)
     half = window_px // 2
-    if not (half <= iu < w - half and half <= iv < h - half):
+    offsets = np.arange(-half, half + 1, dtype=np.float64)
+    us = (u + offsets)[None, :].repeat(window_px, 0).ravel()
+    vs = (v + offsets)[:, None].repeat(window_px, 1).ravel()
+    if us.min() < 0 or vs.min() < 0 or us.max() > w - 1 or vs.max() > h - 1:
         raise CalibrationError(
-            f"sample window at pixel ({u:.1f}, {v:.1f}) lies outside the {w}x{h} image; use a smaller perimeter"
+            f"sample window at pixel ({u:.1f}, {v:.1f}) leaves the {w}x{h} image; use a smaller perimeter"
         )
-    rows, cols = slice(iv - half, iv + half + 1), slice(iu - half, iu + half + 1)
-    xyz = np.concatenate([f.xyz[rows, cols][f.valid[rows, cols]] for f in frames]).astype(np.float64)
-    dist = np.concatenate([f.distance[rows, cols][f.valid[rows, cols]] for f in frames]).astype(np.float64)
-    if xyz.shape[0] < min_valid:
+    u0 = np.minimum(np.floor(us).astype(np.intp), w - 2)
+    v0 = np.minimum(np.floor(vs).astype(np.intp), h - 2)
+    fu, fv = us - u0, vs - v0
+    corners = ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv), (1, 1, fu * fv))
+    xyz_all, dist_all = [], []
+    for f in frames:
+        xyz = np.zeros((us.size, 3))
+        dist = np.zeros(us.size)
+        ok = np.ones(us.size, dtype=bool)
+        for dv, du, wgt in corners:
+            rows, cols = v0 + dv, u0 + du
+            used = wgt > 0
+            ok &= ~used | f.valid[rows, cols]
+            xyz += wgt[:, None] * np.nan_to_num(f.xyz[rows, cols].astype(np.float64))
+            dist += wgt * np.nan_to_num(f.distance[rows, cols].astype(np.float64))
+        xyz_all.append(xyz[ok])
+        dist_all.append(dist[ok])
+    xyz_v = np.concatenate(xyz_all)
+    dist_v = np.concatenate(dist_all)
+    iu, iv = math.floor(u + 0.5), math.floor(v + 0.5)
+    if xyz_v.shape[0] < min_valid:
         raise CalibrationError(
-            f"only {xyz.shape[0]} valid pixels (need {min_valid}) around pixel ({iu}, {iv}) in {len(frames)} frame(s)"
+            f"only {xyz_v.shape[0]} valid samples (need {min_valid}) around pixel ({u:.1f}, {v:.1f}) "
+            f"in {len(frames)} frame(s)"
         )
-    return Sample(np.median(xyz, axis=0), float(np.median(dist)), int(xyz.shape[0]), (iu, iv))
+    return Sample(np.median(xyz_v, axis=0), float(np.median(dist_v)), int(xyz_v.shape[0]), (iu, iv))
