@@ -24,10 +24,11 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Intrinsics
-from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
 

@@ -20,10 +20,11 @@ from dataclasses import dataclass
 from functools import reduce
 
 import numpy as np
-from cellcal.devices.errors import CalibrationError
-from cellcal.devices.pose import Pose
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
+
+from cellcal.devices.errors import CalibrationError
+from cellcal.devices.pose import Pose
 
 FloatArray = NDArray[np.float64]
 

@@ -7,6 +7,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
 from cellcal.core.camera import (
     NominalFovModel,
     normalized_to_pixels,
@@ -20,7 +22,6 @@ from cellcal.core.camera import (
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Intrinsics
-from scipy.spatial.transform import Rotation
 
 
 def random_intrinsics(rng: np.random.Generator) -> Intrinsics:

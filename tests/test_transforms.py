@@ -6,6 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
 from cellcal.core.transforms import (
     FrameChain,
     Pose,
@@ -15,9 +19,6 @@ from cellcal.core.transforms import (
     pose_to_xarm,
 )
 from cellcal.devices.errors import CalibrationError
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
 
 
 def random_pose(rng: np.random.Generator) -> Pose:
