@@ -141,8 +141,14 @@ def _undistort(intr: Intrinsics, uv: FloatArray, iterations: int = 6
         xy = np.column_stack(((uv[:, 0] - intr.cx) / intr.fx, (uv[:, 1] - intr.cy) / intr.fy))
         return xy, np.zeros(uv.shape[0])
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
-    xy = cv2.undistortPoints(uv.reshape(-1, 1, 2), intr.camera_matrix, intr.distortion,
-                             None, None, None, criteria).reshape(-1, 2).astype(np.float64)
+    src = uv.reshape(-1, 1, 2)
+    iterate = getattr(cv2, "undistortPointsIter", None)  # OpenCV 4.x name; 5.x folds it in
+    if iterate is not None:
+        seed = iterate(src, intr.camera_matrix, intr.distortion, None, None, criteria)
+    else:
+        seed = cv2.undistortPoints(src, intr.camera_matrix, intr.distortion, None, None, None,
+                                   criteria)
+    xy = np.asarray(seed, dtype=np.float64).reshape(-1, 2)
     resid = np.full(uv.shape[0], np.inf)
     for _ in range(iterations):
         proj, jac = _project_normalized(intr, xy, jacobian=True)
