@@ -61,7 +61,11 @@ FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall"]
 
 
 class ArmModel(Protocol):
-    """What the emulator needs from the simulated arm (``SimRobotArm`` provides it)."""
+    """What the emulator needs from the simulated arm (``SimRobotArm`` provides it).
+
+    ``true_flange_pose`` is the noise-free pose the emulator plans with; ``get_pose``
+    (with the arm's read-back noise) is what GET_TCP_POSE reports.
+    """
 
     def begin_move_linear(self, pose: Pose, speed_m_s: float, acceleration_m_s2: float) -> None: ...
 
@@ -69,7 +73,9 @@ class ArmModel(Protocol):
 
     def current_error(self) -> tuple[int, int]: ...
 
-    def set_error(self, code: int) -> None: ...
+    def set_error(self, code: int, warning: int = 0) -> None: ...
+
+    def true_flange_pose(self) -> Pose: ...
 
     def get_pose(self, timeout: float | None = None) -> Pose: ...
 
@@ -110,9 +116,11 @@ class XArmEmulator:
         path: The slave device path clients open (e.g. ``/dev/pts/5``), once started.
         requests: Count of well-formed requests served, by register number.
         bad_requests: Count of frames that failed to decode (bad CRC, ...).
+        last_reported_pose: The last GET_TCP_POSE reply, ``[x, y, z]`` mm and
+            ``[roll, pitch, yaw]`` rad as float32 values on the wire.
     """
 
-    def __init__(self, arm: ArmModel, *, axes: int = 6, firmware: tuple[int, int, int] = (2, 5, 0),
+    def __init__(self, arm: ArmModel, *, axes: int = 5, firmware: tuple[int, int, int] = (2, 5, 0),
                  robot_sn: str = "XS1305EMU0001", box_sn: str = "AC1305EMU0001", start_ready: bool = False):
         if axes not in (5, 6, 7):
             raise CellcalError(f"xarm emulator: axes must be 5, 6 or 7, got {axes}")
@@ -127,6 +135,7 @@ class XArmEmulator:
         self.path = ""
         self.requests: dict[int, int] = {}
         self.bad_requests = 0
+        self.last_reported_pose: tuple[float, ...] | None = None
         self._lock = threading.RLock()
         self._enabled = start_ready
         self._ready = start_ready
@@ -306,12 +315,16 @@ class XArmEmulator:
         return 0, bytes([code & 0xFF, warn & 0xFF])
 
     def _clean_err(self, _p: bytes) -> tuple[int, bytes]:
-        self.arm.set_error(0)
+        _code, warn = self.arm.current_error()
+        self.arm.set_error(0, warn)
         self._ready = False
         return 0, b""
 
     def _clean_war(self, _p: bytes) -> tuple[int, bytes]:
         self._warn = 0
+        code, warn = self.arm.current_error()
+        if warn:
+            self.arm.set_error(code, 0)
         return 0, b""
 
     def _set_mode(self, p: bytes) -> tuple[int, bytes]:
@@ -322,11 +335,8 @@ class XArmEmulator:
         self._ready = False
         return 0, b""
 
-    def _current_xarm_pose(self) -> np.ndarray:
-        return np.asarray(pose_to_xarm(self.arm.get_pose()), dtype=np.float64)
-
     def _target_pose(self, cmd: MoveLine) -> Pose:
-        current = self._current_xarm_pose()
+        current = np.asarray(pose_to_xarm(self.arm.true_flange_pose()), dtype=np.float64)
         values = [c if math.isinf(v) else v for v, c in zip(cmd.pose, current, strict=True)]
         if cmd.axis_angle:
             rotvec = np.asarray(values[3:], dtype=np.float64)
@@ -356,10 +366,11 @@ class XArmEmulator:
         try:
             self.arm.begin_move_linear(target, cmd.speed_mm_s / 1000.0, cmd.acc_mm_s2 / 1000.0)
         except CellcalError:
-            # Outside the workspace (or otherwise refused): the controller latches an error.
-            code_now, _ = self._errors()
-            if not code_now:
-                self.arm.set_error(codes.SAFETY_BOUNDARY)
+            # Refused by the model: the controller latches an error.
+            if not self._errors()[0]:
+                self.arm.set_error(codes.KINEMATIC_ERROR)
+        if self._errors()[0]:
+            # The sim arm latches error 21 for a target outside its workspace and does not move.
             self._ready = False
             return 0, extra
         sched = self._scheduled
@@ -368,7 +379,9 @@ class XArmEmulator:
         return 0, extra
 
     def _get_tcp_pose(self, _p: bytes) -> tuple[int, bytes]:
-        return 0, pack_floats(list(self._current_xarm_pose()))
+        values = np.asarray(pose_to_xarm(self.arm.get_pose()), dtype=np.float64)
+        self.last_reported_pose = tuple(float(v) for v in np.float32(values))
+        return 0, pack_floats(list(values))
 
     def _get_tcp_pose_aa(self, _p: bytes) -> tuple[int, bytes]:
         pose = self.arm.get_pose()
