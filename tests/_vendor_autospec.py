@@ -7,7 +7,9 @@ speed: float = 0.25, ...) -> bool``), so :func:`strict_autospec` parses them and
 builds the mock from a stub whose methods have those signatures: a call the real
 library does not have, or one whose arguments bind to none of its overloads
 (too many, a wrong keyword, a missing required one), raises ``TypeError``.
-For an overloaded method the widest overload is enforced.
+An overloaded method gets a ``side_effect`` that binds the call against every
+overload; configure such methods through ``return_value`` (a test that replaces
+their ``side_effect`` drops that check).
 """
 
 from __future__ import annotations
@@ -67,9 +69,8 @@ def _stub_method(real: Any, name: str) -> Any:
         raise AssertionError
 
     stub.__name__ = name
-    if sigs:
-        # Overloaded methods: the widest overload is the signature enforced.
-        stub.__signature__ = max(sigs, key=lambda s: len(s.parameters))  # type: ignore[attr-defined]
+    if len(sigs) == 1:
+        stub.__signature__ = sigs[0]  # type: ignore[attr-defined]
     stub._overloads = sigs  # type: ignore[attr-defined]
     return stub
 
@@ -93,7 +94,23 @@ def strict_autospec(cls: type, **attrs: Any) -> Any:
             namespace[name] = real
     stub_cls = type(cls.__name__, (), namespace)
     m = mock.create_autospec(stub_cls, instance=True)
+    for name, stub in namespace.items():
+        overloads = getattr(stub, "_overloads", None)
+        if overloads and len(overloads) > 1:
+            getattr(m, name).side_effect = _overload_guard(name, overloads)
     for k, v in attrs.items():
         setattr(m, k, v)
     return m
 
+
+
+def _overload_guard(name: str, sigs: list[inspect.Signature]) -> Any:
+    def guard(*args: Any, **kwargs: Any) -> Any:
+        for sig in sigs:
+            try:
+                sig.bind(None, *args, **kwargs)  # None stands for self
+            except TypeError:
+                continue
+            return mock.DEFAULT
+        raise TypeError(f"{name}(*{args!r}, **{kwargs!r}) matches no overload of the real method")
+    return guard
