@@ -9,6 +9,8 @@ and sets ``func=run`` with ``run(args) -> int``. Exit status: 0 success; 2 bad i
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from collections.abc import Sequence
 from importlib import import_module
@@ -62,6 +64,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("cellcal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # output piped into e.g. `head`, which closed early: not an error of ours
+        with contextlib.suppress(OSError):
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the interpreter's final flush
+        return EXIT_OK
     except CalibrationQualityError as exc:
         print(f"cellcal: error: {exc}", file=sys.stderr)
         return EXIT_FAILURE
