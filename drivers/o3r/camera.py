@@ -1,0 +1,163 @@
+"""The ifm O3R 3D head as a cellcal :class:`Camera3D` (backend ``o3r``), PCIC over TCP.
+
+On connect the port's PCIC TCP port, type and state are read over XML-RPC; the port
+must be a 3D port and not in CONF. ``trigger = "free_run"`` wants the port in RUN
+(``capture`` returns the newest frame received after the previous capture, never one
+older than the timeout); ``"software"`` wants IDLE (``capture`` sends one PCIC ``t``
+and returns exactly the frame it produced). With ``set_state = true`` the driver
+switches a port between RUN and IDLE itself.
+
+XYZ: the model-0 (or fisheye 2) unit vectors of TOF_INFO times the radial distance,
+in the camera optical frame (``xyz_frame = "optical"``, what :class:`Frame`
+documents), or additionally transformed by extrinsicOpticToUser into ifm's user
+frame (``"user"``, equal to ifm3d's XYZ buffer). Intrinsics: the inverse model 1,
+which is OpenCV's projection (see :mod:`.tofinfo`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+from cellcal.devices.base import BackendContext
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import ConfigError, DeviceConnectionError
+from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
+
+from .client import PcicStream
+from .decode import FrameDecoder
+from .tofinfo import TofInfo
+from .xmlrpc_config import O3RConfigClient, PortInfo
+
+
+@dataclass(frozen=True)
+class O3RConfig:
+    """The ``[camera]`` table of the ``o3r`` backend."""
+
+    host: str = field(default="192.168.0.69", metadata={"doc": "VPU address"})
+    xmlrpc_port: int = field(default=80, metadata={"ge": 1, "le": 65535, "doc": "XML-RPC TCP port"})
+    port: str = field(default="port2", metadata={"doc": "VPU port of the 3D head ('' = no XML-RPC, use pcic_port)"})
+    pcic_port: int = field(default=0, metadata={"ge": 0, "le": 65535,
+                                                "doc": "PCIC TCP port; 0 = read /ports/<port>/data/pcicTCPPort"})
+    trigger: Literal["free_run", "software"] = field(default="free_run",
+                                                     metadata={"doc": "RUN (free_run) or IDLE + PCIC t (software)"})
+    set_state: bool = field(default=True, metadata={"doc": "switch the port between RUN and IDLE as needed"})
+    connect_timeout_s: float = field(default=3.0, metadata={"gt": 0.0, "le": 600.0, "doc": "TCP connect, s"})
+    io_timeout_s: float = field(default=2.0, metadata={"gt": 0.0, "le": 600.0,
+                                                        "doc": "XML-RPC call / mid-message stall timeout, s"})
+    reconnect_backoff_s: float = field(default=0.1, metadata={"gt": 0.0, "le": 60.0, "doc": "first retry delay, s"})
+    reconnect_backoff_max_s: float = field(default=2.0, metadata={"gt": 0.0, "le": 600.0,
+                                                                  "doc": "longest retry delay, s"})
+    max_frame_bytes: int = field(default=32 * 1024 * 1024, metadata={"ge": 4096, "le": 1 << 30,
+                                                                      "doc": "cap on one PCIC message, bytes"})
+    xyz_frame: Literal["optical", "user"] = field(default="optical",
+                                                  metadata={"doc": "XYZ in the optical frame or ifm's user frame"})
+
+    def __post_init__(self) -> None:
+        if not self.port and self.pcic_port == 0:
+            raise ValueError("give a VPU port name ('port') or a PCIC port ('pcic_port')")
+        if self.reconnect_backoff_max_s < self.reconnect_backoff_s:
+            raise ValueError("reconnect_backoff_max_s must be >= reconnect_backoff_s")
+
+
+class O3RCamera(Camera3D):
+    """ifm O3R 3D head over PCIC/TCP.
+
+    Args:
+        config: Backend config; None uses the defaults.
+        context: Backend context (unused; accepted for the registry).
+    """
+
+    backend_name = "o3r"
+    Config = O3RConfig
+
+    def __init__(self, config: O3RConfig | None = None, context: BackendContext | None = None) -> None:
+        super().__init__()
+        self.config = config or O3RConfig()
+        self.default_timeout_s = max(2.0, self.config.io_timeout_s)
+        self._rpc: O3RConfigClient | None = None
+        self._stream: PcicStream | None = None
+        self._decoder = FrameDecoder(apply_extrinsic=self.config.xyz_frame == "user")
+        self._port_info: PortInfo | None = None
+        self._firmware = ""
+        self._last_mono = 0.0
+        self._last_info: TofInfo | None = None
+        self._last_intr: Intrinsics | None = None
+
+    # ------------------------------------------------------------------ hooks
+    def _connect(self, timeout: float) -> None:
+        cfg = self.config
+        deadline = time.monotonic() + timeout
+        pcic_port = cfg.pcic_port
+        if cfg.port:
+            rpc = O3RConfigClient(cfg.host, cfg.xmlrpc_port, min(cfg.io_timeout_s, timeout))
+            info = rpc.port_info(cfg.port)
+            if info.type != "3D":
+                raise ConfigError(f"O3R {cfg.host} {cfg.port} is a {info.type} port; the o3r backend needs a 3D port",
+                                  key="camera.port")
+            if info.state == "CONF":
+                raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in state CONF (sends no data); "
+                                            f"set it to RUN or IDLE")
+            want = "RUN" if cfg.trigger == "free_run" else "IDLE"
+            if info.state != want:
+                if not cfg.set_state:
+                    raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in {info.state}, trigger "
+                                                f"'{cfg.trigger}' needs {want} (or set_state = true)")
+                rpc.set_state(cfg.port, want)
+            self._port_info = info
+            self._firmware = rpc.firmware()
+            self._rpc = rpc
+            pcic_port = pcic_port or info.pcic_port
+        stream = PcicStream(cfg.host, pcic_port, io_timeout_s=cfg.io_timeout_s,
+                            connect_timeout_s=min(cfg.connect_timeout_s, timeout),
+                            backoff_s=cfg.reconnect_backoff_s, backoff_max_s=cfg.reconnect_backoff_max_s,
+                            max_payload=cfg.max_frame_bytes)
+        self._stream = stream
+        stream.start(max(deadline - time.monotonic(), 0.001))
+        self._last_mono = 0.0
+
+    def _close(self) -> None:
+        if self._stream is not None:
+            self._stream.close()
+            self._stream = None
+
+    def _info(self) -> DeviceInfo:
+        cfg = self.config
+        stream = self._stream
+        return DeviceInfo(
+            backend="o3r", vendor="ifm electronic", model="O3R 3D head", serial="", firmware=self._firmware,
+            extra={"host": cfg.host, "port": cfg.port, "pcic_port": stream.port if stream else cfg.pcic_port,
+                   "trigger": cfg.trigger, "reconnects": stream.reconnects if stream else 0,
+                   "imager": self._last_info.imager if self._last_info else "",
+                   "mode": self._last_info.mode if self._last_info else ""})
+
+    def _capture(self, timeout: float) -> Frame:
+        stream = self._stream
+        assert stream is not None
+        if self.config.trigger == "software":
+            raw = stream.trigger(timeout)
+        else:
+            raw = stream.next_frame(timeout, self._last_mono)
+        self._last_mono = raw.received_mono
+        decoded = self._decoder.decode(raw.payload, raw.chunks, offset=raw.offset, received_at=raw.received_epoch)
+        self._last_info = decoded.tof_info
+        self._last_intr = decoded.frame.intrinsics
+        return decoded.frame
+
+    def _intrinsics(self) -> Intrinsics:
+        if self._last_intr is None:
+            self._capture(self.default_timeout_s)  # the intrinsics travel with the frames
+        assert self._last_intr is not None
+        return self._last_intr
+
+    # ------------------------------------------------------------------ extras
+    @property
+    def tof_info(self) -> TofInfo | None:
+        """TOF_INFO of the last captured frame (None before the first)."""
+        return self._last_info
+
+    @property
+    def stream(self) -> PcicStream | None:
+        """The PCIC stream (for diagnostics and tests)."""
+        return self._stream

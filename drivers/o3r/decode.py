@@ -1,0 +1,144 @@
+"""Decode an O3R image payload into a cellcal :class:`Frame` (numpy, one pass per output).
+
+Pixel data is never copied as raw bytes: the uint16 chunks are read through
+``numpy.frombuffer`` views of the received payload and converted straight into the
+float32 outputs. Unit vectors are cached per (model, image size).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.devices.errors import ProtocolError
+from cellcal.devices.types import Frame, Intrinsics
+
+from .pcic import (
+    CHUNK_CONFIDENCE,
+    CHUNK_NORM_AMPLITUDE,
+    CHUNK_RADIAL_DISTANCE,
+    CHUNK_TOF_INFO,
+    Chunk,
+    blob_view,
+    image_view,
+    walk_chunks,
+)
+from .tofinfo import TofInfo, intrinsics_from_models, optic_to_user, parse_tof_info, unit_vectors
+
+#: Confidence bit marking an invalid pixel.
+CONF_INVALID_BIT = 1
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """A decoded frame plus the O3R-specific extras.
+
+    Attributes:
+        frame: The cellcal frame (xyz in the optical frame, or in ifm's user frame if
+            the decoder was built with ``apply_extrinsic=True``).
+        tof_info: The frame's TOF_INFO.
+        frame_count: FRAME_COUNT of the distance chunk.
+    """
+
+    frame: Frame
+    tof_info: TofInfo
+    frame_count: int
+
+
+class FrameDecoder:
+    """Turns validated image payloads into frames; caches unit vectors.
+
+    Args:
+        apply_extrinsic: If True, XYZ is transformed by extrinsicOpticToUser (ifm's
+            user frame, what ifm3d's XYZ buffer holds); if False (default) XYZ stays in
+            the camera optical frame, which is what :class:`Frame` documents.
+    """
+
+    def __init__(self, apply_extrinsic: bool = False) -> None:
+        self.apply_extrinsic = apply_extrinsic
+        self._uv_key: tuple[object, ...] | None = None
+        self._uv: NDArray[np.float32] | None = None
+        self._intr_key: tuple[object, ...] | None = None
+        self._intr: Intrinsics | None = None
+
+    def _unit_vectors(self, info: TofInfo, width: int, height: int) -> NDArray[np.float32]:
+        key = (info.intrinsic, width, height)
+        if self._uv is None or key != self._uv_key:
+            self._uv = unit_vectors(info.intrinsic, width, height)
+            self._uv_key = key
+        return self._uv
+
+    def intrinsics(self, info: TofInfo, width: int, height: int) -> Intrinsics:
+        """Cached :func:`intrinsics_from_models`."""
+        key = (info.inverse_intrinsic, info.intrinsic, width, height)
+        if self._intr is None or key != self._intr_key:
+            self._intr = intrinsics_from_models(info, width, height)
+            self._intr_key = key
+        return self._intr
+
+    def decode(self, payload: bytes | bytearray | memoryview, chunks: list[Chunk] | None = None, *,
+               offset: int = 0, received_at: float | None = None) -> DecodedFrame:
+        """Decode one image payload (``<ticket>star ... stop\\r\\n``).
+
+        Args:
+            payload: The whole payload.
+            chunks: Its chunk list from :func:`walk_chunks` (computed if None).
+            offset: Stream offset of ``payload[0]`` for error messages.
+            received_at: Epoch seconds used when the chunks carry no timestamp.
+
+        Raises:
+            ProtocolError: Missing distance or TOF_INFO chunk, mismatching image sizes,
+                wrong pixel formats, or any framing fault of the payload.
+        """
+        if chunks is None:
+            chunks = walk_chunks(payload, offset=offset)
+        by_type: dict[int, Chunk] = {}
+        for c in chunks:
+            by_type.setdefault(c.chunk_type, c)
+        dist_c = by_type.get(CHUNK_RADIAL_DISTANCE)
+        info_c = by_type.get(CHUNK_TOF_INFO)
+        if dist_c is None or info_c is None:
+            missing = [n for n, c in (("RADIAL_DISTANCE (100)", dist_c), ("TOF_INFO (420)", info_c)) if c is None]
+            raise ProtocolError(f"image lacks chunk(s) {', '.join(missing)}", offset=offset + 8)
+        info = parse_tof_info(blob_view(payload, info_c), offset=offset + info_c.data_offset)
+        raw = image_view(payload, dist_c, offset=offset, expect_format=(2,))
+        h, w = raw.shape
+        invalid = raw == 0
+        conf: NDArray[np.uint16] | None = None
+        conf_c = by_type.get(CHUNK_CONFIDENCE)
+        if conf_c is not None:
+            conf = image_view(payload, conf_c, offset=offset, expect_format=(2,))  # type: ignore[assignment]
+            self._check_shape(conf_c, conf, (h, w), offset)
+            assert conf is not None
+            invalid |= (conf & CONF_INVALID_BIT).astype(bool)
+        distance = np.multiply(raw, np.float32(info.distance_resolution_m), dtype=np.float32)
+        distance[invalid] = np.nan
+        amp_c = by_type.get(CHUNK_NORM_AMPLITUDE)
+        if amp_c is not None:
+            araw = image_view(payload, amp_c, offset=offset, expect_format=(2,))
+            self._check_shape(amp_c, araw, (h, w), offset)
+            a = np.subtract(araw, np.float32(1.0), dtype=np.float32)
+            amplitude = np.where(a >= 0, a * a * np.float32(info.amplitude_resolution), np.float32(-1.0))
+            amplitude = amplitude.astype(np.float32, copy=False)
+        else:
+            amplitude = np.zeros((h, w), dtype=np.float32)
+        uv = self._unit_vectors(info, w, h)
+        xyz = uv * distance[:, :, None]
+        if self.apply_extrinsic:
+            rot, trans = optic_to_user(info.extrinsic_optic_to_user)
+            xyz = (xyz @ rot.T.astype(np.float32) + trans.astype(np.float32)).astype(np.float32)
+        ts_ns = dist_c.timestamp_ns
+        timestamp = ts_ns / 1e9 if ts_ns else (received_at if received_at is not None else time.time())
+        frame = Frame(distance=distance, xyz=xyz, amplitude=amplitude, valid=~invalid,
+                      intrinsics=self.intrinsics(info, w, h), timestamp=float(timestamp),
+                      sequence=int(dist_c.frame_count), confidence=conf)
+        return DecodedFrame(frame, info, int(dist_c.frame_count))
+
+    @staticmethod
+    def _check_shape(chunk: Chunk, arr: NDArray[np.generic], shape: tuple[int, int], offset: int) -> None:
+        if arr.shape[:2] != shape:
+            raise ProtocolError(f"chunk {chunk.chunk_type} is {arr.shape[1]}x{arr.shape[0]}, distance image is "
+                                f"{shape[1]}x{shape[0]}", offset=offset + chunk.offset + 16)
