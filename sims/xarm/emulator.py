@@ -380,7 +380,7 @@ class XArmEmulator:
 
     def _get_tcp_pose(self, _p: bytes) -> tuple[int, bytes]:
         values = np.asarray(pose_to_xarm(self.arm.get_pose()), dtype=np.float64)
-        self.last_reported_pose = tuple(float(v) for v in np.float32(values))
+        self.last_reported_pose = tuple(float(v) for v in values.astype(np.float32))
         return 0, pack_floats(list(values))
 
     def _get_tcp_pose_aa(self, _p: bytes) -> tuple[int, bytes]:
