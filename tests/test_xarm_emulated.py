@@ -204,6 +204,20 @@ def test_dropped_move_reply_is_retried_and_the_move_completes(
     assert emu.requests[Reg.MOVE_LINE] == 2
 
 
+@pytest.mark.parametrize(("firmware", "layout"), [((1, 10, 0), "legacy"), ((1, 11, 100), "common")])
+def test_move_line_layout_follows_the_firmware_version(firmware: tuple[int, int, int], layout: str,
+                                                       leak_check: None) -> None:
+    sim = SimRobotArm(SimRobotArmConfig(time_scale=0.0, repeatability_m=0.0), BackendContext()).connect()
+    with XArmEmulator(sim, axes=5, firmware=firmware, robot_sn="XS1305E1", box_sn="AC1305E1") as emu, \
+            XArmRobot(XArmRobot.Config(port=emu.path, axes=5)) as drv:
+        assert drv.info().extra["move_line_layout"] == layout
+        target = _down(0.28, 0.12, 0.35, -0.6)
+        drv.move_linear(target, speed=0.3, acceleration=2.0)
+        assert sim.true_flange_pose().distance_to(target) < 1e-6
+        assert sim.true_flange_pose().angle_to(target) < 1e-6
+    sim.close()
+
+
 def test_driver_limits_and_config() -> None:
     with pytest.raises(ConfigError):
         XArmRobot.from_config({"axes": 4})

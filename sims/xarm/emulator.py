@@ -140,7 +140,6 @@ class XArmEmulator:
         self._enabled = start_ready
         self._ready = start_ready
         self._mode = 0
-        self._warn = 0
         self._faults: deque[_Fault] = deque()
         self._scheduled: _ScheduledError | None = None
         self._master = -1
@@ -233,7 +232,7 @@ class XArmEmulator:
     # ------------------------------------------------------------------ state
     def _errors(self) -> tuple[int, int]:
         code, warn = self.arm.current_error()
-        return int(code), int(self._warn or warn)
+        return int(code), int(warn)
 
     def _state_value(self) -> int:
         code, _ = self._errors()
@@ -321,7 +320,6 @@ class XArmEmulator:
         return 0, b""
 
     def _clean_war(self, _p: bytes) -> tuple[int, bytes]:
-        self._warn = 0
         code, warn = self.arm.current_error()
         if warn:
             self.arm.set_error(code, 0)
