@@ -35,7 +35,7 @@ from cellcal.devices.types import Frame, Intrinsics
 from .camera import NominalFovModel
 from .paper import error_pct, grid_phi_theta, grid_points, law_of_cosines_angle, plane_fit
 from .planes import Plane, PlaneFit, fit_plane_ols
-from .sampling import Sample, sample_window
+from .sampling import Sample, sample_points
 
 
 @dataclass(frozen=True)
@@ -196,7 +196,8 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
     out: list[Measurement] = []
     for p in perimeters_px:
         grid = grid_points(p, width_px=intr.width, height_px=intr.height, cx=intr.cx, cy=intr.cy)
-        samples = {g.name: sample_window(frames, intr.cx + g.dx_px, intr.cy + g.dy_px, window_px) for g in grid}
+        uv = np.array([[intr.cx + g.dx_px, intr.cy + g.dy_px] for g in grid])
+        samples = dict(zip((g.name for g in grid), sample_points(frames, uv, window_px), strict=True))
         for method in methods:
             if method == "law_of_cosines":
                 m = _law_of_cosines(samples, p)

@@ -37,36 +37,44 @@ class Sample:
 
 
 def sample_window(frames: Sequence[Frame], u: float, v: float, window_px: int = 3, *, min_valid: int = 1) -> Sample:
-    """Robust sample at a sub-pixel location: median over a window and over frames.
+    """Robust sample at one sub-pixel location (see :func:`sample_points`)."""
+    return sample_points(frames, np.array([[u, v]], dtype=np.float64), window_px, min_valid=min_valid)[0]
 
-    The window holds ``window_px`` x ``window_px`` positions spaced one pixel apart and
-    centred exactly on ``(u, v)``; each position is bilinearly interpolated from its four
-    neighbouring pixels (a convex combination, so a point on a plane stays on it) and
-    counts only if every neighbour it uses is valid. The coordinate-wise median over
-    all valid positions of all frames is returned.
+
+def sample_points(frames: Sequence[Frame], uv: NDArray[np.float64], window_px: int = 3, *,
+                  min_valid: int = 1) -> list[Sample]:
+    """Robust samples at sub-pixel locations: median over a window and over frames.
+
+    Each window holds ``window_px`` x ``window_px`` positions spaced one pixel apart and
+    centred exactly on its ``(u, v)``; each position is bilinearly interpolated from its
+    four neighbouring pixels (a convex combination, so a point on a plane stays on it)
+    and counts only if every neighbour it uses is valid. The coordinate-wise median over
+    all valid positions of all frames is returned. Vectorised over all locations.
 
     Args:
         frames: One or more frames of the same stream (same intrinsics).
-        u: Column of the point, pixels (sub-pixel; pixel centres at integers).
-        v: Row of the point, pixels.
+        uv: Locations, shape (N, 2): column u and row v in pixels (pixel centres at integers).
         window_px: Odd window size in pixels.
-        min_valid: Minimum number of valid window positions required.
+        min_valid: Minimum number of valid window positions required per location.
 
     Raises:
-        CalibrationError: If the window leaves the image or holds too few valid positions.
+        CalibrationError: If a window leaves the image or holds too few valid positions.
     """
     if not frames:
         raise CalibrationError("no frames to sample")
     if window_px < 1 or window_px % 2 != 1:
         raise CalibrationError(f"window_px must be a positive odd number, got {window_px}")
-    if not (math.isfinite(u) and math.isfinite(v)):
-        raise CalibrationError(f"sample position must be finite, got ({u}, {v})")
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if not np.all(np.isfinite(uv)):
+        raise CalibrationError("sample positions must be finite")
     h, w = frames[0].shape
     half = window_px // 2
     offsets = np.arange(-half, half + 1, dtype=np.float64)
-    us = (u + offsets)[None, :].repeat(window_px, 0).ravel()
-    vs = (v + offsets)[:, None].repeat(window_px, 1).ravel()
-    if us.min() < 0 or vs.min() < 0 or us.max() > w - 1 or vs.max() > h - 1:
+    us = (uv[:, 0, None, None] + offsets[None, None, :]).repeat(window_px, 1).reshape(len(uv), -1)
+    vs = (uv[:, 1, None, None] + offsets[None, :, None]).repeat(window_px, 2).reshape(len(uv), -1)
+    outside = (us.min(1) < 0) | (vs.min(1) < 0) | (us.max(1) > w - 1) | (vs.max(1) > h - 1)
+    if np.any(outside):
+        u, v = uv[int(np.argmax(outside))]
         raise CalibrationError(
             f"sample window at pixel ({u:.1f}, {v:.1f}) leaves the {w}x{h} image; use a smaller perimeter"
         )
@@ -74,25 +82,29 @@ def sample_window(frames: Sequence[Frame], u: float, v: float, window_px: int = 
     v0 = np.minimum(np.floor(vs).astype(np.intp), h - 2)
     fu, fv = us - u0, vs - v0
     corners = ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv), (1, 1, fu * fv))
-    xyz_all, dist_all = [], []
-    for f in frames:
-        xyz = np.zeros((us.size, 3))
-        dist = np.zeros(us.size)
-        ok = np.ones(us.size, dtype=bool)
+    n_frames = len(frames)
+    xyz = np.zeros((n_frames, *us.shape, 3))
+    dist = np.zeros((n_frames, *us.shape))
+    ok = np.ones((n_frames, *us.shape), dtype=bool)
+    for i, f in enumerate(frames):
         for dv, du, wgt in corners:
             rows, cols = v0 + dv, u0 + du
-            used = wgt > 0
-            ok &= ~used | f.valid[rows, cols]
-            xyz += wgt[:, None] * np.nan_to_num(f.xyz[rows, cols].astype(np.float64))
-            dist += wgt * np.nan_to_num(f.distance[rows, cols].astype(np.float64))
-        xyz_all.append(xyz[ok])
-        dist_all.append(dist[ok])
-    xyz_v = np.concatenate(xyz_all)
-    dist_v = np.concatenate(dist_all)
-    iu, iv = math.floor(u + 0.5), math.floor(v + 0.5)
-    if xyz_v.shape[0] < min_valid:
+            ok[i] &= (wgt <= 0) | f.valid[rows, cols]
+            xyz[i] += wgt[..., None] * f.xyz[rows, cols]
+            dist[i] += wgt * f.distance[rows, cols]
+    # pool frames: (N, frames * window positions)
+    pooled_ok = ok.transpose(1, 0, 2).reshape(len(uv), -1)
+    pooled_xyz = np.where(pooled_ok[..., None], xyz.transpose(1, 0, 2, 3).reshape(len(uv), -1, 3), np.nan)
+    pooled_dist = np.where(pooled_ok, dist.transpose(1, 0, 2).reshape(len(uv), -1), np.nan)
+    counts = pooled_ok.sum(axis=1)
+    if np.any(counts < min_valid):
+        i = int(np.argmax(counts < min_valid))
+        u, v = uv[i]
         raise CalibrationError(
-            f"only {xyz_v.shape[0]} valid samples (need {min_valid}) around pixel ({u:.1f}, {v:.1f}) "
-            f"in {len(frames)} frame(s)"
+            f"only {counts[i]} valid samples (need {min_valid}) around pixel ({u:.1f}, {v:.1f}) "
+            f"in {n_frames} frame(s)"
         )
-    return Sample(np.median(xyz_v, axis=0), float(np.median(dist_v)), int(xyz_v.shape[0]), (iu, iv))
+    med_xyz = np.nanmedian(pooled_xyz, axis=1)
+    med_dist = np.nanmedian(pooled_dist, axis=1)
+    return [Sample(med_xyz[i], float(med_dist[i]), int(counts[i]), (math.floor(u + 0.5), math.floor(v + 0.5)))
+            for i, (u, v) in enumerate(uv)]

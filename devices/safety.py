@@ -124,17 +124,15 @@ class SafetyLimits:
     def path(self, start: Pose | None, target: Pose) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Sampled flange and camera positions (each (K, 3), metres) along a linear move."""
         if start is None:
-            poses = [target]
+            rots = Rotation.concatenate([target.rotation])
+            flange = target.translation[None, :].copy()
         else:
             length = start.distance_to(target)
             k = max(MIN_PATH_SAMPLES, math.ceil(length * PATH_SAMPLES_PER_M) + 1)
             s = np.linspace(0.0, 1.0, k)
-            key_rots = Rotation.concatenate([start.rotation, target.rotation])
-            rots = Slerp([0.0, 1.0], key_rots)(s)
-            trans = start.translation + s[:, None] * (target.translation - start.translation)
-            poses = [Pose(rots[i], trans[i]) for i in range(k)]
-        flange = np.array([p.translation for p in poses])
-        camera = np.array([(p @ self.mount).translation for p in poses])
+            rots = Slerp([0.0, 1.0], Rotation.concatenate([start.rotation, target.rotation]))(s)
+            flange = start.translation + s[:, None] * (target.translation - start.translation)
+        camera = flange + rots.apply(np.array(self.mount.translation))  # scipy rejects read-only input
         return flange, camera
 
     def check(self, start: Pose | None, target: Pose, speed: float, acceleration: float) -> None:
