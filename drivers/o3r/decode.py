@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.devices.errors import ProtocolError
+from cellcal.devices.errors import CalibrationError, ProtocolError
 from cellcal.devices.types import Frame, Intrinsics
 
 from .pcic import (
@@ -75,7 +75,10 @@ class FrameDecoder:
         """Cached :func:`intrinsics_from_models`."""
         key = (info.inverse_intrinsic, info.intrinsic, width, height)
         if self._intr is None or key != self._intr_key:
-            self._intr = intrinsics_from_models(info, width, height)
+            try:
+                self._intr = intrinsics_from_models(info, width, height)
+            except CalibrationError as exc:
+                raise ProtocolError(f"TOF_INFO intrinsic calibration is unusable: {exc}") from None
             self._intr_key = key
         return self._intr
 
@@ -125,15 +128,17 @@ class FrameDecoder:
             amplitude = amplitude.astype(np.float32, copy=False)
         else:
             amplitude = np.zeros((h, w), dtype=np.float32)
+        intr = self.intrinsics(info, w, h)
         uv = self._unit_vectors(info, w, h)
-        xyz = uv * distance[:, :, None]
+        with np.errstate(invalid="ignore", over="ignore"):
+            xyz = uv * distance[:, :, None]
         if self.apply_extrinsic:
             rot, trans = optic_to_user(info.extrinsic_optic_to_user)
             xyz = (xyz @ rot.T.astype(np.float32) + trans.astype(np.float32)).astype(np.float32)
         ts_ns = dist_c.timestamp_ns
         timestamp = ts_ns / 1e9 if ts_ns else (received_at if received_at is not None else time.time())
         frame = Frame(distance=distance, xyz=xyz, amplitude=amplitude, valid=~invalid,
-                      intrinsics=self.intrinsics(info, w, h), timestamp=float(timestamp),
+                      intrinsics=intr, timestamp=float(timestamp),
                       sequence=int(dist_c.frame_count), confidence=conf)
         return DecodedFrame(frame, info, int(dist_c.frame_count))
 

@@ -170,6 +170,13 @@ def unit_vectors(model: IntrinsicModel, width: int, height: int) -> NDArray[np.f
     fx, fy, mx, my, alpha = p[0], p[1], p[2], p[3], p[4]
     if fx == 0 or fy == 0 or not np.all(np.isfinite(p)):
         raise ProtocolError(f"intrinsic model {model.model_id}: degenerate parameters {p.tolist()}")
+    with np.errstate(all="ignore"):
+        return _unit_vectors(model, p, width, height)
+
+
+def _unit_vectors(model: IntrinsicModel, p: NDArray[np.float32], width: int, height: int) -> NDArray[np.float32]:
+    f32 = np.float32
+    fx, fy, mx, my, alpha = p[0], p[1], p[2], p[3], p[4]
     ix = np.arange(width, dtype=f32) + f32(0.5)
     iy = np.arange(height, dtype=f32) + f32(0.5)
     cx = ((ix[None, :] - mx) / fx).astype(f32)
