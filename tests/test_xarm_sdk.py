@@ -48,12 +48,12 @@ def _bounded(fn: Callable[[], Any], timeout: float) -> Any:
     return out.get("value")
 
 
-@pytest.fixture
-def emulator() -> Iterator[tuple[SimRobotArm, XArmEmulator]]:
+@pytest.fixture(params=[(2, 5, 0), (1, 10, 0)], ids=["fw2.5.0-common-move-line", "fw1.10.0-legacy-move-line"])
+def emulator(request: pytest.FixtureRequest) -> Iterator[tuple[SimRobotArm, XArmEmulator]]:
     threads = set(threading.enumerate())
     fds = len(os.listdir("/proc/self/fd"))
     sim = SimRobotArm(SimRobotArmConfig(time_scale=0.05, repeatability_m=0.0), BackendContext()).connect()
-    emu = XArmEmulator(sim, axes=5)
+    emu = XArmEmulator(sim, axes=5, firmware=request.param)
     emu.start()
     yield sim, emu
     emu.close()
@@ -73,7 +73,7 @@ def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
         assert sdk.connected
         code, version = sdk.get_version()
         assert code == 0 and version == emu.version_text
-        assert sdk.axis == 5 and sdk.version_number == (2, 5, 0)
+        assert sdk.axis == 5 and sdk.version_number == emu.firmware
         code, start = sdk.get_position(is_radian=True)
         assert code == 0
         true = sim.true_flange_pose()
@@ -90,6 +90,8 @@ def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
                                                  wait=True, timeout=20), 30.0)
         assert code == 0
         assert emu.requests[Reg.MOVE_LINE] == 1
+        assert emu.last_move is not None and emu.last_move.common == (emu.firmware >= (1, 11, 100))
+        assert emu.last_move.speed_mm_s == 200.0 and emu.last_move.acc_mm_s2 == 2000.0
         assert not sim.is_moving()
         code, after = sdk.get_position(is_radian=True)
         assert code == 0

@@ -118,6 +118,7 @@ class XArmEmulator:
         bad_requests: Count of frames that failed to decode (bad CRC, ...).
         last_reported_pose: The last GET_TCP_POSE reply, ``[x, y, z]`` mm and
             ``[roll, pitch, yaw]`` rad as float32 values on the wire.
+        last_move: The last well-formed MOVE_LINE request (either layout).
     """
 
     def __init__(self, arm: ArmModel, *, axes: int = 5, firmware: tuple[int, int, int] = (2, 5, 0),
@@ -136,6 +137,7 @@ class XArmEmulator:
         self.requests: dict[int, int] = {}
         self.bad_requests = 0
         self.last_reported_pose: tuple[float, ...] | None = None
+        self.last_move: MoveLine | None = None
         self._lock = threading.RLock()
         self._enabled = start_ready
         self._ready = start_ready
@@ -348,6 +350,7 @@ class XArmEmulator:
             cmd = decode_move_line(p)
         except ProtocolError:
             return STATE_INVALID, b""
+        self.last_move = cmd
         extra = bytes(MOVE_LINE_COMMON_REPLY) if cmd.common else b""
         code, _ = self._errors()
         if code:
