@@ -167,7 +167,7 @@ def unit_vectors(model: IntrinsicModel, width: int, height: int) -> NDArray[np.f
     """
     f32 = np.float32
     p = np.asarray(model.params[:10], dtype=f32)
-    fx, fy, mx, my, alpha = p[0], p[1], p[2], p[3], p[4]
+    fx, fy = p[0], p[1]
     if fx == 0 or fy == 0 or not np.all(np.isfinite(p)):
         raise ProtocolError(f"intrinsic model {model.model_id}: degenerate parameters {p.tolist()}")
     with np.errstate(all="ignore"):
