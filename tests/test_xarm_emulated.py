@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import threading
 from collections.abc import Iterator
@@ -27,8 +28,16 @@ from cellcal.sims.xarm.backend import EmulatedXArmRobot
 from cellcal.sims.xarm.emulator import XArmEmulator
 
 
-def _open_fds() -> int:
-    return len(os.listdir("/proc/self/fd"))
+def _open_fds() -> set[tuple[str, str]]:
+    """Open descriptors as (number, target): unaffected by unrelated ones closing meanwhile."""
+    gc.collect()
+    out = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            out.add((fd, os.readlink(f"/proc/self/fd/{fd}")))
+        except OSError:  # the listing's own descriptor, already closed
+            continue
+    return out
 
 
 @pytest.fixture
@@ -38,7 +47,8 @@ def leak_check() -> Iterator[None]:
     yield
     extra = [t for t in threading.enumerate() if t not in threads]
     assert not extra, f"leaked threads: {extra}"
-    assert _open_fds() == fds
+    leaked = _open_fds() - fds
+    assert not leaked, f"leaked file descriptors: {sorted(leaked)}"
 
 
 def _make(time_scale: float = 0.002, repeatability_m: float = 0.0,
