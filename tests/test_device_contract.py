@@ -24,7 +24,7 @@ def test_camera_contract(name: str) -> None:
     check_camera(camera)
 
 
-@pytest.mark.parametrize("name", ["sim"])
+@pytest.mark.parametrize("name", ["sim", "xarm-emulated"])
 def test_arm_contract(name: str) -> None:
     arm = default_registry().create_arm({**SIM_DOC["arm"], "backend": name}, context("arm"))
     check_arm(arm)
