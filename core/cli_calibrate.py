@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,18 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+#: Config keys that say where a device is, shown by ``--check``.
+ADDRESS_KEYS = ("host", "xmlrpc_port", "port", "pcic_port", "device_id", "baudrate", "axes")
+
+
+def _where(device: Any) -> str:
+    config = getattr(device, "config", None)
+    if config is None or not dataclasses.is_dataclass(config):
+        return ""
+    parts = [f"{k}={getattr(config, k)!r}" for k in ADDRESS_KEYS if hasattr(config, k)]
+    return f" at {', '.join(parts)}" if parts else ""
+
+
 def _check(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     camera, arm = build_devices(config)
@@ -33,9 +46,10 @@ def _check(args: argparse.Namespace) -> int:
     plan = config.plan
     Calibrator(config, camera, arm).check_plan(None)
     print(f"config:  {config.source} (cell '{config.cell.name}')")
-    print(f"camera:  backend '{camera.backend_name}' ({type(camera).__module__}.{type(camera).__qualname__})")
-    print(f"arm:     backend '{arm.inner.backend_name}' ({type(arm.inner).__module__}.{type(arm.inner).__qualname__})"
-          " behind the safety envelope")
+    print(f"camera:  backend '{camera.backend_name}'{_where(camera)} "
+          f"({type(camera).__module__}.{type(camera).__qualname__})")
+    print(f"arm:     backend '{arm.inner.backend_name}'{_where(arm.inner)} "
+          f"({type(arm.inner).__module__}.{type(arm.inner).__qualname__}), behind the safety envelope")
     print(f"plan:    {len(poses)} poses x {len(plan.perimeters_px)} perimeters x {len(plan.methods)} methods "
           f"({', '.join(plan.methods)}); every target pose inside the safety envelope")
     print("config OK (no device was touched)")

@@ -159,3 +159,13 @@ def test_bad_config_exits_2_with_one_line(tmp_path: Path, capsys: pytest.Capture
     assert main(["calibrate", "--config", str(path), "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "key 'camera.noise'" in err and str(path) in err
+
+
+@pytest.mark.parametrize(("name", "camera", "arm"), [("ur_oak.toml", "oak", "ur"), ("ur_o3r.toml", "o3r", "ur")])
+def test_check_shows_what_connects_to_what(name: str, camera: str, arm: str,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    path = resources.files("cellcal.configs").joinpath(name)
+    assert main(["calibrate", "--check", "--config", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert f"camera:  backend '{camera}'" in out and f"arm:     backend '{arm}' at host=" in out
+    assert "no device was touched" in out
