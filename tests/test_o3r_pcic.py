@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import struct
 
 import numpy as np
@@ -122,7 +123,7 @@ def test_tof_info_fields() -> None:
     frame = plane_frame(INTR)
     enc = FrameEncoder(models_from_intrinsics(INTR), extrinsic_optic_to_user=(0.01, 0.02, 0.03, 0.1, -0.2, 0.3))
     payload = message("0000", enc.payload(frame, 1))[16:]
-    c = [c for c in walk_chunks(payload) if c.chunk_type == 420][0]
+    c = next(c for c in walk_chunks(payload) if c.chunk_type == 420)
     info = parse_tof_info(payload[c.data_offset:c.data_offset + c.data_size])
     assert info.version == 3 and info.mode == "standard_range4m" and info.imager == "IRS2877C"
     assert info.distance_resolution_m == pytest.approx(0.000125, rel=1e-7)
@@ -192,20 +193,14 @@ def test_fuzz_mutated_streams_raise_only_protocol_error(data: st.DataObject) -> 
         elif kind == "u32" and pos + 4 <= len(buf):
             struct.pack_into("<I", buf, pos, data.draw(st.sampled_from([0, 1, 35, 47, 48, 0xFFFFFFFF,
                                                                         0x7FFFFFFF, 65536])))
-    try:
+    with contextlib.suppress(ProtocolError):
         _parse_everything(bytes(buf))
-    except ProtocolError:
-        pass
 
 
 @settings(max_examples=200, deadline=None)
 @given(st.binary(max_size=600))
 def test_fuzz_random_bytes_raise_only_protocol_error(raw: bytes) -> None:
-    try:
+    with contextlib.suppress(ProtocolError):
         _parse_everything(b"0000L%09d\r\n0000star" % (len(raw) + 14) + raw + b"stop\r\n")
-    except ProtocolError:
-        pass
-    try:
+    with contextlib.suppress(ProtocolError):
         _parse_everything(raw)
-    except ProtocolError:
-        pass
