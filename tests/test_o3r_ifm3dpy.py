@@ -103,6 +103,6 @@ def test_ifm3dpy_software_trigger(emulator: tuple[int, int]) -> None:
                     counts.append(frame.frame_count())
                     break
                 time.sleep(0.1)
-        assert counts[1] == counts[0] + 1
+        assert counts[1] > counts[0]
     finally:
         fg.stop().wait_for(5000)
