@@ -301,12 +301,12 @@ class PcicStream:
                 self._reply_counter += 1
                 self._replies[ticket] = (self._reply_counter, bytes(payload[4:-2]))
                 if ticket == TICKET_P:
-                    code = payload[4:5]
-                    if code == b"*":
+                    reply_code = bytes(payload[4:5])
+                    if reply_code == b"*":
                         self._ready_generation = self._generation
                     else:
                         self._pending.append(DeviceError(f"O3R rejected output mask 'p{self.mask:X}' "
-                                                         f"with {code!r}"))
+                                                         f"with {reply_code!r}"))
                 elif ticket == TICKET_C and payload[4:5] != b"*":
                     self._pending.append(DeviceError(f"O3R rejected the PCIC schema with {bytes(payload[4:5])!r}"))
                 self._cond.notify_all()

@@ -130,12 +130,12 @@ class FrameDecoder:
         h, w = raw.shape
         # uint16 -> float32 through 64 Ki-entry lookup tables: one gather per image,
         # with raw 0 -> NaN (distance) and ifm's (a-1)^2 x resolution / -1 (amplitude)
-        distance = self._distance_lut(info.distance_resolution_m).take(raw)
+        distance = self._distance_lut(info.distance_resolution_m).take(raw)  # type: ignore[arg-type]
         conf: NDArray[np.uint16] | None = None
         conf_c = by_type.get(CHUNK_CONFIDENCE)
         if conf_c is not None:
             conf = image_view(payload, conf_c, offset=offset, expect_format=(2,))  # type: ignore[assignment]
-            self._check_shape(conf_c, conf, (h, w), offset)
+            self._check_shape(conf_c, conf, (h, w), offset)  # type: ignore[arg-type]
             assert conf is not None
             np.copyto(distance, np.float32(np.nan), where=(conf & CONF_INVALID_BIT) != 0)
         valid = ~np.isnan(distance)
@@ -143,7 +143,7 @@ class FrameDecoder:
         if amp_c is not None:
             araw = image_view(payload, amp_c, offset=offset, expect_format=(2,))
             self._check_shape(amp_c, araw, (h, w), offset)
-            amplitude = self._amplitude_lut(info.amplitude_resolution).take(araw)
+            amplitude = self._amplitude_lut(info.amplitude_resolution).take(araw)  # type: ignore[arg-type]
         else:
             amplitude = np.zeros((h, w), dtype=np.float32)
         intr = self.intrinsics(info, w, h)

@@ -290,7 +290,7 @@ def blob_view(payload: bytes | bytearray | memoryview, chunk: Chunk) -> memoryvi
     return memoryview(payload).cast("B")[chunk.data_offset:chunk.data_offset + chunk.data_size]
 
 
-def parse_async_error(content: bytes | memoryview, *, offset: int = 0) -> tuple[int, str]:
+def parse_async_error(content: bytes | bytearray | memoryview, *, offset: int = 0) -> tuple[int, str]:
     """Decode an async error (ticket 0001) content: 9-digit code, optional ``:message``.
 
     Raises:
@@ -303,7 +303,7 @@ def parse_async_error(content: bytes | memoryview, *, offset: int = 0) -> tuple[
     return int(c[:9]), message
 
 
-def parse_notification(content: bytes | memoryview, *, offset: int = 0) -> tuple[str, str]:
+def parse_notification(content: bytes | bytearray | memoryview, *, offset: int = 0) -> tuple[str, str]:
     """Decode an async notification (ticket 0010): 9-digit id, ``:``, JSON text.
 
     Raises:

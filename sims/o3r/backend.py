@@ -61,7 +61,7 @@ class EmulatedO3RCamera(Camera3D):
         sim_keys = {f.name for f in dataclasses.fields(SimCamera3DConfig)}
         sim_cfg = SimCamera3DConfig(**{k: getattr(self.config, k) for k in sim_keys})
         self.sim = SimCamera3D(sim_cfg, context)
-        self.default_timeout_s = max(self.default_timeout_s, self.config.io_timeout_s)
+        self.default_timeout_s: float = max(2.0, self.config.io_timeout_s)
         self.emulator: O3REmulator | None = None
         self.driver: O3RCamera | None = None
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import json
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, MutableSet, Sequence
 from typing import Any
 
 FIRMWARE = "1.4.30"
@@ -134,7 +134,7 @@ class ConfigTree:
         if self._on_change and changed:
             self._on_change(changed)
 
-    def _merge(self, node: dict[str, Any], patch: dict[str, Any], path: str, changed: set[str]) -> None:
+    def _merge(self, node: dict[str, Any], patch: dict[str, Any], path: str, changed: MutableSet[str]) -> None:
         for key, value in patch.items():
             here = f"{path}/{key}"
             if key not in node:
