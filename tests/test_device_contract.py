@@ -18,7 +18,7 @@ def context(section: str) -> BackendContext:
     return BackendContext(source="<sim.toml>", section=section, document=SIM_DOC, shared={}, seed=3)
 
 
-@pytest.mark.parametrize("name", ["sim"])
+@pytest.mark.parametrize("name", ["sim", "o3r-emulated"])
 def test_camera_contract(name: str) -> None:
     camera = default_registry().create_camera({**SIM_DOC["camera"], "backend": name}, context("camera"))
     check_camera(camera)

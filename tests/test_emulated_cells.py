@@ -29,8 +29,6 @@ def angles(result: dict[str, Any]) -> list[tuple[int, int, str, float]]:
 
 @pytest.mark.parametrize("config_name", ["xarm_emulated.toml", "o3r_emulated.toml"])
 def test_emulated_cell_matches_the_pure_sim(config_name: str) -> None:
-    if not (CONFIGS / config_name).exists():
-        pytest.skip(f"{config_name} not packaged")
     sim = angles(run("sim.toml"))
     emulated = angles(run(config_name))
     assert [a[:3] for a in emulated] == [a[:3] for a in sim]
@@ -41,8 +39,6 @@ def test_emulated_cell_matches_the_pure_sim(config_name: str) -> None:
 @pytest.mark.parametrize("config_name", ["xarm_emulated.toml", "o3r_emulated.toml"])
 def test_emulated_configs_differ_from_sim_only_in_one_backend(config_name: str) -> None:
     path = CONFIGS / config_name
-    if not path.exists():
-        pytest.skip(f"{config_name} not packaged")
     sim = tomllib.loads((CONFIGS / "sim.toml").read_text())
     doc = tomllib.loads(path.read_text())
     changed = {k for k in sim if k != "cell" and sim[k] != doc.get(k)}
