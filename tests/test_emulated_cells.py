@@ -46,7 +46,7 @@ def test_emulated_configs_differ_from_sim_only_in_one_backend(config_name: str) 
     parse_config(doc, str(path))
 
 
-def test_cli_runs_the_xarm_emulated_cell(tmp_path: Path) -> None:
-    assert main(["calibrate", "--config", str(CONFIGS / "xarm_emulated.toml"), "--out", str(tmp_path),
-                 "--quiet"]) == 0
+@pytest.mark.parametrize("config_name", ["xarm_emulated.toml", "o3r_emulated.toml"])
+def test_cli_runs_the_emulated_cells(config_name: str, tmp_path: Path) -> None:
+    assert main(["calibrate", "--config", str(CONFIGS / config_name), "--out", str(tmp_path), "--quiet"]) == 0
     assert (tmp_path / "result.json").exists()
