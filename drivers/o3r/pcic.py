@@ -290,17 +290,26 @@ def blob_view(payload: bytes | bytearray | memoryview, chunk: Chunk) -> memoryvi
     return memoryview(payload).cast("B")[chunk.data_offset:chunk.data_offset + chunk.data_size]
 
 
+def _split_coded(content: bytes | bytearray | memoryview, what: str, offset: int) -> tuple[bytes, str]:
+    """Split ``<9 ASCII digits>[:<text>]`` into the digits and the text.
+
+    Raises:
+        ProtocolError: If the content does not start with 9 ASCII digits.
+    """
+    c = bytes(content)
+    if len(c) < 9 or not c[:9].isdigit():
+        raise ProtocolError(f"{what}: {c[:9]!r}", offset=offset)
+    return c[:9], c[10:].decode("utf-8", "replace") if len(c) > 9 else ""
+
+
 def parse_async_error(content: bytes | bytearray | memoryview, *, offset: int = 0) -> tuple[int, str]:
     """Decode an async error (ticket 0001) content: 9-digit code, optional ``:message``.
 
     Raises:
         ProtocolError: If the code is not 9 ASCII digits.
     """
-    c = bytes(content)
-    if len(c) < 9 or not c[:9].isdigit():
-        raise ProtocolError(f"async error lacks a 9-digit code: {c[:9]!r}", offset=offset)
-    message = c[10:].decode("utf-8", "replace") if len(c) > 9 else ""
-    return int(c[:9]), message
+    code, message = _split_coded(content, "async error lacks a 9-digit code", offset)
+    return int(code), message
 
 
 def parse_notification(content: bytes | bytearray | memoryview, *, offset: int = 0) -> tuple[str, str]:
@@ -309,7 +318,5 @@ def parse_notification(content: bytes | bytearray | memoryview, *, offset: int =
     Raises:
         ProtocolError: If the id is not 9 ASCII digits.
     """
-    c = bytes(content)
-    if len(c) < 9 or not c[:9].isdigit():
-        raise ProtocolError(f"notification lacks a 9-digit id: {c[:9]!r}", offset=offset)
-    return c[:9].decode("ascii"), c[10:].decode("utf-8", "replace") if len(c) > 9 else ""
+    ident, text = _split_coded(content, "notification lacks a 9-digit id", offset)
+    return ident.decode("ascii"), text
