@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from .calibrator import Calibrator, build_devices
-from .config import load_config, plan_flange_poses
+from .config import load_config
 from .report import RESULT_FILENAME, format_table, write_json_atomic
 
 
@@ -42,9 +42,10 @@ def _where(device: Any) -> str:
 def _check(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     camera, arm = build_devices(config)
-    poses = plan_flange_poses(config)
+    calibrator = Calibrator(config, camera, arm)
+    calibrator.check_plan(None)
+    poses = calibrator.poses
     plan = config.plan
-    Calibrator(config, camera, arm).check_plan(None)
     print(f"config:  {config.source} (cell '{config.cell.name}')")
     print(f"camera:  backend '{camera.backend_name}'{_where(camera)} "
           f"({type(camera).__module__}.{type(camera).__qualname__})")

@@ -62,11 +62,14 @@ def write_json_atomic(path: str | Path, document: Mapping[str, Any]) -> Path:
 
 
 def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
-    """Mean absolute angle error (%) and mean angle by method, by height and by perimeter.
+    """Mean absolute angle error (%) and mean angle by method: overall, per pose and per perimeter.
 
     Args:
-        rows: Flat measurement rows with keys ``method``, ``height_index``,
+        rows: Flat measurement rows with keys ``method``, ``pose_index`` (0-based),
             ``perimeter_px``, ``angle_deg`` and (optionally) ``error_pct``.
+
+    Returns:
+        ``{method: {"all" | "pose N" | "P px": {n, mean_angle_deg, mean_error_pct, max_error_pct}}}``.
     """
     groups: dict[str, dict[str, list[Mapping[str, Any]]]] = defaultdict(lambda: defaultdict(list))
     for row in rows:
