@@ -23,7 +23,7 @@ from cellcal.devices.errors import (
 )
 
 #: Subcommand modules, in the order they appear in ``cellcal --help``.
-SUBCOMMANDS = ("cli_calibrate", "cli_devices", "cli_paper")
+SUBCOMMANDS = ("cli_calibrate", "cli_monitor", "cli_study", "cli_record", "cli_devices", "cli_paper")
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
