@@ -1,0 +1,1 @@
+"""cellcal.testing: a conformance kit for Camera3D and RobotArm backends."""
