@@ -63,32 +63,14 @@ class FrameDecoder:
         self._uv: NDArray[np.float32] | None = None
         self._intr_key: tuple[object, ...] | None = None
         self._intr: Intrinsics | None = None
-        self._dlut: NDArray[np.float32] | None = None
-        self._dlut_res = 0.0
-        self._alut: NDArray[np.float32] | None = None
-        self._alut_res = 0.0
 
     def _unit_vectors(self, info: TofInfo, width: int, height: int) -> NDArray[np.float32]:
+        """Cached unit vectors, planar: float32 (3, height, width)."""
         key = (info.intrinsic, width, height)
         if self._uv is None or key != self._uv_key:
-            self._uv = unit_vectors(info.intrinsic, width, height)
+            self._uv = np.ascontiguousarray(unit_vectors(info.intrinsic, width, height).transpose(2, 0, 1))
             self._uv_key = key
         return self._uv
-
-    def _distance_lut(self, resolution: float) -> NDArray[np.float32]:
-        if self._dlut is None or self._dlut_res != resolution:
-            lut = np.arange(65536, dtype=np.float32) * np.float32(resolution)
-            lut[0] = np.nan
-            self._dlut, self._dlut_res = lut, resolution
-        return self._dlut
-
-    def _amplitude_lut(self, resolution: float) -> NDArray[np.float32]:
-        if self._alut is None or self._alut_res != resolution:
-            a = np.arange(65536, dtype=np.float32) - np.float32(1.0)
-            lut = (a * a * np.float32(resolution)).astype(np.float32)
-            lut[0] = -1.0
-            self._alut, self._alut_res = lut, resolution
-        return self._alut
 
     def intrinsics(self, info: TofInfo, width: int, height: int) -> Intrinsics:
         """Cached :func:`intrinsics_from_models`."""
@@ -128,37 +110,54 @@ class FrameDecoder:
         info = parse_tof_info(blob_view(payload, info_c), offset=offset + info_c.data_offset)
         raw = image_view(payload, dist_c, offset=offset, expect_format=(2,))
         h, w = raw.shape
-        # uint16 -> float32 through 64 Ki-entry lookup tables: one gather per image,
-        # with raw 0 -> NaN (distance) and ifm's (a-1)^2 x resolution / -1 (amplitude)
-        distance = self._distance_lut(info.distance_resolution_m).take(raw)  # type: ignore[arg-type]
+        # uint16 -> float32 metres in one ufunc; raw 0 (no measurement) and the
+        # confidence's invalid bit become NaN
+        distance = np.multiply(raw, np.float32(info.distance_resolution_m), dtype=np.float32)
+        invalid = raw == 0
         conf: NDArray[np.uint16] | None = None
         conf_c = by_type.get(CHUNK_CONFIDENCE)
         if conf_c is not None:
             conf = image_view(payload, conf_c, offset=offset, expect_format=(2,))  # type: ignore[assignment]
             self._check_shape(conf_c, conf, (h, w), offset)  # type: ignore[arg-type]
             assert conf is not None
-            np.copyto(distance, np.float32(np.nan), where=(conf & CONF_INVALID_BIT) != 0)
-        valid = ~np.isnan(distance)
+            invalid |= (conf & CONF_INVALID_BIT) != 0
+        np.copyto(distance, np.float32(np.nan), where=invalid)
+        valid = ~invalid
         amp_c = by_type.get(CHUNK_NORM_AMPLITUDE)
         if amp_c is not None:
             araw = image_view(payload, amp_c, offset=offset, expect_format=(2,))
             self._check_shape(amp_c, araw, (h, w), offset)
-            amplitude = self._amplitude_lut(info.amplitude_resolution).take(araw)  # type: ignore[arg-type]
+            amplitude = self._amplitude(araw, info.amplitude_resolution)  # type: ignore[arg-type]
         else:
             amplitude = np.zeros((h, w), dtype=np.float32)
         intr = self.intrinsics(info, w, h)
         uv = self._unit_vectors(info, w, h)
+        # XYZ is computed planar (3, H, W) -- one contiguous multiply per channel,
+        # ~6x faster than an interleaved (H, W, 3) broadcast -- and handed out as a
+        # (H, W, 3) view of it, which is what Frame documents.
         with np.errstate(invalid="ignore", over="ignore"):
-            xyz = uv * distance[:, :, None]
-        if self.apply_extrinsic:
-            rot, trans = optic_to_user(info.extrinsic_optic_to_user)
-            xyz = (xyz @ rot.T.astype(np.float32) + trans.astype(np.float32)).astype(np.float32)
+            planar = uv * distance
+            if self.apply_extrinsic:
+                rot, trans = optic_to_user(info.extrinsic_optic_to_user)
+                flat = rot.astype(np.float32) @ planar.reshape(3, -1)
+                flat += trans.astype(np.float32)[:, None]
+                planar = flat.reshape(3, h, w)
+        xyz = planar.transpose(1, 2, 0)
         ts_ns = dist_c.timestamp_ns
         timestamp = ts_ns / 1e9 if ts_ns else (received_at if received_at is not None else time.time())
         frame = Frame(distance=distance, xyz=xyz, amplitude=amplitude, valid=valid,
                       intrinsics=intr, timestamp=float(timestamp),
                       sequence=int(dist_c.frame_count), confidence=conf)
         return DecodedFrame(frame, info, int(dist_c.frame_count))
+
+    @staticmethod
+    def _amplitude(raw: NDArray[np.uint16], resolution: float) -> NDArray[np.float32]:
+        """ifm's normalised amplitude: ``(raw - 1)^2 x resolution``, -1 where raw is 0."""
+        a = np.subtract(raw, np.float32(1.0), dtype=np.float32)
+        np.multiply(a, a, out=a)
+        a *= np.float32(resolution)
+        np.copyto(a, np.float32(-1.0), where=raw == 0)
+        return a
 
     @staticmethod
     def _check_shape(chunk: Chunk, arr: NDArray[np.generic], shape: tuple[int, int], offset: int) -> None:
