@@ -4,8 +4,8 @@ The document has these tables (see ``configs/sim.toml`` for a commented example)
 ``[cell]``, ``[camera]`` and ``[arm]`` (each with ``backend = "name"``; the rest is
 validated by that backend), ``[mount]`` (hand-eye: camera in the flange frame),
 ``[reference]`` (optional: the measuring plane as the cell believes it, base frame),
-``[safety]``, ``[plan]``, and ``[sim]`` (read only by simulated backends). Keys carry
-their unit in their name (``_m``, ``_s``, ``_deg``, ``_px``); degrees appear only in
+``[safety]``, ``[plan]``, ``[monitor]`` (the live drift monitor) and ``[sim]`` (read only by
+simulated backends). Keys carry their unit in their name (``_m``, ``_s``, ``_deg``, ``_px``); degrees appear only in
 the file and are converted to radians on loading (ADR 0004).
 
 Any problem raises :class:`~cellcal.devices.errors.ConfigError` naming the file, the
@@ -33,7 +33,7 @@ from cellcal.devices.safety import SafetyLimits
 Vec3 = tuple[float, float, float]
 MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal"]
 ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal")
-TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim")
+TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor")
 DEFAULT_CONFIG_NAME = "sim.toml"
 
 
@@ -134,6 +134,38 @@ class PlanSection:
 
 
 @dataclass(frozen=True)
+class MonitorSection:
+    """``[monitor]``: the live drift monitor (``cellcal monitor``, :mod:`cellcal.core.monitor`).
+
+    Per frame the plane's tilt and height (along the optical axis) are compared with a
+    baseline; drift is flagged when the median deviation over the last
+    ``window_frames`` frames exceeds its threshold, and cleared only once both medians
+    stay below ``hysteresis_ratio`` times their thresholds for ``clear_s`` seconds of
+    frame time. Each effective threshold is at least ``noise_sigmas`` times the
+    frame-to-frame noise measured over the ``baseline_frames`` first frames, so plain
+    noise cannot flag whatever the configured value.
+    """
+
+    period_s: float = field(default=0.1, metadata={"ge": 0, "le": 3600, "doc": "min. wall time between captures, s"})
+    capture_timeout_s: float = field(default=2.0, metadata={"gt": 0, "le": 600, "doc": "per-capture timeout, s"})
+    connect_timeout_s: float = field(default=10.0, metadata={"gt": 0, "le": 600, "doc": "per-camera connect, s"})
+    baseline_frames: int = field(default=20, metadata={"ge": 2, "le": 100000, "doc": "frames for baseline/noise"})
+    tilt_threshold_deg: float = field(default=0.2, metadata={"gt": 0, "le": 90, "doc": "tilt drift threshold, deg"})
+    height_threshold_m: float = field(default=0.002, metadata={"gt": 0, "le": 10, "doc": "height drift threshold, m"})
+    noise_sigmas: float = field(default=6.0, metadata={"ge": 0, "le": 1000,
+                                                       "doc": "thresholds >= this many measured noise sigmas"})
+    window_frames: int = field(default=5, metadata={"ge": 1, "le": 10000, "doc": "median window, frames"})
+    hysteresis_ratio: float = field(default=0.5, metadata={"gt": 0, "le": 1, "doc": "clear level / threshold"})
+    clear_s: float = field(default=1.0, metadata={"ge": 0, "le": 86400, "doc": "time below the clear level, s"})
+    status_every_s: float = field(default=1.0, metadata={"gt": 0, "le": 86400, "doc": "CLI status line period, s"})
+
+    @property
+    def tilt_threshold_rad(self) -> float:
+        """``tilt_threshold_deg`` in radians."""
+        return math.radians(self.tilt_threshold_deg)
+
+
+@dataclass(frozen=True)
 class CellConfig:
     """A validated cell configuration.
 
@@ -149,6 +181,7 @@ class CellConfig:
     reference: ReferenceSection | None
     safety: SafetySection
     plan: PlanSection
+    monitor: MonitorSection = field(default_factory=MonitorSection)
 
     @property
     def camera_section(self) -> Mapping[str, Any]:
@@ -204,6 +237,7 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
         reference=None if ref is None else parse_section(ReferenceSection, ref, where="reference", source=source),
         safety=parse_section(SafetySection, document.get("safety"), where="safety", source=source),
         plan=plan,
+        monitor=parse_section(MonitorSection, document.get("monitor"), where="monitor", source=source),
     )
 
 

@@ -290,6 +290,23 @@ class SimWorld:
         """True camera pose in the base frame, ``T_base_camera = T_base_flange @ T_flange_camera``."""
         return self.arm.flange_pose() @ self.mount
 
+    def bump_mount(self, delta: Pose) -> Pose:
+        """Jolt the camera on its mount: from now on the true mount is ``mount @ delta``.
+
+        Simulates a camera knocked on its bracket (tests of the drift monitor). Frames
+        rendered after this call see the moved camera; the nominal ``[mount]`` of the
+        configuration is not touched.
+
+        Args:
+            delta: The camera's displacement expressed in its own (optical) frame:
+                ``T_camera_old_camera_new`` (rotation about the camera's axes, metres).
+
+        Returns:
+            The new true mount ``T_flange_camera``.
+        """
+        self.mount = self.mount @ delta  # one attribute assignment: atomic for readers
+        return self.mount
+
     def rng(self, stream: str, seed: int | None = None) -> np.random.Generator:
         """A generator for one named stream (``"camera"``, ``"arm"``), from ``seed`` or the world's seed."""
         root = self.seed if seed is None else int(seed)
