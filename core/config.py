@@ -30,10 +30,13 @@ from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 from cellcal.devices.safety import SafetyLimits
 
+from .fullframe import FullFrameSettings
+
 Vec3 = tuple[float, float, float]
 MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal"]
 ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal")
-TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor")
+TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor",
+                    "full_frame")
 DEFAULT_CONFIG_NAME = "sim.toml"
 
 
@@ -182,6 +185,7 @@ class CellConfig:
     safety: SafetySection
     plan: PlanSection
     monitor: MonitorSection = field(default_factory=MonitorSection)
+    full_frame: FullFrameSettings = field(default_factory=FullFrameSettings)
 
     @property
     def camera_section(self) -> Mapping[str, Any]:
@@ -238,6 +242,7 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
         safety=parse_section(SafetySection, document.get("safety"), where="safety", source=source),
         plan=plan,
         monitor=parse_section(MonitorSection, document.get("monitor"), where="monitor", source=source),
+        full_frame=parse_section(FullFrameSettings, document.get("full_frame"), where="full_frame", source=source),
     )
 
 
