@@ -32,6 +32,13 @@ reach clamped to the links' range), J4 makes up the tool pitch, J5 is the residu
 roll. J1 and J5 are unwrapped towards the previous reading, so the joints are
 continuous along a motion. Angles: J2 from vertical (forward positive), J3 and J4
 relative to the previous link.
+
+**Fault injection** (tests): :attr:`SimRobotArm.fault_hook`, if set, is called as
+``hook("connect", n)`` on the n-th connect and ``hook("move", n)`` right after the
+n-th motion has started (``n`` = :attr:`SimRobotArm.moves_started`); from there a test
+can latch a controller error (:meth:`set_error`, e.g. 31, the protective stop after a
+collision), freeze the motion (:meth:`freeze_motion`, a blocked arm that never
+arrives) or raise. :attr:`SimRobotArm.stops` counts the stop commands received.
 """
 
 from __future__ import annotations
@@ -39,7 +46,9 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -241,7 +250,15 @@ class SimRobotArm(RobotArm):
         self._error = 0
         self._warning = 0
         self._joints: NDArray[np.float64] | None = None
+        self._motion: LinearMotion | None = None
         self.last_motion_duration_s = 0.0
+        #: Fault-injection hook ``hook(event, n)``, see the module docstring. It runs on the
+        #: thread that drives the arm (an emulator's server thread for ``xarm-emulated``).
+        self.fault_hook: Callable[[str, int], None] | None = None
+        #: Motions started, connects made and stop commands received (observable by tests).
+        self.moves_started = 0
+        self.connects = 0
+        self.stops = 0
 
     # ------------------------------------------------------------------ workspace
     def workspace_violation(self, pose: Pose) -> str | None:
@@ -277,6 +294,33 @@ class SimRobotArm(RobotArm):
             motion = LinearMotion(model.flange_pose(), pose, v, acc)
             self.last_motion_duration_s = motion.duration_s
             model.start_motion(motion, self.config.time_scale)
+            self._motion = motion
+            self.moves_started += 1
+            if self.fault_hook is not None:
+                self.fault_hook("move", self.moves_started)
+
+    def freeze_motion(self) -> None:
+        """Fault injection: the motion under way stops progressing (a blocked arm).
+
+        The arm stays where it is and keeps reporting that it is moving until it is
+        stopped (:meth:`stop`, or a controller error); a waiting caller times out.
+        """
+        with self._lock:
+            motion = self._motion
+            if motion is None or not self.world.arm.is_moving():
+                return
+            here = self.world.arm.halt()
+            self.world.arm.start_motion(LinearMotion(here, motion.target, motion.speed, motion.acceleration), 1e12)
+
+    def resume_state(self) -> dict[str, Any]:
+        """JSON-able state of the read-back noise stream (restored when a run resumes)."""
+        with self._lock:
+            return {"rng": self._rng.bit_generator.state}
+
+    def restore_resume_state(self, state: dict[str, Any]) -> None:
+        """Continue the read-back noise stream from :meth:`resume_state`'s output."""
+        with self._lock:
+            self._rng.bit_generator.state = state["rng"]
 
     def is_moving(self) -> bool:
         """Whether a motion is under way."""
@@ -305,7 +349,9 @@ class SimRobotArm(RobotArm):
 
     # ------------------------------------------------------------------ backend hooks
     def _connect(self, timeout: float) -> None:
-        return None
+        self.connects += 1
+        if self.fault_hook is not None:
+            self.fault_hook("connect", self.connects)
 
     def _close(self) -> None:
         self.world.arm.halt()
@@ -341,6 +387,7 @@ class SimRobotArm(RobotArm):
             raise VendorError("sim", code, error_meaning(code))
 
     def _stop(self, timeout: float) -> None:
+        self.stops += 1
         self.world.arm.halt()
 
     def _joint_positions(self, timeout: float) -> NDArray[np.float64]:

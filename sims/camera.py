@@ -29,12 +29,18 @@ Randomness comes from one numpy Generator per camera, seeded from the config's
 ``seed`` or the world's seed, so equal seeds give identical frame sequences.
 Frames are paced by the simulated clock: each capture advances it to the next frame
 period (``1 / frame_rate_hz``) and stamps the frame with the simulated time.
+
+**Fault injection** (tests): :attr:`SimCamera3D.fault_hook`, if set, is called as
+``hook("connect", n)`` on the n-th connect and ``hook("capture", n)`` before the n-th
+frame is rendered (on the thread that captures: an emulator's server thread for
+``o3r-emulated``, where it is the place to inject a wire fault into that very frame).
 """
 
 from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -166,6 +172,9 @@ class SimCamera3D(Camera3D):
         self._sequence = 0
         self._last_frame_elapsed: float | None = None
         self._cos_grazing = math.cos(math.radians(self.config.grazing_limit_deg))
+        #: Fault-injection hook ``hook(event, n)``, see the module docstring.
+        self.fault_hook: Callable[[str, int], None] | None = None
+        self.connects = 0
 
     # ------------------------------------------------------------------ rendering
     def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
@@ -224,7 +233,9 @@ class SimCamera3D(Camera3D):
 
     # ------------------------------------------------------------------ backend hooks
     def _connect(self, timeout: float) -> None:
-        return None
+        self.connects += 1
+        if self.fault_hook is not None:
+            self.fault_hook("connect", self.connects)
 
     def _close(self) -> None:
         return None
@@ -239,6 +250,8 @@ class SimCamera3D(Camera3D):
         return self._intr
 
     def _capture(self, timeout: float) -> Frame:
+        if self.fault_hook is not None:
+            self.fault_hook("capture", self._sequence + 1)
         with self._lock:
             period = 1.0 / self.config.frame_rate_hz
             clock = self.world.clock
@@ -247,6 +260,21 @@ class SimCamera3D(Camera3D):
             self._last_frame_elapsed = clock.elapsed_s
             self._sequence += 1
             return self.render(self.world.camera_pose(), sequence=self._sequence)
+
+    def resume_state(self) -> dict[str, Any]:
+        """JSON-able state of the noise stream and frame pacing (restored when a run resumes)."""
+        with self._lock:
+            return {"rng": self._rng.bit_generator.state, "sequence": self._sequence,
+                    "last_frame_elapsed_s": self._last_frame_elapsed, "clock_elapsed_s": self.world.clock.elapsed_s}
+
+    def restore_resume_state(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`resume_state`'s output: the next frame draws the noise it would have."""
+        with self._lock:
+            self._rng.bit_generator.state = state["rng"]
+            self._sequence = int(state["sequence"])
+            last = state["last_frame_elapsed_s"]
+            self._last_frame_elapsed = None if last is None else float(last)
+            self.world.clock.advance_to(float(state["clock_elapsed_s"]))
 
     @property
     def sequence(self) -> int:

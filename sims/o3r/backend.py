@@ -18,6 +18,7 @@ deterministic).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -64,6 +65,8 @@ class EmulatedO3RCamera(Camera3D):
         self.default_timeout_s: float = max(2.0, self.config.io_timeout_s)
         self.emulator: O3REmulator | None = None
         self.driver: O3RCamera | None = None
+        #: Fault injection (tests): called with the started emulator before the driver connects.
+        self.on_emulator_started: Callable[[O3REmulator], None] | None = None
 
     def _connect(self, timeout: float) -> None:
         cfg = self.config
@@ -72,6 +75,8 @@ class EmulatedO3RCamera(Camera3D):
                                     state="IDLE" if cfg.trigger == "software" else "RUN",
                                     frame_rate_hz=cfg.frame_rate_hz, distance_resolution_m=cfg.distance_resolution_m,
                                     header_version=cfg.header_version).start()
+        if self.on_emulator_started is not None:
+            self.on_emulator_started(self.emulator)
         self.driver = O3RCamera(O3RConfig(host="127.0.0.1", xmlrpc_port=self.emulator.xmlrpc_port,
                                           port=cfg.port_name, trigger=cfg.trigger, set_state=False,
                                           io_timeout_s=cfg.io_timeout_s,

@@ -21,6 +21,9 @@ then nothing for ``seconds``, then close), ``truncate`` (announce the full lengt
 send half, continue with the next message), ``corrupt`` (a header field: ``field`` =
 ``chunk_size`` | ``header_version`` | ``star`` | ``pcic_length``) and ``async_error``
 (an ifm async error message, ticket 0001, with ``code`` and ``message``).
+A fault injected while a frame is being rendered (e.g. from the frame source's own
+fault hook) applies to that frame. :meth:`O3REmulator.go_offline` takes the head off
+the network for good.
 """
 
 from __future__ import annotations
@@ -154,6 +157,7 @@ class O3REmulator:
         self._listener: socket.socket | None = None
         self._wake = threading.Event()
         self.frames_sent = 0
+        self.offline = False
         self.commands: list[str] = []
         self.rpc_calls: list[str] = []
 
@@ -264,6 +268,22 @@ class O3REmulator:
         with self._faults_lock:
             self._faults.append(_Fault(kind, params))
         self._wake.set()
+
+    def go_offline(self) -> None:
+        """Fault injection: the head drops off the network for good.
+
+        Every PCIC connection is closed and new ones are refused (the listening
+        socket is shut down); XML-RPC keeps answering. A client then sees a lost
+        link it cannot re-establish.
+        """
+        self.offline = True
+        if self._listener is not None:
+            with contextlib.suppress(OSError):
+                self._listener.shutdown(socket.SHUT_RDWR)
+        with self._conns_lock:
+            conns = list(self._conns)
+        for c in conns:
+            c.kill()
 
     def connection_count(self) -> int:
         """Number of live PCIC connections."""
@@ -416,6 +436,7 @@ class O3REmulator:
             return self._frame_count, frame
 
     def _send_frame(self, targets: list[_Conn]) -> None:
+        count, frame = self._render()  # first: a fault injected while rendering applies to this frame
         with self._faults_lock:
             fault = self._faults.pop(0) if self._faults else None
         if fault is not None and fault.kind == "async_error":
@@ -424,7 +445,6 @@ class O3REmulator:
             for c in targets:
                 c.send(message("0001", b"%09d:%s" % (code, text.encode())))
             fault = None
-        count, frame = self._render()
         payloads: dict[tuple[int, ...], bytes] = {}
         for c in targets:
             if c.chunks not in payloads:

@@ -16,6 +16,7 @@ simulated one with ``backend = "xarm-emulated"``.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any, Literal, get_type_hints
 
 import numpy as np
@@ -97,6 +98,8 @@ class EmulatedXArmRobot(RobotArm):
         self.sim_arm = SimRobotArm(sim_cfg, context)
         self.emulator: XArmEmulator | None = None
         self.driver: XArmRobot | None = None
+        #: Fault injection (tests): called with the started emulator before the driver connects.
+        self.on_emulator_started: Callable[[XArmEmulator], None] | None = None
 
     @property
     def path(self) -> str:
@@ -108,6 +111,8 @@ class EmulatedXArmRobot(RobotArm):
         self.sim_arm.connect(timeout)
         self.emulator = XArmEmulator(self.sim_arm, axes=cfg.axes, firmware=_parse_firmware(cfg.firmware))
         path = self.emulator.start()
+        if self.on_emulator_started is not None:
+            self.on_emulator_started(self.emulator)
         self.driver = XArmRobot(XArmRobot.Config(
             port=path, axes=cfg.axes, reply_timeout_s=cfg.reply_timeout_s, retries=cfg.retries,
             poll_interval_s=cfg.poll_interval_s), self.context)

@@ -116,6 +116,7 @@ class XArmEmulator:
         path: The slave device path clients open (e.g. ``/dev/pts/5``), once started.
         requests: Count of well-formed requests served, by register number.
         bad_requests: Count of frames that failed to decode (bad CRC, ...).
+        stop_requests: Count of stop commands (SET_STATE 3/4) received and executed.
         last_reported_pose: The last GET_TCP_POSE reply, ``[x, y, z]`` mm and
             ``[roll, pitch, yaw]`` rad as float32 values on the wire.
         last_move: The last well-formed MOVE_LINE request (either layout).
@@ -136,6 +137,7 @@ class XArmEmulator:
         self.path = ""
         self.requests: dict[int, int] = {}
         self.bad_requests = 0
+        self.stop_requests = 0
         self.last_reported_pose: tuple[float, ...] | None = None
         self.last_move: MoveLine | None = None
         self._lock = threading.RLock()
@@ -293,6 +295,7 @@ class XArmEmulator:
                 self._ready = True
             return 0, b""
         if value in (SetState.STOP, SetState.DECELERATE_STOP):
+            self.stop_requests += 1
             self._halt()
             self._ready = False
             return 0, b""
