@@ -8,8 +8,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import ConfigError
+from cellcal.devices.safety import SafeArm
+
 from .calibrator import Calibrator, build_devices
-from .config import load_config
+from .config import CellConfig, load_config
 from .report import RESULT_FILENAME, format_table, write_json_atomic
 
 
@@ -24,7 +28,22 @@ def register(sub: Any) -> None:
     p.add_argument("--check", action="store_true",
                    help="validate the configuration and show what would connect to what; touch no device")
     p.add_argument("--quiet", action="store_true", help="no progress bar or table; only the result path")
+    p.add_argument("--replay", metavar="FILE.mcap",
+                   help="re-run a session recorded with 'cellcal record' from the file alone (its recorded "
+                   "configuration, replay camera and arm); reports whether the result is identical")
     p.set_defaults(func=run)
+
+
+def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
+    """The configuration and devices: from ``--config``, or from a recording with ``--replay``."""
+    if getattr(args, "replay", None):
+        if args.config:
+            raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
+        from .cli_record import replay_session
+
+        return replay_session(args.replay)
+    config = load_config(args.config)
+    return (config, *build_devices(config))
 
 
 #: Config keys that say where a device is, shown by ``--check``.
@@ -40,8 +59,7 @@ def _where(device: Any) -> str:
 
 
 def _check(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
-    camera, arm = build_devices(config)
+    config, camera, arm = _session(args)
     calibrator = Calibrator(config, camera, arm)
     calibrator.check_plan(None)
     poses = calibrator.poses
@@ -61,9 +79,8 @@ def run(args: argparse.Namespace) -> int:
     """Run ``cellcal calibrate``; returns the exit status."""
     if args.check:
         return _check(args)
-    config = load_config(args.config)
+    config, camera, arm = _session(args)
     out = Path(args.out) / RESULT_FILENAME
-    camera, arm = build_devices(config)
     progress = None
     if not args.quiet:
         from tqdm import tqdm
@@ -83,4 +100,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"{method:<18} mean |error| {text} over {groups['all']['n']} estimates")
         print(f"total {document['timings_s']['total']:.2f} s")
     print(f"result written to {out}")
+    if getattr(args, "replay", None):
+        from .cli_record import compare_with_recording
+
+        print(compare_with_recording(args.replay, document))
     return 0
