@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     specs = []
     for label, config in configs:
         camera, _arm = build_devices(config)  # the arm is never connected: nothing moves
-        specs.append(MonitoredCamera(label, camera, config.monitor, getattr(config, "full_frame", None),
+        specs.append(MonitoredCamera(label, camera, config.monitor, config.full_frame,
                                      baselines.get(label)))
     printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)
     monitor = Monitor(specs, printer)

@@ -53,7 +53,8 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
 
 from .config import MonitorSection
-from .planes import Plane, fit_plane_robust
+from .fullframe import FullFrameSettings, check_gates, fit_full_frame
+from .planes import Plane
 
 Phase = Literal["baseline", "ok", "drift"]
 EventKind = Literal["drift_started", "drift_cleared"]
@@ -390,22 +391,21 @@ class DriftDetector:
 
 
 # ---------------------------------------------------------------------- per-frame fit
-def plane_sample(frame: Frame, fit_settings: Any = None) -> PlaneSample:
-    """Fit the measuring plane of one frame and return its tilt and height.
+def plane_sample(frame: Frame, fit_settings: FullFrameSettings | None = None) -> PlaneSample:
+    """Fit the measuring plane of one frame (:func:`fit_full_frame`) and return its tilt and height.
 
     Args:
         frame: A camera frame.
-        fit_settings: Settings of the full-frame fit (``FullFrameSettings``); None: defaults.
+        fit_settings: The ``[full_frame]`` settings (fit and quality gates); None: defaults.
 
     Raises:
-        CalibrationError: If the frame has too few valid pixels or no plane is found
-            (:class:`CalibrationQualityError` when a quality gate fails).
+        CalibrationQualityError: If the fit fails a quality gate (too few valid pixels,
+            too few inliers, residuals too large, poor coverage).
+        CalibrationError: If no plane is found or the optical axis misses it.
     """
-    points = frame.xyz[frame.valid].astype(np.float64)
-    if points.shape[0] < 3:
-        raise CalibrationError(f"frame {frame.sequence} has {points.shape[0]} valid pixel(s); no plane")
-    fit = fit_plane_robust(points, 0.01, seed=0)
-    return PlaneSample.from_plane(fit.plane, frame.timestamp)
+    result = fit_full_frame(frame, fit_settings)
+    check_gates(result)
+    return PlaneSample(float(frame.timestamp), result.tilt_x_rad, result.tilt_y_rad, result.height_m)
 
 
 # ---------------------------------------------------------------------- monitor
@@ -425,7 +425,7 @@ class MonitoredCamera:
     label: str
     camera: Camera3D
     settings: MonitorSection = field(default_factory=MonitorSection)
-    fit_settings: Any = None
+    fit_settings: FullFrameSettings | None = None
     baseline: Baseline | None = None
 
 
@@ -515,7 +515,7 @@ class MonitorSummary:
 
 
 StatusCallback = Callable[[MonitorStatus], None]
-FrameFit = Callable[[Frame, Any], PlaneSample]
+FrameFit = Callable[[Frame, FullFrameSettings | None], PlaneSample]
 
 
 class _Watch:
