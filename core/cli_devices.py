@@ -8,12 +8,14 @@ from typing import Any
 from cellcal.devices.errors import CellcalError
 from cellcal.devices.registry import default_registry
 
+from .argtypes import real
+
 
 def register(sub: Any) -> None:
     """Add the ``devices`` subcommand."""
     p = sub.add_parser("devices", help="list camera and arm backends and where they come from")
     p.add_argument("--scan", action="store_true", help="also look for reachable devices of each backend")
-    p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="seconds per backend scan")
+    p.add_argument("--timeout", type=real(gt=0), default=2.0, metavar="S", help="seconds per backend scan")
     p.set_defaults(func=run)
 
 

@@ -18,6 +18,8 @@ from cellcal.core.paper import error_pct, paper_methods
 from cellcal.core.paper_data import PaperDataSet, load_paper_table
 from cellcal.devices.errors import CalibrationError
 
+from .argtypes import integer, real
+
 __all__ = ["evaluate", "register", "run"]
 
 
@@ -33,9 +35,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("table", metavar="TABLE.csv", help="measurement table")
     p.add_argument("--true-angle", type=float, default=80.0, metavar="DEG",
                    help="true angle between plane and optical axis, degrees (default 80)")
-    p.add_argument("--fov", type=float, nargs=2, default=(60.0, 45.0), metavar=("X_DEG", "Y_DEG"),
+    p.add_argument("--fov", type=real(gt=0, lt=180), nargs=2, default=(60.0, 45.0), metavar=("X_DEG", "Y_DEG"),
                    help="nominal field of view, degrees (default 60 45)")
-    p.add_argument("--image-size", type=int, nargs=2, default=(224, 172),
+    p.add_argument("--image-size", type=integer(gt=0), nargs=2, default=(224, 172),
                    metavar=("WIDTH", "HEIGHT"), help="image size, pixels (default 224 172)")
     p.add_argument("--json", action="store_true", help="print a JSON list instead of tables")
     p.set_defaults(func=run)

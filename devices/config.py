@@ -36,6 +36,15 @@ def _join(where: str, key: str) -> str:
     return f"{where}.{key}" if where else key
 
 
+def _plural(tp: Any) -> str:
+    """``float`` -> "numbers"; ``Literal["a", "b"]`` -> "items, each one of 'a', 'b'"."""
+    text = _describe(tp)
+    for article in ("a ", "an "):
+        if text.startswith(article) and " or " not in text:
+            return text.removeprefix(article) + "s"
+    return f"items, each {text}"
+
+
 def _describe(tp: Any) -> str:
     origin = get_origin(tp)
     if tp in _TYPE_NAMES:
@@ -47,10 +56,10 @@ def _describe(tp: Any) -> str:
     if origin is tuple:
         args = get_args(tp)
         if len(args) == 2 and args[1] is Ellipsis:
-            return f"a list of {_describe(args[0]).removeprefix('a ').removeprefix('an ')}s"
-        return f"a list of {len(args)} {_describe(args[0]).removeprefix('a ').removeprefix('an ')}s"
+            return f"a list of {_plural(args[0])}"
+        return f"a list of {len(args)} {_plural(args[0])}"
     if origin is list:
-        return f"a list of {_describe(get_args(tp)[0]).removeprefix('a ').removeprefix('an ')}s"
+        return f"a list of {_plural(get_args(tp)[0])}"
     if origin is dict or tp is dict:
         return "a table"
     if dataclasses.is_dataclass(tp):
@@ -72,6 +81,9 @@ def _convert(value: Any, tp: Any, key: str, source: str | None) -> Any:
         args = get_args(tp)
         if value is None and type(None) in args:
             return None
+        alternatives = [a for a in args if a is not type(None)]
+        if len(alternatives) == 1:  # X | None: X's own message names the inner key
+            return _convert(value, alternatives[0], key, source)
         for arg in args:
             if arg is type(None):
                 continue
@@ -187,8 +199,13 @@ def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str
         kwargs[name] = value
     try:
         return cls(**kwargs)
-    except ConfigError:
-        raise
+    except ConfigError as exc:  # a check across keys (__post_init__): add what it could not know
+        if exc.source and exc.key:
+            raise
+        inner = exc.key
+        if inner and where and not (inner == where or inner.startswith(f"{where}.")):
+            inner = _join(where, inner)
+        raise ConfigError(exc.reason, source=exc.source or source, key=inner or where or None) from None
     except (ValueError, TypeError) as exc:
         raise ConfigError(str(exc), source=source, key=where or None) from None
 

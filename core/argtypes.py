@@ -1,0 +1,57 @@
+"""argparse ``type=`` checkers for numeric command-line options.
+
+A bad number is a usage error: argparse reports it as one line naming the option
+(``cellcal devices: error: argument --timeout: expected a finite number > 0, got 'nan'``)
+and the command exits with status 2 before doing anything::
+
+    p.add_argument("--timeout", type=real(gt=0), default=2.0)
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+from typing import TypeVar
+
+__all__ = ["integer", "real"]
+
+T = TypeVar("T", int, float)
+
+
+def _limits(gt: float | None, ge: float | None, lt: float | None, le: float | None) -> str:
+    parts = [f"{sym} {v:g}" for sym, v in ((">", gt), (">=", ge), ("<", lt), ("<=", le)) if v is not None]
+    return (" " + " and ".join(parts)) if parts else ""
+
+
+def _inside(v: float, gt: float | None, ge: float | None, lt: float | None, le: float | None) -> bool:
+    return ((gt is None or v > gt) and (ge is None or v >= ge) and (lt is None or v < lt)
+            and (le is None or v <= le))
+
+
+def _checker(parse: Callable[[str], T], what: str, gt: float | None, ge: float | None, lt: float | None,
+             le: float | None) -> Callable[[str], T]:
+    expected = f"expected {what}{_limits(gt, ge, lt, le)}"
+
+    def check(text: str) -> T:
+        try:
+            value = parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{expected}, got {text!r}") from None
+        if not (math.isfinite(value) and _inside(value, gt, ge, lt, le)):  # type: ignore[arg-type]
+            raise argparse.ArgumentTypeError(f"{expected}, got {text!r}")
+        return value
+
+    return check
+
+
+def real(*, gt: float | None = None, ge: float | None = None, lt: float | None = None,
+         le: float | None = None) -> Callable[[str], float]:
+    """A checker for a finite float within the given limits (unit as the option says)."""
+    return _checker(float, "a finite number", gt, ge, lt, le)
+
+
+def integer(*, gt: int | None = None, ge: int | None = None, lt: int | None = None,
+            le: int | None = None) -> Callable[[str], int]:
+    """A checker for an integer within the given limits."""
+    return _checker(int, "an integer", gt, ge, lt, le)
