@@ -83,7 +83,7 @@ COLUMNS: tuple[str, ...] = (
     "clutter_observed", "n_boxes", "method", "perimeter_px", "ok", "true_angle_deg", "est_angle_deg",
     "angle_error_deg", "true_tilt_deg", "est_tilt_deg", "tilt_error_deg", "abs_tilt_error_deg",
     "normal_error_deg", "true_height_m", "est_height_m", "height_error_m", "sigma_tilt_deg",
-    "ci_lo_deg", "ci_hi_deg", "ci_contains", "inlier_fraction", "message",
+    "ci_lo_deg", "ci_hi_deg", "ci_contains", "height_ci_contains", "inlier_fraction", "gates_passed", "message",
 )
 
 
@@ -131,6 +131,9 @@ class StudySettings:
         target_m: Plane point the optical axis hits, base frame, metres.
         camera: Extra keys for the ``sim`` camera section (e.g. ``{"distortion": False}``).
         full_frame: Keyword arguments for ``FullFrameSettings`` (empty: its defaults).
+        headline_factor: The headline conditions (paper inclination, default noise,
+            no clutter and 30 % clutter) run this many times ``trials``, to pin the
+            interval coverage down.
     """
 
     trials: int = 50
@@ -146,6 +149,7 @@ class StudySettings:
     target_m: tuple[float, float, float] = (0.3, 0.0, 0.0)
     camera: Mapping[str, Any] = field(default_factory=dict)
     full_frame: Mapping[str, Any] = field(default_factory=dict)
+    headline_factor: int = 4
 
     def __post_init__(self) -> None:
         if self.trials < 1:
@@ -156,6 +160,14 @@ class StudySettings:
             raise CalibrationError(f"clutter fractions must be in [0, 0.9), got {self.clutter_fractions}")
         if self.max_boxes < 1:
             raise CalibrationError(f"max_boxes must be >= 1, got {self.max_boxes}")
+        if self.headline_factor < 1:
+            raise CalibrationError(f"headline_factor must be >= 1, got {self.headline_factor}")
+
+    def trials_for(self, condition: Condition) -> int:
+        """Trials of one condition (``trials``, times ``headline_factor`` for a headline condition)."""
+        headline = (condition.inclination_deg == PAPER_INCLINATION_DEG and condition.noise_scale == 1.0
+                    and condition.clutter in (0.0, TARGET_CLUTTER))
+        return self.trials * (self.headline_factor if headline else 1)
 
     def conditions(self) -> list[Condition]:
         """The design's conditions, without duplicates, in a stable order."""
@@ -174,7 +186,7 @@ class StudySettings:
 def quick_settings(trials: int = 8, seed: int = 0) -> StudySettings:
     """A small design for CI: the paper's heights and inclination, no clutter and 30 %."""
     return StudySettings(trials=trials, seed=seed, inclinations_deg=(PAPER_INCLINATION_DEG,),
-                         noise_scales=(1.0,), clutter_fractions=(0.0, TARGET_CLUTTER))
+                         noise_scales=(1.0,), clutter_fractions=(0.0, TARGET_CLUTTER), headline_factor=1)
 
 
 # ---------------------------------------------------------------------- geometry of a trial
@@ -420,7 +432,7 @@ def _empty_row(trial: TrialData, method: str, perimeter: int | None) -> dict[str
         "tilt_error_deg": math.nan, "abs_tilt_error_deg": math.nan, "normal_error_deg": math.nan,
         "true_height_m": t.height_m, "est_height_m": math.nan, "height_error_m": math.nan,
         "sigma_tilt_deg": math.nan, "ci_lo_deg": math.nan, "ci_hi_deg": math.nan, "ci_contains": None,
-        "inlier_fraction": math.nan, "message": "",
+        "height_ci_contains": None, "inlier_fraction": math.nan, "gates_passed": None, "message": "",
     }
 
 
@@ -482,13 +494,6 @@ def full_frame_fitter(options: Mapping[str, Any] | None = None) -> FullFrameFit 
     return fit
 
 
-def _interval(value: Any) -> tuple[float, float] | None:
-    if value is None:
-        return None
-    lo, hi = value
-    return float(lo), float(hi)
-
-
 def full_frame_row(trial: TrialData, fit: FullFrameFit) -> dict[str, Any]:
     """The full-frame row of a trial (stores the result on ``trial.full_frame``)."""
     row = _empty_row(trial, FULL_FRAME, None)
@@ -498,20 +503,15 @@ def full_frame_row(trial: TrialData, fit: FullFrameFit) -> dict[str, Any]:
         row["message"] = str(exc)
         return row
     trial.full_frame = res
-    plane = res.plane
-    _fill(row, trial.truth, plane.angle_to_optical_axis_rad(), float(res.height_m), plane.normal)
-    tilt_true = math.radians(row["true_tilt_deg"])
-    row["est_tilt_deg"] = math.degrees(float(res.tilt_rad))
-    row["tilt_error_deg"] = row["est_tilt_deg"] - row["true_tilt_deg"]
-    row["abs_tilt_error_deg"] = abs(row["tilt_error_deg"])
-    row["sigma_tilt_deg"] = math.degrees(float(res.tilt_sigma_rad))
-    ci = _interval(res.tilt_ci_rad)
-    if ci is not None:
-        row["ci_lo_deg"], row["ci_hi_deg"] = math.degrees(ci[0]), math.degrees(ci[1])
-        row["ci_contains"] = bool(ci[0] <= tilt_true <= ci[1])
-    frac = getattr(res, "inlier_fraction", None)
-    if frac is not None:
-        row["inlier_fraction"] = float(frac)
+    _fill(row, trial.truth, float(res.angle_rad), float(res.height_m), res.plane.normal)
+    row["sigma_tilt_deg"] = math.degrees(float(res.angle_sigma_rad))
+    lo, hi = (math.degrees(float(v)) for v in res.angle_ci_rad)  # interval of the angle -> of the tilt
+    row["ci_lo_deg"], row["ci_hi_deg"] = 90.0 - hi, 90.0 - lo
+    row["ci_contains"] = bool(row["ci_lo_deg"] <= row["true_tilt_deg"] <= row["ci_hi_deg"])
+    h_lo, h_hi = (float(v) for v in res.height_ci_m)
+    row["height_ci_contains"] = bool(h_lo <= trial.truth.height_m <= h_hi)
+    row["inlier_fraction"] = float(res.inlier_fraction)
+    row["gates_passed"] = bool(res.passed)
     return row
 
 
@@ -581,16 +581,17 @@ def run_study(settings: StudySettings, *, registry: Registry | None = None,
     conditions = settings.conditions()
     example_clutter = min((c.clutter for c in conditions), key=lambda v: abs(v - TARGET_CLUTTER))
     example_height = min(c.height_m for c in conditions)
-    bar = progress(len(conditions) * settings.trials) if progress else None
+    bar = progress(sum(settings.trials_for(c) for c in conditions)) if progress else None
     rows: list[dict[str, Any]] = []
     example: TrialData | None = None
     try:
         for cond in conditions:
-            for i in range(settings.trials):
+            for i in range(settings.trials_for(cond)):
                 trial, trial_rows = run_trial(settings, cond, i, intr, fit, registry)
                 rows += trial_rows
                 if (example is None and cond.height_m == example_height and cond.clutter == example_clutter
-                        and cond.inclination_deg == PAPER_INCLINATION_DEG and trial.full_frame is not None):
+                        and cond.inclination_deg == PAPER_INCLINATION_DEG
+                        and (fit is None or trial.full_frame is not None)):
                     example = trial
                 if bar is not None:
                     bar.update(1)
@@ -643,6 +644,7 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     except OSError as exc:
         raise CalibrationError(f"cannot write {path}: {exc.strerror or exc}") from None
     try:
+        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; a result file is for everyone to read
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -661,12 +663,15 @@ def write_csv(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> Path:
     return write_text_atomic(path, rows_to_csv(rows))
 
 
+_BOOL_COLUMNS = ("ci_contains", "height_ci_contains", "gates_passed")
+
+
 def _parse_cell(column: str, text: str) -> Any:
     if text == "":
-        return None if column == "ci_contains" else (math.nan if column not in ("method", "message") else "")
+        return None if column in _BOOL_COLUMNS else (math.nan if column not in ("method", "message") else "")
     if column in ("method", "message"):
         return text
-    if column in ("ok", "ci_contains"):
+    if column in _BOOL_COLUMNS or column == "ok":
         return text == "true"
     if column in ("trial", "seed", "n_boxes", "perimeter_px"):
         return int(text)
