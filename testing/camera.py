@@ -1,0 +1,240 @@
+"""Conformance checks for :class:`~cellcal.devices.camera.Camera3D` backends.
+
+Every check takes a *factory* — a zero-argument callable that returns a new,
+unconnected camera (typically ``lambda: MyCamera.from_config({...})``) — and
+:class:`CameraOptions` describing what the backend declares (its distance range).
+The checks need a scene the camera sees something in: at least
+``min_valid_fraction`` valid pixels per frame.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import CellcalError, DeviceTimeoutError
+from cellcal.devices.types import Frame, Intrinsics
+
+from ._runner import Check, ConformanceReport, check_bad_timeouts, connected, expect, make, run_checks, timed
+from .lifecycle import CommonOptions, lifecycle_checks
+
+Factory = Callable[[], Camera3D]
+
+
+@dataclass(frozen=True)
+class CameraOptions(CommonOptions):
+    """What the kit may assume about a camera backend under test.
+
+    Attributes:
+        distance_range_m: ``(min, max)`` radial distance, metres, the backend can report;
+            every valid pixel must lie inside it.
+        capture_timeout_s: Timeout passed to ``capture()`` where a frame is required, seconds.
+        frames: Frames captured by the sequence check (>= 2).
+        xyz_tolerance_m: Allowed ``| |xyz| - distance |`` on valid pixels, metres.
+        reprojection_tolerance_px: Allowed distance, pixels, between a valid pixel and its
+            xyz projected through the intrinsics (95th percentile); None skips that check.
+        min_valid_fraction: Fraction of valid pixels a frame of the test scene must have.
+
+    The shared attributes (``connect_timeout_s``, ``short_timeout_s``, ``timing_slack_s``,
+    ``check_resources``) are described in :class:`CommonOptions`.
+    """
+
+    distance_range_m: tuple[float, float] = (0.01, 50.0)
+    capture_timeout_s: float = 5.0
+    frames: int = 3
+    xyz_tolerance_m: float = 1e-4
+    reprojection_tolerance_px: float | None = 0.5
+    min_valid_fraction: float = 0.01
+
+    def __post_init__(self) -> None:
+        self._require_positive("capture_timeout_s", "xyz_tolerance_m")
+        lo, hi = self.distance_range_m
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
+            raise CellcalError(f"CameraOptions.distance_range_m must be 0 <= min < max metres, got {(lo, hi)}")
+        if self.frames < 2:
+            raise CellcalError(f"CameraOptions.frames must be >= 2, got {self.frames}")
+
+
+# ---------------------------------------------------------------- life cycle
+# ---------------------------------------------------------------- intrinsics and frames
+def _intrinsics(factory: Factory, o: CameraOptions) -> None:
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        intr = cam.intrinsics
+        again = cam.intrinsics
+    expect(isinstance(intr, Intrinsics), f"intrinsics is {type(intr).__name__}, not Intrinsics")
+    expect(intr == again, "intrinsics changed between two reads without a capture")
+    w, h = intr.width, intr.height
+    expect(-0.5 <= intr.cx <= w - 0.5 and -0.5 <= intr.cy <= h - 0.5,
+           f"principal point ({intr.cx:g}, {intr.cy:g}) px lies outside the {w}x{h} image")
+    fov_x = math.degrees(2 * math.atan(w / 2 / intr.fx))
+    fov_y = math.degrees(2 * math.atan(h / 2 / intr.fy))
+    expect(1.0 <= fov_x <= 179.0 and 1.0 <= fov_y <= 179.0,
+           f"field of view {fov_x:.3g} x {fov_y:.3g} deg from fx={intr.fx:g}, fy={intr.fy:g} px is not plausible "
+           "(focal lengths must be in pixels)")
+    expect(0.5 <= intr.fx / intr.fy <= 2.0, f"fx/fy = {intr.fx / intr.fy:.3g}: pixels this far from square are "
+                                            "implausible (focal lengths in different units?)")
+
+
+def _capture_frames(cam: Camera3D, o: CameraOptions, n: int) -> list[Frame]:
+    frames = []
+    for i in range(n):
+        f = cam.capture(o.capture_timeout_s)
+        expect(isinstance(f, Frame), f"capture() #{i} returned {type(f).__name__}, not Frame")
+        expect(f.valid_fraction >= o.min_valid_fraction,
+               f"frame #{i} has {f.valid_fraction:.2%} valid pixels (< {o.min_valid_fraction:.2%}); "
+               "point the camera at the test scene")
+        frames.append(f)
+    return frames
+
+
+def _frame_layout(factory: Factory, o: CameraOptions) -> None:
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        (f,) = _capture_frames(cam, o, 1)
+        intr = cam.intrinsics
+    h, w = intr.height, intr.width
+    expect(f.shape == (h, w), f"frame is {f.shape[0]}x{f.shape[1]} (rows x cols), intrinsics say {h}x{w}")
+    layout = (("distance", f.distance, (h, w), np.float32), ("xyz", f.xyz, (h, w, 3), np.float32),
+              ("amplitude", f.amplitude, (h, w), np.float32), ("valid", f.valid, (h, w), np.bool_))
+    for name, arr, shape, dtype in layout:
+        expect(arr.shape == shape and arr.dtype == dtype,
+               f"Frame.{name} is {arr.dtype} {arr.shape}, expected {np.dtype(dtype).name} {shape}")
+    expect(np.allclose(f.intrinsics.camera_matrix, intr.camera_matrix, rtol=1e-6, atol=1e-6)
+           and np.allclose(f.intrinsics.distortion, intr.distortion, rtol=1e-6, atol=1e-9),
+           "the frame's intrinsics differ from the camera's intrinsics")
+
+
+def _frame_units(factory: Factory, o: CameraOptions) -> None:
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        (f,) = _capture_frames(cam, o, 1)
+    v = f.valid
+    d = f.distance[v]
+    expect(np.all(np.isfinite(d)), f"{np.count_nonzero(~np.isfinite(d))} valid pixels have a non-finite distance")
+    lo, hi = o.distance_range_m
+    outside = (d < lo) | (d > hi)
+    expect(not outside.any(), f"{np.count_nonzero(outside)} valid pixels have a distance outside the declared "
+                              f"{lo:g}..{hi:g} m (min {d.min():.6g}, max {d.max():.6g}; metres expected)")
+    expect(np.all(np.isnan(f.distance[~v])), "invalid pixels must have distance NaN")
+    expect(np.all(np.isnan(f.xyz[~v])), "invalid pixels must have xyz NaN")
+    p = f.xyz[v].astype(np.float64)
+    expect(np.all(np.isfinite(p)), "valid pixels must have finite xyz")
+    err = np.abs(np.linalg.norm(p, axis=1) - d)
+    expect(err.max(initial=0.0) <= o.xyz_tolerance_m + 1e-6 * d.max(initial=0.0),
+           f"|xyz| differs from distance by up to {err.max():.3g} m (tolerance {o.xyz_tolerance_m:g} m); "
+           "distance must be radial and both in metres")
+    expect(np.all(p[:, 2] > 0), "valid points must have z > 0 (camera frame: z forward along the optical axis)")
+    expect(np.all(np.isfinite(f.amplitude[v])), "amplitude must be finite on valid pixels")
+
+
+def _frame_geometry(factory: Factory, o: CameraOptions) -> None:
+    if o.reprojection_tolerance_px is None:
+        return
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        (f,) = _capture_frames(cam, o, 1)
+    intr = f.intrinsics
+    rows, cols = np.nonzero(f.valid)
+    pts = f.xyz[rows, cols].astype(np.float64).reshape(-1, 1, 3)
+    uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), intr.camera_matrix, intr.distortion)
+    err = np.hypot(uv[:, 0, 0] - cols, uv[:, 0, 1] - rows)
+    p95 = float(np.percentile(err, 95))
+    expect(p95 <= o.reprojection_tolerance_px,
+           f"valid points projected through the intrinsics land {p95:.3g} px (95th percentile) from their pixel "
+           f"(tolerance {o.reprojection_tolerance_px:g} px); xyz must be in the OpenCV camera frame "
+           "(x right, y down, z forward), pixel centres at integer (u=column, v=row)")
+
+
+def _sequence(factory: Factory, o: CameraOptions) -> None:
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        frames = _capture_frames(cam, o, o.frames)
+    ts = [f.timestamp for f in frames]
+    seq = [f.sequence for f in frames]
+    expect(all(isinstance(t, float) and 1e9 < t < 1e10 for t in ts),
+           f"timestamps {ts} are not seconds since the Unix epoch")
+    expect(all(b > a for a, b in itertools.pairwise(ts)),
+           f"timestamps of consecutive captures must increase, got {ts}")
+    expect(all(isinstance(s, (int, np.integer)) and not isinstance(s, bool) for s in seq),
+           f"sequence numbers must be integers, got {seq}")
+    expect(all(b > a for a, b in itertools.pairwise(seq)),
+           f"sequence numbers of consecutive captures must increase (a new frame each time), got {seq}")
+
+
+# ---------------------------------------------------------------- timeouts and resources
+def _timeout_validation(factory: Factory, o: CameraOptions) -> None:
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        check_bad_timeouts({"capture": cam.capture})
+        cam.capture(o.capture_timeout_s)  # a rejected timeout leaves the camera usable
+    cam2 = make(factory, Camera3D)
+    try:
+        check_bad_timeouts({"connect": cam2.connect})
+        expect(not cam2.connected, "connect() with a rejected timeout left the camera connected")
+    finally:
+        cam2.close()
+
+
+def _timeout_bounded(factory: Factory, o: CameraOptions) -> None:
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        for i in range(2):
+            elapsed, _, exc = timed(lambda: cam.capture(o.short_timeout_s))
+            expect(exc is None or isinstance(exc, DeviceTimeoutError),
+                   f"capture(timeout={o.short_timeout_s:g}) raised {type(exc).__name__} ({exc}), expected a "
+                   "frame or DeviceTimeoutError")
+            limit = o.short_timeout_s + o.timing_slack_s
+            expect(elapsed <= limit, f"capture(timeout={o.short_timeout_s:g}) #{i} took {elapsed:.3g} s "
+                                     f"(more than timeout + {o.timing_slack_s:g} s slack)")
+
+
+def _refusals(cam: Camera3D) -> dict[str, Callable[[], object]]:
+    return {"capture()": lambda: cam.capture(1.0), "intrinsics": lambda: cam.intrinsics, "info()": cam.info}
+
+
+def _use(cam: Camera3D, o: CameraOptions) -> None:
+    cam.capture(o.capture_timeout_s)
+
+
+_FIRST, _LAST = lifecycle_checks("camera", Camera3D, _refusals, _use)
+
+CAMERA_CHECKS: tuple[Check[Camera3D, CameraOptions], ...] = (
+    *_FIRST,
+    Check("camera.intrinsics", "intrinsics are stable and plausible (pixels, principal point in the image)",
+          _intrinsics),
+    Check("camera.frame-layout", "frame arrays have the intrinsics' shape and the documented dtypes",
+          _frame_layout),
+    Check("camera.frame-units", "distance is radial metres within the declared range; NaN where invalid; "
+                                "|xyz| == distance", _frame_units),
+    Check("camera.frame-geometry", "xyz lies on its pixel's ray in the OpenCV camera frame", _frame_geometry),
+    Check("camera.sequence", "consecutive captures give new frames with increasing epoch timestamps", _sequence),
+    Check("camera.timeout-validation", "a non-positive, NaN, infinite or non-number timeout is a clear CellcalError",
+          _timeout_validation),
+    Check("camera.timeout-bounded", "capture(timeout) returns a frame or raises DeviceTimeoutError in bounded time",
+          _timeout_bounded),
+    _LAST,
+)
+
+#: The camera contract rules, in the order they run.
+CAMERA_RULES: tuple[str, ...] = tuple(c.rule for c in CAMERA_CHECKS)
+
+
+def check_camera(factory: Factory, options: CameraOptions | None = None, *, only: Iterable[str] | None = None,
+                 raise_on_failure: bool = True) -> ConformanceReport:
+    """Run the camera contract checks against one backend.
+
+    Args:
+        factory: Zero-argument callable returning a new, unconnected camera each call.
+        options: What the backend declares (distance range, tolerances); defaults apply if None.
+        only: Run only these rules (see :data:`CAMERA_RULES`).
+        raise_on_failure: Raise :class:`ConformanceError` listing every failed rule.
+
+    Returns:
+        The report (all checks passed when ``raise_on_failure`` is true).
+
+    Raises:
+        ConformanceError: If a check failed and ``raise_on_failure`` is true.
+        CellcalError: If ``factory`` is not callable or ``only`` names an unknown rule.
+    """
+    return run_checks("camera", CAMERA_CHECKS, factory, options or CameraOptions(), Camera3D, only,
+                      raise_on_failure)
