@@ -26,13 +26,24 @@ import numpy as np
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import CalibrationQualityError
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import Registry, default_registry
 from cellcal.devices.safety import SafeArm
+from cellcal.devices.types import Intrinsics
 
 from .config import CellConfig, plan_flange_poses
-from .measure import ExpectedGeometry, Measurement, expected_geometry, measure_frames
-from .report import RESULT_SCHEMA, summarize
+from .measure import (
+    FULL_FRAME,
+    ExpectedGeometry,
+    Measurement,
+    expected_geometry,
+    full_frame_document,
+    measure_frames,
+    measure_full_frame,
+)
+from .planes import Plane
+from .report import RESULT_SCHEMA, summarize_poses
 
 ProgressFactory = Callable[[int], Any]
 
@@ -47,8 +58,12 @@ class PoseRecord:
         reported: Flange pose read back from the arm after the move, base frame.
         camera: Camera pose in the base frame (``reported @ mount``).
         expected: Geometry expected from the reference plane, or None without one.
-        measurements: One per perimeter x method.
-        timings_s: Wall time of the move, settle, capture and compute steps, seconds.
+        measurements: One per perimeter x grid method, plus one ``full_frame`` row.
+        timings_s: Wall time of the move, settle, capture and compute steps, seconds
+            (``compute_full_frame``: the part of ``compute`` spent on the full-frame fit).
+        intrinsics: The lens model the frames were taken with.
+        full_frame: The ``full_frame`` section (:func:`full_frame_document`), or None when
+            the method is not run.
     """
 
     index: int
@@ -58,6 +73,8 @@ class PoseRecord:
     expected: ExpectedGeometry | None
     measurements: list[Measurement]
     timings_s: dict[str, float] = field(default_factory=dict)
+    intrinsics: Intrinsics | None = None
+    full_frame: dict[str, Any] | None = None
 
     def rows(self) -> list[dict[str, Any]]:
         """Flat rows (one per measurement) for the summary and the table."""
@@ -79,6 +96,8 @@ class PoseRecord:
             "expected": None if self.expected is None else self.expected.to_dict(),
             "measurements": self.rows(),
             "timings_s": dict(self.timings_s),
+            "camera_intrinsics": None if self.intrinsics is None else self.intrinsics.to_dict(),
+            "full_frame": self.full_frame,
         }
 
 
@@ -163,7 +182,6 @@ class Calibrator:
                     self.arm.stop()
                 raise
         total = time.perf_counter() - started
-        rows = [r for rec in records for r in rec.rows()]
         return {
             "schema": RESULT_SCHEMA,
             "cellcal_version": _package_version(),
@@ -172,13 +190,17 @@ class Calibrator:
             "config": dict(self.config.document),
             "mount": self.config.mount.pose().to_dict(),
             "poses": [rec.to_dict() for rec in records],
-            "summary": summarize(rows),
+            "summary": summarize_poses([rec.to_dict() for rec in records], self._reference_plane()),
             "timings_s": {
                 "total": total,
                 "connect": t_connect,
                 "per_pose": [rec.timings_s for rec in records],
             },
         }
+
+    def _reference_plane(self) -> Plane | None:
+        ref = self.config.reference
+        return None if ref is None else Plane.from_point_normal(ref.plane_point_m, ref.plane_normal)
 
     def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
         plan = self.config.plan
@@ -201,6 +223,19 @@ class Calibrator:
         fov_rad = None if fov is None else (math.radians(fov[0]), math.radians(fov[1]))
         measurements = measure_frames(frames, perimeters_px=plan.perimeters_px, methods=plan.methods,
                                       window_px=plan.window_px, expected=expected, nominal_fov_rad=fov_rad)
+        t_ff = time.perf_counter()
+        full_frame = None
+        if FULL_FRAME in plan.methods:
+            try:
+                row, result = measure_full_frame(frames, self.config.full_frame, expected=expected)
+            except CalibrationQualityError as exc:
+                extra = str(exc).partition("; ")[2]
+                raise CalibrationQualityError(exc.gate, exc.value, exc.threshold,
+                                              f"plan pose {index + 1}" + (f": {extra}" if extra else "")) from None
+            measurements.append(row)
+            full_frame = full_frame_document(result, camera_pose, expected)
         t4 = time.perf_counter()
         return PoseRecord(index, target, reported, camera_pose, expected, measurements,
-                          {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3})
+                          {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,
+                           "compute_full_frame": t4 - t_ff},
+                          frames[0].intrinsics, full_frame)

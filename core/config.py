@@ -33,8 +33,8 @@ from cellcal.devices.safety import SafetyLimits
 from .fullframe import FullFrameSettings
 
 Vec3 = tuple[float, float, float]
-MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal"]
-ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal")
+MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame"]
+ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame")
 TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor",
                     "full_frame")
 DEFAULT_CONFIG_NAME = "sim.toml"

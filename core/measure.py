@@ -15,6 +15,10 @@ Three methods, named as in the configuration:
     Approach 2 exactly as the paper built its points: measured radial distance R at
     each grid pixel, with (Theta, Phi) from the nominal constant angle-per-pixel model.
     Its error against the truth is the model's bias, reported rather than hidden.
+``full_frame``
+    Every valid pixel of the pose's frames, robust plane fit with 95 % intervals and
+    quality gates (:mod:`cellcal.core.fullframe`). Not tied to a perimeter: its row has
+    ``perimeter_px = None``; :func:`measure_full_frame` also returns the full result.
 """
 
 from __future__ import annotations
@@ -33,9 +37,15 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame, Intrinsics
 
 from .camera import NominalFovModel
+from .fullframe import FullFrameResult, FullFrameSettings, check_gates, fit_full_frame
 from .paper import error_pct, grid_phi_theta, grid_points, law_of_cosines_angle, plane_fit
 from .planes import Plane, PlaneFit, fit_plane_ols
 from .sampling import Sample, sample_points
+
+#: The methods evaluated on the P1-P9 grid at every perimeter.
+GRID_METHODS = ("law_of_cosines", "plane_fit", "plane_fit_nominal")
+#: The whole-frame method (one estimate per pose, no perimeter).
+FULL_FRAME = "full_frame"
 
 
 @dataclass(frozen=True)
@@ -91,7 +101,7 @@ class Measurement:
 
     Attributes:
         method: Method name.
-        perimeter_px: Half-size of the P1-P9 square, pixels.
+        perimeter_px: Half-size of the P1-P9 square, pixels; None for ``full_frame``.
         angle_rad: Estimated angle between plane and optical axis, rad.
         angle_sigma_rad: 1-sigma uncertainty of ``angle_rad`` (None if not available).
         tilt_x_rad: Estimated camera tilt about x, rad.
@@ -103,7 +113,7 @@ class Measurement:
     """
 
     method: str
-    perimeter_px: int
+    perimeter_px: int | None
     angle_rad: float
     angle_sigma_rad: float | None
     tilt_x_rad: float
@@ -185,6 +195,8 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
         expected: Expected geometry, to compute each estimate's error.
         nominal_fov_rad: Datasheet field of view (x, y), rad, for ``plane_fit_nominal``.
 
+    ``full_frame`` in ``methods`` is skipped here (see :func:`measure_full_frame`).
+
     Raises:
         CalibrationError: A perimeter outside the image, too few valid pixels at a grid
             point, or degenerate geometry.
@@ -193,8 +205,9 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
         raise CalibrationError("no frames captured")
     intr = frames[0].intrinsics
     model = nominal_model(intr, nominal_fov_rad) if "plane_fit_nominal" in methods else None
+    methods = [m for m in methods if m != FULL_FRAME]
     out: list[Measurement] = []
-    for p in perimeters_px:
+    for p in perimeters_px if methods else ():
         grid = grid_points(p, width_px=intr.width, height_px=intr.height, cx=intr.cx, cy=intr.cy)
         uv = np.array([[intr.cx + g.dx_px, intr.cy + g.dy_px] for g in grid])
         samples = dict(zip((g.name for g in grid), sample_points(frames, uv, window_px), strict=True))
@@ -213,4 +226,58 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
             if expected is not None:
                 m = dataclasses.replace(m, error_pct=error_pct(m.angle_rad, expected.angle_rad))
             out.append(m)
+    return out
+
+
+def measure_full_frame(frames: Sequence[Frame], settings: FullFrameSettings | None = None, *,
+                       expected: ExpectedGeometry | None = None, check: bool = True
+                       ) -> tuple[Measurement, FullFrameResult]:
+    """The ``full_frame`` method on the frames of one pose.
+
+    Args:
+        frames: Frames captured at the pose (pooled).
+        settings: The ``[full_frame]`` settings; None: defaults.
+        expected: Expected geometry, to compute the row's error.
+        check: Raise if a quality gate fails.
+
+    Returns:
+        The summary row (``perimeter_px`` None) and the full result.
+
+    Raises:
+        CalibrationQualityError: With ``check``, naming the first failed gate.
+        CalibrationError: No frames or no plane defined.
+    """
+    if not frames:
+        raise CalibrationError("no frames captured")
+    res = fit_full_frame(list(frames), settings)
+    if check:
+        check_gates(res, settings)
+    m = Measurement(FULL_FRAME, None, res.angle_rad, res.angle_sigma_rad, res.tilt_x_rad, res.tilt_y_rad,
+                    res.height_m, res.residual_rms_m, plane=res.plane)
+    if expected is not None:
+        m = dataclasses.replace(m, error_pct=error_pct(m.angle_rad, expected.angle_rad))
+    return m, res
+
+
+def full_frame_document(result: FullFrameResult, camera_in_base: Pose,
+                        expected: ExpectedGeometry | None = None) -> dict[str, Any]:
+    """The pose record's ``full_frame`` section (JSON form, degrees and metres).
+
+    :meth:`FullFrameResult.to_dict` plus ``plane_base`` (the plane in the base frame via
+    ``camera_in_base = T_base_flange @ T_flange_camera``) and, with an expected geometry,
+    ``error`` (estimate minus expected) and ``expected_in_ci`` (whether each interval
+    holds the expected value).
+    """
+    out = result.to_dict()
+    pb = result.plane.transformed(camera_in_base)
+    out["plane_base"] = {"normal": pb.normal.tolist(), "offset_m": pb.offset_m}
+    if expected is not None:
+        pairs = {
+            "angle_deg": (result.angle_rad, expected.angle_rad, result.angle_ci_rad, True),
+            "tilt_x_deg": (result.tilt_x_rad, expected.tilt_x_rad, result.tilt_x_ci_rad, True),
+            "tilt_y_deg": (result.tilt_y_rad, expected.tilt_y_rad, result.tilt_y_ci_rad, True),
+            "height_m": (result.height_m, expected.height_m, result.height_ci_m, False),
+        }
+        out["error"] = {k: (math.degrees(v - e) if deg else v - e) for k, (v, e, _, deg) in pairs.items()}
+        out["expected_in_ci"] = {k: bool(ci[0] <= e <= ci[1]) for k, (_, e, ci, _) in pairs.items()}
     return out

@@ -1,4 +1,19 @@
-"""Calibration results: the versioned JSON document, atomic writing, and the summary table."""
+"""Calibration results: the versioned JSON document, atomic writing, and the summary table.
+
+Schema ``cellcal.calibration/2`` (changes from /1):
+
+* ``poses[i].camera_intrinsics`` — the lens model the frames were taken with;
+* ``poses[i].full_frame`` — the ``full_frame`` result (:meth:`FullFrameResult.to_dict`:
+  angle/tilts/height with 1-sigma and 95 % intervals, the plane in the camera frame,
+  gate values) plus ``plane_base`` (the plane in the robot base frame, from the reported
+  flange pose and the configured mount), ``error`` (estimate minus expected) and
+  ``expected_in_ci``; None when the method is not run;
+* ``poses[i].measurements`` — the ``full_frame`` row has ``perimeter_px: null``;
+* ``summary`` is ``{"methods": {method: {...}}, "plane_consistency": {...} | null}``
+  (in /1 it was the per-method mapping itself); ``plane_consistency`` holds the consensus
+  plane in the base frame, the spread across poses, a verdict, and the comparison with
+  the ``[reference]`` plane (:mod:`cellcal.core.consistency`).
+"""
 
 from __future__ import annotations
 
@@ -11,10 +26,16 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from cellcal.devices.errors import CalibrationError
+from cellcal.devices.pose import Pose
+
+from .consistency import PosePlane, plane_consistency
+from .planes import Plane
 
 #: Version of the result document; bump on any incompatible change.
-RESULT_SCHEMA = "cellcal.calibration/1"
+RESULT_SCHEMA = "cellcal.calibration/2"
 RESULT_FILENAME = "result.json"
 
 
@@ -66,7 +87,8 @@ def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
 
     Args:
         rows: Flat measurement rows with keys ``method``, ``pose_index`` (0-based),
-            ``perimeter_px``, ``angle_deg`` and (optionally) ``error_pct``.
+            ``perimeter_px`` (None for a method without perimeter: no "P px" group),
+            ``angle_deg`` and (optionally) ``error_pct``.
 
     Returns:
         ``{method: {"all" | "pose N" | "P px": {n, mean_angle_deg, mean_error_pct, max_error_pct}}}``.
@@ -76,7 +98,8 @@ def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
         m = row["method"]
         groups[m]["all"].append(row)
         groups[m][f"pose {row['pose_index'] + 1}"].append(row)
-        groups[m][f"{row['perimeter_px']} px"].append(row)
+        if row.get("perimeter_px") is not None:
+            groups[m][f"{row['perimeter_px']} px"].append(row)
     out: dict[str, Any] = {}
     for method, by in groups.items():
         out[method] = {}
@@ -103,10 +126,148 @@ def format_table(rows: list[Mapping[str, Any]]) -> str:
 
     for r in rows:
         rms = r.get("residual_rms_m")
+        per = "all" if r.get("perimeter_px") is None else r["perimeter_px"]
         lines.append(
-            f"{r['pose_index'] + 1:>4} {f(r.get('height_m'), '.4f', 8)} {r['perimeter_px']:>6} {r['method']:<18} "
+            f"{r['pose_index'] + 1:>4} {f(r.get('height_m'), '.4f', 8)} {per:>6} {r['method']:<18} "
             f"{f(r['angle_deg'], '.3f', 9)} {f(r.get('expected_angle_deg'), '.2f', 7)} "
             f"{f(r.get('error_pct'), '.2f', 6)} {f(r.get('tilt_x_deg'), '.2f', 7)} {f(r.get('tilt_y_deg'), '.2f', 7)} "
             f"{f(None if rms is None else rms * 1000, '.2f', 7)}"
         )
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------- the plane in the base frame
+def _plane(data: Mapping[str, Any]) -> Plane:
+    return Plane(np.asarray(data["normal"], dtype=np.float64), float(data["offset_m"]))
+
+
+def _pose_plane(pose: Mapping[str, Any], method: str) -> PosePlane | None:
+    """The plane a pose record holds for ``method`` (``plane_fit``: at the largest perimeter)."""
+    camera = Pose.from_dict(pose["camera_pose"])
+    if method == "full_frame":
+        ff = pose.get("full_frame")
+        if not ff:
+            return None
+        cov = np.asarray(ff["normal_covariance"], dtype=np.float64)
+        return PosePlane.from_camera(_plane(ff["plane_cam"]), camera,
+                                     normal_sigma_rad=float(np.sqrt(max(np.trace(cov), 0.0))),
+                                     offset_sigma_m=ff["plane_cam"].get("offset_sigma_m"))
+    fits = [m for m in pose.get("measurements", []) if m["method"] == method and m.get("plane_cam")]
+    if not fits:
+        return None
+    best = max(fits, key=lambda m: m["perimeter_px"] or 0)
+    return PosePlane.from_camera(_plane(best["plane_cam"]), camera)
+
+
+def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = None) -> dict[str, Any] | None:
+    """Consensus plane in the base frame and its consistency across poses, from pose records.
+
+    Uses each pose's ``full_frame`` plane (or, when the method was not run, the
+    ``plane_fit`` plane at the largest perimeter) and its ``camera_pose``. Adds
+    ``source_method`` and, with a ``reference`` plane (base frame), ``reference``: the
+    angle between the consensus and reference normals (deg) and the consensus's height
+    above the reference along the reference normal at the consensus reference point (m).
+
+    Returns:
+        The :meth:`PlaneConsistency.to_dict` form plus those keys, or None when no pose
+        holds a plane.
+    """
+    pose_list = list(poses)
+    for source in ("full_frame", "plane_fit"):
+        planes = [pp for pp in (_pose_plane(p, source) for p in pose_list) if pp is not None]
+        if planes:
+            break
+    else:
+        return None
+    result = plane_consistency(planes)
+    out: dict[str, Any] = {"source_method": source, **result.to_dict()}
+    if reference is not None:
+        n_ref = reference.normal if reference.normal @ result.consensus.normal >= 0 else -reference.normal
+        cos = float(np.clip(n_ref @ result.consensus.normal, -1.0, 1.0))
+        out["reference"] = {
+            "angle_deg": math.degrees(math.acos(cos)),
+            "height_m": float(np.sign(n_ref @ reference.normal) * reference.signed_distance(result.reference_point_m)),
+        }
+    return out
+
+
+def summarize_poses(poses: Iterable[Mapping[str, Any]], reference: Plane | None = None) -> dict[str, Any]:
+    """The document's ``summary``: per-method statistics and the plane's consistency.
+
+    Args:
+        poses: Pose records (``document["poses"]``).
+        reference: The ``[reference]`` plane in the base frame, if known.
+    """
+    pose_list = list(poses)
+    rows = [r for p in pose_list for r in p.get("measurements", [])]
+    return {"methods": summarize(rows), "plane_consistency": plane_summary(pose_list, reference)}
+
+
+def _ci(value: Any, ci: Any, spec: str) -> str:
+    if value is None:
+        return "-"
+    text = f"{value:{spec}}"
+    if ci and None not in ci:
+        text += f" [{ci[0]:{spec}}, {ci[1]:{spec}}]"
+    return text
+
+
+_GATE_LABEL = {"valid_fraction": ("valid", 100.0, "%", "min"), "inlier_fraction": ("inliers", 100.0, "%", "min"),
+               "residual_rms_m": ("rms", 1000.0, "mm", "max"), "coverage": ("coverage", 100.0, "%", "min")}
+
+
+def _gates(gates: Mapping[str, Any]) -> str:
+    parts = []
+    for name, g in gates.items():
+        label, k, unit, side = _GATE_LABEL.get(name, (name, 1.0, "", "limit"))
+        value = "-" if g["value"] is None else f"{g['value'] * k:.3g}"
+        mark = "ok" if g["passed"] else "FAILED"
+        parts.append(f"{label} {value} {unit} ({side} {g['threshold'] * k:.3g} {unit}, {mark})")
+    return "; ".join(parts)
+
+
+def _vec(v: Iterable[float]) -> str:
+    return "[" + ", ".join(f"{x:+.5f}" for x in v) + "]"
+
+
+def format_full_frame(document: Mapping[str, Any]) -> str:
+    """Human-readable full-frame results and the plane in the base frame ("" if neither is there)."""
+    lines: list[str] = []
+    poses = [p for p in document.get("poses", []) if p.get("full_frame")]
+    if poses:
+        conf = poses[0]["full_frame"].get("confidence", 0.95)
+        lines.append(f"full frame (every valid pixel; [{conf * 100:.0f} % interval]):")
+        for p in poses:
+            ff = p["full_frame"]
+            exp = p.get("expected") or {}
+            lines.append(
+                f"  pose {p['index'] + 1}: tilt_x {_ci(ff['tilt_x_deg'], ff['tilt_x_ci_deg'], '.4f')} deg, "
+                f"tilt_y {_ci(ff['tilt_y_deg'], ff['tilt_y_ci_deg'], '.4f')} deg, "
+                f"height {_ci(ff['height_m'], ff['height_ci_m'], '.5f')} m"
+                + (f" (expected tilt_x {exp['tilt_x_deg']:.4f}, tilt_y {exp['tilt_y_deg']:.4f} deg, "
+                   f"height {exp['height_m']:.5f} m)" if exp else ""))
+            lines.append(f"          gates: {_gates(ff['gates'])}")
+            pb = ff.get("plane_base")
+            if pb:
+                lines.append(f"          plane in base frame: normal {_vec(pb['normal'])}, "
+                             f"offset {pb['offset_m']:+.5f} m")
+    cons = (document.get("summary") or {}).get("plane_consistency")
+    if cons:
+        cp = cons["consensus_plane_base"]
+        lines.append(f"plane in the base frame ({cons['source_method']}, {cons['n_poses']} poses): "
+                     f"normal {_vec(cp['normal'])}, offset {cp['offset_m']:+.5f} m")
+        exp_n, exp_h = cons.get("expected_normal_rms_deg"), cons.get("expected_height_rms_m")
+        lines.append(f"  consistency: normal spread {cons['normal_spread_deg']:.4f} deg "
+                     f"(rms {cons['normal_rms_deg']:.4f}"
+                     + (f", noise {exp_n:.4f}" if exp_n is not None else "")
+                     + f"), height spread {cons['height_spread_m'] * 1000:.3f} mm "
+                     f"(rms {cons['height_rms_m'] * 1000:.3f}"
+                     + (f", noise {exp_h * 1000:.3f}" if exp_h is not None else "")
+                     + ")" + (f", orientations span {cons['orientation_span_deg']:.1f} deg"
+                              if cons.get("orientation_span_deg") is not None else ""))
+        lines.append(f"  verdict: {cons['verdict']} - {cons['interpretation']}")
+        ref = cons.get("reference")
+        if ref:
+            lines.append(f"  vs [reference] plane: {ref['angle_deg']:.4f} deg apart, "
+                         f"{ref['height_m'] * 1000:+.3f} mm above it at {_vec(cons['reference_point_m'])} m")
     return "\n".join(lines)

@@ -71,7 +71,7 @@ def test_default_cli_run_writes_a_complete_result(tmp_path: Path, capsys: pytest
     result = json.loads((tmp_path / "result.json").read_text())
     assert result["schema"] == RESULT_SCHEMA
     assert len(result["poses"]) == 3
-    assert len(rows(result)) == 3 * 4 * 3
+    assert len(rows(result)) == 3 * 4 * 3 + 3  # three grid methods x four perimeters, plus full_frame per pose
     for m in rows(result):
         assert set(m) >= {"angle_deg", "error_pct", "tilt_x_deg", "tilt_y_deg", "height_m", "residual_rms_m"}
     assert result["config"]["plan"]["heights_m"] == [0.46, 0.59, 0.61]

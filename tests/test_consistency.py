@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.calibrator import build_devices
+from cellcal.core.calibrator import Calibrator, build_devices
 from cellcal.core.config import look_at_pose, parse_config
 from cellcal.core.consistency import PosePlane, plane_consistency, plane_in_base
 from cellcal.core.planes import Plane, fit_plane_tls
@@ -138,3 +138,22 @@ def test_errors() -> None:
         plane_consistency([PosePlane(z, np.zeros(3)), PosePlane(wall, np.zeros(3))])
     with pytest.raises(CalibrationError, match="reference_point_m"):
         plane_consistency([PosePlane(z, np.zeros(3))], reference_point_m=[1.0, 2.0])
+
+
+def test_the_calibrators_summary_flags_a_wrong_mount() -> None:
+    """Through the whole calibrator (full_frame only): the document's verdict and figures."""
+    poses = varied_camera_poses()
+    figures = {}
+    for name, mount in (("true", TRUE_MOUNT),
+                        ("wrong", TRUE_MOUNT @ Pose.from_xyz_rpy([0.0, 0.0, 0.0], [0.0, math.radians(0.5), 0.0]))):
+        doc = plan_document(mount, poses)
+        doc["plan"]["methods"] = ["full_frame"]
+        config = parse_config(doc, "<test>")
+        camera, arm = build_devices(config)
+        cons = Calibrator(config, camera, arm).run()["summary"]["plane_consistency"]
+        assert cons["source_method"] == "full_frame" and cons["n_poses"] == len(poses)
+        figures[name] = cons
+    assert figures["true"]["verdict"] == "consistent"
+    assert figures["wrong"]["verdict"] == "inconsistent"
+    assert figures["wrong"]["normal_spread_deg"] > 20 * figures["true"]["normal_spread_deg"]
+    assert figures["wrong"]["normal_spread_deg"] > 0.25
