@@ -53,10 +53,20 @@ def _clean(value: Any) -> Any:
 
 
 def write_json_atomic(path: str | Path, document: Mapping[str, Any]) -> Path:
-    """Write JSON to ``path`` atomically: a temp file in the same directory, fsync, rename.
+    """Write JSON to ``path`` atomically (see :func:`write_bytes_atomic`).
+
+    Raises:
+        CalibrationError: If the directory cannot be created or written.
+    """
+    text = json.dumps(_clean(document), indent=2, allow_nan=False) + "\n"
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write bytes to ``path`` atomically: a temp file in the same directory, fsync, rename.
 
     An earlier file at ``path`` is replaced only once the new one is complete, and
-    no temporary file is left behind on failure.
+    no temporary file is left behind on failure. The file gets mode 0644.
 
     Raises:
         CalibrationError: If the directory cannot be created or written.
@@ -64,15 +74,15 @@ def write_json_atomic(path: str | Path, document: Mapping[str, Any]) -> Path:
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        text = json.dumps(_clean(document), indent=2, allow_nan=False) + "\n"
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as exc:
         raise CalibrationError(f"cannot write {path}: {exc.strerror or exc}") from None
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; a result file is for everyone to read
         os.replace(tmp, path)
     except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)

@@ -36,8 +36,6 @@ import csv
 import importlib
 import io
 import math
-import os
-import tempfile
 import zlib
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -56,6 +54,7 @@ from cellcal.devices.types import Frame, Intrinsics
 from .camera import pixel_grid_rays
 from .config import look_at_pose
 from .measure import ExpectedGeometry, expected_geometry, measure_frames
+from .report import write_bytes_atomic
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -623,39 +622,12 @@ def rows_to_csv(rows: Iterable[Mapping[str, Any]]) -> str:
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
-    """Write text atomically (temp file in the same directory, fsync, rename).
+    """Write UTF-8 text atomically (temp file in the same directory, fsync, rename).
 
     Raises:
         CalibrationError: If the file cannot be written.
     """
     return write_bytes_atomic(path, text.encode("utf-8"))
-
-
-def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
-    """Write bytes atomically (temp file in the same directory, fsync, rename).
-
-    Raises:
-        CalibrationError: If the file cannot be written.
-    """
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    except OSError as exc:
-        raise CalibrationError(f"cannot write {path}: {exc.strerror or exc}") from None
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp makes it 0600; a result file is for everyone to read
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        Path(tmp).unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise CalibrationError(f"cannot write {path}: {exc.strerror or exc}") from None
-        raise
-    return path
 
 
 def write_csv(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> Path:

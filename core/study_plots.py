@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from cellcal.devices.errors import MissingDependencyError
 
+from .report import write_bytes_atomic
 from .study import (
     FULL_FRAME,
     GRID_METHODS,
@@ -36,7 +37,6 @@ from .study import (
     StudyResult,
     TrialData,
     select,
-    write_bytes_atomic,
 )
 
 Rows = Sequence[Mapping[str, Any]]
