@@ -32,9 +32,10 @@ from .report import RESULT_FILENAME, write_json_atomic
 
 #: Backend name of the replay camera and arm.
 REPLAY_BACKEND = "replay"
-#: Parts of the result document a replay must reproduce exactly (the rest is timing and provenance).
-EXACT_KEYS = ("mount", "summary")
-EXACT_POSE_KEYS = ("index", "commanded_flange_pose", "reported_flange_pose", "camera_pose", "expected", "measurements")
+#: Keys of the result document (top level / per pose) a replay need not reproduce: timing and
+#: provenance. Everything else — poses, measurements, summary and any key added later — must be equal.
+VOLATILE_KEYS = ("cellcal_version", "created_utc", "config_source", "timings_s")
+VOLATILE_POSE_KEYS = ("timings_s",)
 
 
 def register(sub: Any) -> None:
@@ -120,8 +121,8 @@ def replay_session(path: str | Path, registry: Registry | None = None, *, strict
 
 def exact_part(document: dict[str, Any]) -> dict[str, Any]:
     """The part of a result document a replay reproduces exactly, strict-JSON cleaned."""
-    part = {k: document.get(k) for k in EXACT_KEYS}
-    part["poses"] = [{k: p.get(k) for k in EXACT_POSE_KEYS} for p in document.get("poses", [])]
+    part = {k: v for k, v in document.items() if k not in VOLATILE_KEYS}
+    part["poses"] = [{k: v for k, v in p.items() if k not in VOLATILE_POSE_KEYS} for p in document.get("poses", [])]
     cleaned: dict[str, Any] = json_safe(part)
     return cleaned
 
@@ -133,13 +134,14 @@ def compare_with_recording(path: str | Path, document: dict[str, Any]) -> str:
         return "replay: the recording holds no successful result to compare with"
     want, got = exact_part(recorded["result"]), exact_part(document)
     if want == got:
-        n = sum(len(p["measurements"]) for p in got["poses"])
+        n = sum(len(p.get("measurements", [])) for p in got["poses"])
         return f"replay: identical to the recorded result ({len(got['poses'])} poses, {n} measurements, summary)"
     for i, (a, b) in enumerate(zip(want["poses"], got["poses"], strict=False)):
-        for key in EXACT_POSE_KEYS:
+        for key in sorted(set(a) | set(b)):
             if a.get(key) != b.get(key):
                 return f"replay: DIFFERS from the recorded result at pose {i + 1}, '{key}'"
-    return "replay: DIFFERS from the recorded result (pose count or summary)"
+    keys = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
+    return f"replay: DIFFERS from the recorded result: {', '.join(keys)}"
 
 
 def run(args: argparse.Namespace) -> int:

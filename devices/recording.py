@@ -58,6 +58,8 @@ from .types import ArmStatus, DeviceInfo, Frame, Intrinsics
 RECORDING_FORMAT = "cellcal.recording/1"
 #: MCAP profile field (custom profile: plain JSON channels).
 MCAP_PROFILE = ""
+#: First bytes of every MCAP file (MCAP specification).
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 TOPIC_SESSION = "/cellcal/session"
 TOPIC_RESULT = "/cellcal/result"
@@ -466,13 +468,14 @@ class SessionRecorder:
         Raises:
             RecordingError: If the recorder is closed or the write fails.
         """
-        data = _dumps(payload)
         now = time.time_ns()
         publish = _ns(publish_time_s) or now
         with self._lock:
             if self._tmp is None:
                 raise RecordingError(f"recorder for {self.path} is closed; nothing more can be logged")
             seq = self.next_event() if event is None else event
+            data = _dumps({**payload, "event": seq} if "event" in SCHEMAS[CHANNELS[topic]]["properties"]
+                          else payload)
             try:
                 self._writer.add_message(channel_id=self._channels[topic], log_time=now, data=data,
                                          publish_time=publish, sequence=seq)
@@ -734,16 +737,24 @@ def read_recording(path: str | Path) -> Recording:
         raise RecordingFileError("recording not found" if not p.exists() else "not a file", source=source)
     by_topic: dict[str, list[tuple[int, dict[str, Any]]]] = {}
     try:
-        with p.open("rb") as fh:
+        fh = p.open("rb")
+    except OSError as exc:
+        raise RecordingFileError(f"cannot read: {exc.strerror or exc}", source=source) from None
+    try:
+        with fh:
+            if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                raise RecordingFileError("not an MCAP file (it does not start with the MCAP magic bytes)",
+                                         source=source)
+            fh.seek(0)
             reader = reader_mod.make_reader(fh, validate_crcs=True)
             for _schema, channel, message in reader.iter_messages(log_time_order=False):
                 payload = json.loads(message.data)
                 if not isinstance(payload, dict):
                     raise ValueError(f"message on {channel.topic} is not a JSON object")
                 by_topic.setdefault(channel.topic, []).append((int(message.sequence), payload))
-    except OSError as exc:
-        raise RecordingFileError(f"cannot read: {exc.strerror or exc}", source=source) from None
-    except Exception as exc:  # mcap, zstd, json, struct ... all mean one thing here
+    except RecordingFileError:
+        raise
+    except Exception as exc:  # mcap, zstd, json, struct, seek past the start ... all mean one thing here
         detail = str(exc).splitlines()[0][:200] if str(exc) else ""
         raise RecordingFileError(f"not a readable MCAP recording (truncated or corrupt?): "
                                  f"{type(exc).__name__}{': ' + detail if detail else ''}", source=source) from None

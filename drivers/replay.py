@@ -28,6 +28,7 @@ Both backends built from one configuration share one parsed recording.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 from collections.abc import Callable
@@ -60,6 +61,7 @@ T = TypeVar("T")
 
 #: Key of the parsed recordings in :attr:`BackendContext.shared`.
 SHARED_KEY = "replay.recordings"
+SHARED_STATE_KEY = "replay.state"
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,29 @@ class ReplayArmConfig:
                                                                 "doc": "max distance commanded vs recorded target, m"})
     angle_tolerance_rad: float = field(default=1e-6, metadata={"ge": 0.0, "le": 0.1,
                                                                "doc": "max angle commanded vs recorded target, rad"})
+
+
+class ReplayState:
+    """What the replay backends of one recording share: the arm's progress through the moves.
+
+    The camera checks against it that each frame is replayed after as many moves as it
+    was recorded after, so a plan that captures more or fewer frames per pose fails
+    at the first misplaced frame instead of measuring a frame from another pose.
+
+    Attributes:
+        moves: Moves replayed by a connected :class:`ReplayArm`, or None without one.
+    """
+
+    def __init__(self) -> None:
+        self.moves: int | None = None
+
+
+def replay_state(recording: Recording, context: BackendContext | None) -> ReplayState:
+    """The :class:`ReplayState` of ``recording`` shared through ``context`` (a private one without)."""
+    if context is None:
+        return ReplayState()
+    states: dict[str, ReplayState] = context.shared.setdefault(SHARED_STATE_KEY, {})
+    return states.setdefault(str(recording.path), ReplayState())
 
 
 def load_recording(file: str, context: BackendContext | None) -> Recording:
@@ -130,18 +155,14 @@ class ReplayCamera(Camera3D):
         super().__init__()
         self.config = config
         self.recording = load_recording(config.file, context)
-        if not self.recording.camera_infos:
-            raise RecordingFileError("the recording has no camera (it was never connected while recording)",
-                                     source=str(self.recording.path))
-        first = self.recording.camera_infos[0]
-        self._device_info = _decoded(self.recording, lambda: decode_info(first))
-        try:
-            self._intr = Intrinsics(**first["intrinsics"])
-        except Exception as exc:  # malformed entry: wrong keys or values
-            raise RecordingFileError(f"recorded intrinsics are malformed: {exc}",
-                                     source=str(self.recording.path)) from None
+        self.state = replay_state(self.recording, context)
         self._lock = threading.Lock()
         self._next = 0
+        self._device_info: DeviceInfo | None = None
+        self._intr: Intrinsics | None = None
+        events = sorted(int(c.get("event", 0)) for c in self.recording.arm_calls if c.get("method") == "move_linear")
+        #: Moves recorded before each capture.
+        self._moves_before = [bisect.bisect_left(events, int(c.get("event", 0))) for c in self.recording.captures]
 
     @property
     def remaining(self) -> int:
@@ -154,15 +175,23 @@ class ReplayCamera(Camera3D):
             self._next = 0
 
     def _connect(self, timeout: float) -> None:
-        pass  # nothing to open: the recording was read when the backend was built
+        # nothing to open (the file was read when the backend was built): check it has a camera
+        if not self.recording.camera_infos:
+            raise RecordingFileError("the recording has no camera (it was not connected while recording)",
+                                     source=str(self.recording.path))
+        first = self.recording.camera_infos[0]
+        self._device_info = _decoded(self.recording, lambda: decode_info(first))
+        self._intr = _decoded(self.recording, lambda: Intrinsics(**first["intrinsics"]))
 
     def _close(self) -> None:
         pass
 
     def _info(self) -> DeviceInfo:
+        assert self._device_info is not None  # set by _connect
         return self._device_info
 
     def _intrinsics(self) -> Intrinsics:
+        assert self._intr is not None  # set by _connect
         return self._intr
 
     def _capture(self, timeout: float) -> Frame:
@@ -172,6 +201,12 @@ class ReplayCamera(Camera3D):
                 raise ReplayExhaustedError(
                     f"replay {self.recording.path.name}: capture {index + 1} asked for, but the recording "
                     f"holds only {len(self.recording.captures)} captures")
+            moves = self.state.moves
+            if moves is not None and moves != self._moves_before[index]:
+                raise ReplayMismatchError(
+                    f"replay {self.recording.path.name}: capture {index + 1} was recorded after move "
+                    f"{self._moves_before[index]}, but is asked for after move {moves} (the plan captures "
+                    "differently from the recording)")
             self._next += 1
         record = self.recording.captures[index]
         if record.get("error"):
@@ -189,11 +224,8 @@ class ReplayArm(RobotArm):
         super().__init__()
         self.config = config
         self.recording = load_recording(config.file, context)
-        if not self.recording.arm_infos:
-            raise RecordingFileError("the recording has no arm (it was never connected while recording)",
-                                     source=str(self.recording.path))
-        first = self.recording.arm_infos[0]
-        self._device_info = _decoded(self.recording, lambda: decode_info(first))
+        self.state = replay_state(self.recording, context)
+        self._device_info: DeviceInfo | None = None
         self._calls: list[dict[str, Any]] = self.recording.arm_calls
         self._lock = threading.Lock()
         self._cursor = 0  # strict: next call; lenient: first call after the last replayed move
@@ -209,6 +241,8 @@ class ReplayArm(RobotArm):
         with self._lock:
             self._cursor = 0
             self._moves = 0
+            if self.state.moves is not None:
+                self.state.moves = 0
 
     # ------------------------------------------------------------ matching
     def _take(self, method: str) -> dict[str, Any] | None:
@@ -259,12 +293,19 @@ class ReplayArm(RobotArm):
 
     # ------------------------------------------------------------ backend hooks
     def _connect(self, timeout: float) -> None:
-        pass  # nothing to open: the recording was read when the backend was built
+        # nothing to open (the file was read when the backend was built): check it has an arm
+        if not self.recording.arm_infos:
+            raise RecordingFileError("the recording has no arm (it was not connected while recording)",
+                                     source=str(self.recording.path))
+        first = self.recording.arm_infos[0]
+        self._device_info = _decoded(self.recording, lambda: decode_info(first))
+        self.state.moves = self._moves
 
     def _close(self) -> None:
-        pass
+        self.state.moves = None
 
     def _info(self) -> DeviceInfo:
+        assert self._device_info is not None  # set by _connect
         return self._device_info
 
     def _get_pose(self, timeout: float) -> Pose:
@@ -276,6 +317,7 @@ class ReplayArm(RobotArm):
         record = self._take("move_linear")
         assert record is not None
         self._moves += 1
+        self.state.moves = self._moves
         args = record.get("args") or {}
         target = _decoded(self.recording, lambda: decode_pose(args.get("target") or {}))
         d, a = pose.distance_to(target), pose.angle_to(target)
