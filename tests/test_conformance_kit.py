@@ -1,0 +1,355 @@
+"""The conformance kit catches broken backends, names the rule and the backend, and needs no pytest.
+
+A tiny correct camera and arm (pure numpy, defined here) pass every rule; each
+mutant breaks one promise the way real backends do (millimetres, depth instead of
+radial distance, y up, degrees, stale frames, ignored timeouts, leaked threads,
+bypassed life cycle) and must fail exactly the rules that promise belongs to.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from cellcal.devices import (
+    ArmStatus,
+    BackendContext,
+    Camera3D,
+    CellcalError,
+    DeviceInfo,
+    Frame,
+    Intrinsics,
+    Pose,
+    RobotArm,
+    VendorError,
+)
+from cellcal.testing import (
+    ARM_RULES,
+    CAMERA_RULES,
+    ArmOptions,
+    CameraOptions,
+    ConformanceError,
+    check_arm,
+    check_camera,
+)
+
+_release_leaks = threading.Event()
+#: Fast timing for the timeout mutants: a call may take its timeout + 0.1 s.
+FAST = {"short_timeout_s": 0.05, "timing_slack_s": 0.1}
+
+
+@pytest.fixture(autouse=True)
+def _stop_leaked_threads() -> Any:
+    _release_leaks.clear()
+    yield
+    _release_leaks.set()
+
+
+def _leak_thread() -> None:
+    threading.Thread(target=_release_leaks.wait, args=(10.0,), name="toy leak", daemon=True).start()
+
+
+# ---------------------------------------------------------------- a correct camera, and mutants
+class ToyCamera(Camera3D):
+    """32 x 24 px pinhole camera facing a wall 1.5 m away; a 4 x 4 px corner is invalid."""
+
+    backend_name = "toy-cam"
+    mutation: ClassVar[str] = ""
+
+    @dataclass(frozen=True)
+    class Config:
+        wall_m: float = 1.5
+
+    def __init__(self, config: Any = None, context: BackendContext | None = None):
+        super().__init__()
+        self.config = config or self.Config()
+        self._seq = 0
+
+    def _connect(self, timeout: float) -> None:
+        if self.mutation == "leaks-thread":
+            _leak_thread()
+
+    def _close(self) -> None:
+        pass
+
+    def _info(self) -> DeviceInfo:
+        return DeviceInfo(backend="toy-cam", vendor="" if self.mutation == "no-vendor" else "Toy", model="T1")
+
+    def _intrinsics(self) -> Intrinsics:
+        f = 0.004 if self.mutation == "focal-in-metres" else 30.0
+        return Intrinsics(32, 24, f, f, 15.5, 11.5)
+
+    def _capture(self, timeout: float) -> Frame:
+        m = self.mutation
+        if m == "ignores-timeout" and timeout < 1.0:
+            time.sleep(0.5)
+        if m == "builtin-timeout-error" and timeout < 1.0:
+            raise TimeoutError("no frame")
+        intr = self._intrinsics()
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+        rays = np.dstack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)])
+        xyz = rays * self.config.wall_m                      # the wall z = wall_m
+        distance = np.linalg.norm(xyz, axis=2)
+        if m == "millimetres":
+            xyz, distance = xyz * 1000.0, distance * 1000.0
+        if m == "depth-not-radial":
+            distance = xyz[..., 2].copy()
+        if m == "y-up":
+            xyz[..., 1] *= -1.0
+        valid = np.ones(intr.shape, bool)
+        valid[:4, :4] = False
+        if m != "invalid-not-nan":
+            xyz[~valid], distance[~valid] = np.nan, np.nan
+        if m != "stale-frames":
+            self._seq += 1
+        frame_intr = Intrinsics(32, 24, 31.0, 31.0, 15.5, 11.5) if m == "frame-intrinsics-differ" else intr
+        return Frame(distance.astype(np.float32), xyz.astype(np.float32), np.ones(intr.shape, np.float32), valid,
+                     frame_intr, 1.7e9 + 0.05 * self._seq, self._seq)
+
+
+class BypassingCamera(ToyCamera):
+    """Overrides the public capture() and skips the life-cycle check the base class does."""
+
+    def capture(self, timeout: float | None = None) -> Frame:
+        return self._capture(5.0 if timeout is None else timeout)
+
+
+def camera_mutant(mutation: str) -> type[ToyCamera]:
+    return type(f"ToyCamera_{mutation}", (ToyCamera,), {"mutation": mutation})
+
+
+TOY_CAMERA_OPTIONS = CameraOptions(distance_range_m=(0.1, 5.0), **FAST)
+
+
+def test_correct_toy_camera_passes_every_rule() -> None:
+    report = check_camera(ToyCamera, TOY_CAMERA_OPTIONS)
+    assert report.ok and report.backend == "toy-cam"
+    assert [r.rule for r in report.results] == list(CAMERA_RULES) and len(CAMERA_RULES) == 14
+    assert str(report).startswith("camera backend toy-cam: 14/14 contract checks passed")
+
+
+CAMERA_MUTANTS = {
+    "millimetres": {"camera.frame-units"},
+    "depth-not-radial": {"camera.frame-units"},
+    "y-up": {"camera.frame-geometry"},
+    "invalid-not-nan": {"camera.frame-units"},
+    "stale-frames": {"camera.sequence"},
+    "focal-in-metres": {"camera.intrinsics", "camera.frame-units"},  # its rays reach 4 km at 1.5 m depth
+    "frame-intrinsics-differ": {"camera.frame-layout", "camera.frame-geometry"},
+    "no-vendor": {"camera.info"},
+    "ignores-timeout": {"camera.timeout-bounded"},
+    "builtin-timeout-error": {"camera.timeout-bounded"},
+    "leaks-thread": {"camera.releases-resources"},
+}
+
+
+@pytest.mark.parametrize(("mutation", "failing"), CAMERA_MUTANTS.items(), ids=list(CAMERA_MUTANTS))
+def test_camera_mutant_fails_exactly_its_rules(mutation: str, failing: set[str]) -> None:
+    report = check_camera(camera_mutant(mutation), TOY_CAMERA_OPTIONS, raise_on_failure=False)
+    assert {r.rule for r in report.failures} == failing
+    for r in report.failures:
+        assert r.message.startswith(f"toy-cam: contract rule {r.rule} (")
+
+
+def test_failure_messages_say_what_was_wrong() -> None:
+    def detail(mutation: str, rule: str) -> str:
+        report = check_camera(camera_mutant(mutation), TOY_CAMERA_OPTIONS, only=[rule], raise_on_failure=False)
+        (failure,) = report.failures
+        return failure.detail
+
+    assert "outside the declared 0.1..5 m" in detail("millimetres", "camera.frame-units")
+    corner_mm = 1500.0 * np.linalg.norm([15.5 / 30.0, 11.5 / 30.0, 1.0])  # the far corner of the wall, in mm
+    assert f"max {corner_mm:.6g}; metres expected" in detail("millimetres", "camera.frame-units")
+    assert "|xyz| differs from distance" in detail("depth-not-radial", "camera.frame-units")
+    assert "OpenCV camera frame" in detail("y-up", "camera.frame-geometry")
+    assert "must increase" in detail("stale-frames", "camera.sequence")
+    assert "thread 'toy leak'" in detail("leaks-thread", "camera.releases-resources")
+    assert "raised TimeoutError" in detail("builtin-timeout-error", "camera.timeout-bounded")
+
+
+def test_bypassed_life_cycle_is_caught() -> None:
+    report = check_camera(BypassingCamera, TOY_CAMERA_OPTIONS, raise_on_failure=False)
+    assert {r.rule for r in report.failures} == {"camera.not-connected", "camera.use-after-close",
+                                                 "camera.timeout-validation"}
+    (nc,) = [r for r in report.failures if r.rule == "camera.not-connected"]
+    assert nc.detail == "capture() before connect() did not raise NotConnectedError"
+
+
+def test_conformance_error_lists_every_failed_rule() -> None:
+    with pytest.raises(ConformanceError) as err:
+        check_camera(camera_mutant("frame-intrinsics-differ"), TOY_CAMERA_OPTIONS)
+    lines = str(err.value).splitlines()
+    assert lines[0] == "toy-cam: 2 of 14 camera contract checks failed"
+    assert [line.split(" contract rule ")[1].split()[0] for line in lines[1:]] == ["camera.frame-layout",
+                                                                                    "camera.frame-geometry"]
+    assert isinstance(err.value, AssertionError) and isinstance(err.value, CellcalError)
+    assert len(err.value.failures) == 2
+
+
+# ---------------------------------------------------------------- a correct arm, and mutants
+class ToyArm(RobotArm):
+    """A 5-joint arm that arrives instantly wherever it is sent."""
+
+    backend_name = "toy-arm"
+    mutation: ClassVar[str] = ""
+
+    @dataclass(frozen=True)
+    class Config:
+        speed_limit_m_s: float = 1.0
+
+    def __init__(self, config: Any = None, context: BackendContext | None = None):
+        super().__init__()
+        self.config = config or self.Config()
+        self._pose = Pose.from_xyz_rpy([0.3, 0.0, 0.4], [math.pi, 0.0, 0.0])
+        self._stopped = False
+
+    def _connect(self, timeout: float) -> None:
+        if self.mutation == "leaks-thread":
+            _leak_thread()
+
+    def _close(self) -> None:
+        pass
+
+    def _info(self) -> DeviceInfo:
+        return DeviceInfo(backend="toy-arm", vendor="Toy", model="A5")
+
+    def _get_pose(self, timeout: float) -> Pose:
+        if self.mutation == "ignores-timeout" and timeout < 1.0:
+            time.sleep(0.5)
+        p = self._pose
+        if self.mutation == "millimetres":
+            return Pose(p.rotation, p.translation * 1000.0)
+        if self.mutation == "degrees":  # converted to degrees for the wire, never back
+            return Pose(Rotation.from_euler("xyz", np.degrees(p.rotation.as_euler("xyz"))), p.translation)
+        return p
+
+    def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
+        self._pose = pose
+        self._stopped = False
+
+    def _stop(self, timeout: float) -> None:
+        if self.mutation == "stop-twice-fails" and self._stopped:
+            raise VendorError("toy", 9, "already stopped")
+        self._stopped = True
+
+    def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
+        q = np.array([0.0, -1.0, 1.2, 0.3, 2.0])
+        return np.degrees(q) if self.mutation == "joints-in-degrees" else q
+
+    def _status(self, timeout: float) -> ArmStatus:
+        if self.mutation == "stuck-in-error":
+            return ArmStatus(error_code=3, message="protective stop", can_move=False)
+        return ArmStatus()
+
+    def _clear_errors(self, timeout: float) -> None:
+        pass
+
+
+class UncheckedMoveArm(ToyArm):
+    """Overrides the public move_linear() and skips every check the base class does."""
+
+    def move_linear(self, pose: Pose, *, speed: float, acceleration: float, timeout: float | None = None) -> None:
+        if isinstance(pose, Pose):
+            self._pose = pose
+
+
+def arm_mutant(mutation: str) -> type[ToyArm]:
+    return type(f"ToyArm_{mutation}", (ToyArm,), {"mutation": mutation})
+
+
+TOY_ARM_OPTIONS = ArmOptions(joint_count=5, **FAST)
+
+
+def test_correct_toy_arm_passes_every_rule() -> None:
+    report = check_arm(ToyArm, TOY_ARM_OPTIONS)
+    assert report.ok and report.backend == "toy-arm"
+    assert [r.rule for r in report.results] == list(ARM_RULES) and len(ARM_RULES) == 15
+
+
+ARM_MUTANTS = {
+    "millimetres": {"arm.pose-units", "arm.pose-round-trip"},
+    "degrees": {"arm.pose-round-trip"},
+    "joints-in-degrees": {"arm.joint-positions"},
+    "stop-twice-fails": {"arm.stop-idempotent"},
+    "stuck-in-error": {"arm.status", "arm.stop-idempotent"},
+    "ignores-timeout": {"arm.timeout-bounded"},
+    "leaks-thread": {"arm.releases-resources"},
+}
+
+
+@pytest.mark.parametrize(("mutation", "failing"), ARM_MUTANTS.items(), ids=list(ARM_MUTANTS))
+def test_arm_mutant_fails_exactly_its_rules(mutation: str, failing: set[str]) -> None:
+    report = check_arm(arm_mutant(mutation), TOY_ARM_OPTIONS, raise_on_failure=False)
+    assert {r.rule for r in report.failures} == failing
+    for r in report.failures:
+        assert r.message.startswith(f"toy-arm: contract rule {r.rule} (")
+
+
+def test_arm_in_degrees_fails_the_round_trip_by_the_right_amount() -> None:
+    report = check_arm(arm_mutant("degrees"), TOY_ARM_OPTIONS, only=["arm.pose-round-trip"], raise_on_failure=False)
+    (failure,) = report.failures
+    assert "0.02 m and 0.05 rad away" in failure.detail and "0 mm and" in failure.detail
+
+
+def test_unchecked_move_is_caught() -> None:
+    report = check_arm(UncheckedMoveArm, TOY_ARM_OPTIONS, raise_on_failure=False)
+    assert {r.rule for r in report.failures} == {"arm.not-connected", "arm.use-after-close",
+                                                 "arm.argument-validation", "arm.timeout-validation"}
+
+
+def test_joint_count_is_checked_when_declared() -> None:
+    report = check_arm(ToyArm, ArmOptions(joint_count=6, **FAST), only=["arm.joint-positions"],
+                       raise_on_failure=False)
+    assert report.failures[0].detail == "joint_positions() has 5 values, the arm has 6 joints"
+
+
+# ---------------------------------------------------------------- API edges
+def test_bad_arguments_to_the_kit() -> None:
+    with pytest.raises(CellcalError, match="needs a factory"):
+        check_camera(ToyCamera(), TOY_CAMERA_OPTIONS)  # type: ignore[arg-type]
+    with pytest.raises(CellcalError, match=r"unknown camera contract rule.*camera\.nope"):
+        check_camera(ToyCamera, only=["camera.nope"])
+    with pytest.raises(CellcalError, match="distance_range_m"):
+        CameraOptions(distance_range_m=(2.0, 1.0))
+    with pytest.raises(CellcalError, match=r"ArmOptions\.speed_m_s"):
+        ArmOptions(speed_m_s=0.0)
+    with pytest.raises(CellcalError, match=r"CameraOptions\.short_timeout_s"):
+        CameraOptions(short_timeout_s=math.nan)
+    report = check_arm(arm_mutant("millimetres"), TOY_ARM_OPTIONS, raise_on_failure=False)
+    assert {r.rule for r in check_arm(ToyArm, TOY_ARM_OPTIONS, only=["arm.pose-units"]).results} == {"arm.pose-units"}
+    assert "FAIL arm.pose-units: flange at 500 from the base origin" in str(report)
+
+
+def test_a_factory_returning_the_wrong_thing_fails_every_rule() -> None:
+    report = check_camera(lambda: ToyArm(), raise_on_failure=False)  # type: ignore[arg-type, return-value]
+    assert not report.results[0].passed
+    assert all("the factory returned ToyArm, not a Camera3D subclass" in r.detail for r in report.failures)
+    assert len(report.failures) == len(CAMERA_RULES)
+
+
+def test_function_api_works_without_pytest() -> None:
+    code = (
+        "import sys; sys.modules['pytest'] = None\n"
+        "import cellcal.testing as kit\n"
+        "assert 'pytest' not in [m for m in sys.modules if sys.modules[m] is not None]\n"
+        "import tomllib; from importlib import resources\n"
+        "from cellcal.devices import default_registry, BackendContext\n"
+        "doc = tomllib.loads(resources.files('cellcal.configs').joinpath('sim.toml').read_text())\n"
+        "r = kit.check_camera(lambda: default_registry().create_camera({'backend': 'sim'},"
+        " BackendContext(section='camera', document=doc)), kit.CameraOptions(distance_range_m=(0.1, 4.0)))\n"
+        "print(r.backend, len(r.results), r.ok)\n"
+        "try:\n    kit.CameraConformance\nexcept ImportError as e:\n    print('classes need pytest')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[:2] == ["sim 14 True", "classes need pytest"]
