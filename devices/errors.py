@@ -58,11 +58,18 @@ class RegistryError(CellcalError):
 
 
 class MissingDependencyError(CellcalError, ImportError):
-    """A backend needs an optional dependency (an extra) that is not installed."""
+    """A backend needs an optional dependency (an extra) that is not installed.
 
-    def __init__(self, what: str, extra: str):
+    Args:
+        what: The missing module or SDK, e.g. ``"depthai"``.
+        extra: The extra that installs it, e.g. ``"oak"``.
+        package: The distribution that declares the extra (a vendor package names its own).
+    """
+
+    def __init__(self, what: str, extra: str, *, package: str = "cellcal"):
         self.extra = extra
-        super().__init__(f"{what} is not installed; install it with: pip install 'cellcal[{extra}]'")
+        self.package = package
+        super().__init__(f"{what} is not installed; install it with: pip install '{package}[{extra}]'")
 
 
 class DeviceError(CellcalError):
