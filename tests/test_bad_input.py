@@ -34,11 +34,11 @@ import types
 import typing
 from collections.abc import Iterator
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 import pytest
+from fuzz_targets import CONFIG_DIR, dump_toml
 
 from cellcal.core.calibrator import build_devices
 from cellcal.core.cli import build_parser, main
@@ -47,42 +47,8 @@ from cellcal.devices.config import schema_of
 from cellcal.devices.registry import default_registry
 from cellcal.sims.world import SimConfig
 
-CONFIG_DIR = Path(str(resources.files("cellcal.configs")))
 DEFAULT_BASE = "sim.toml"
 BOGUS = "bogus_key"
-
-# ---------------------------------------------------------------------- TOML writing
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)  # a JSON string is a valid TOML basic string
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(f"cannot write {v!r} as TOML")
-
-
-def dump_toml(doc: dict[str, Any]) -> str:
-    """A TOML document for ``doc`` (top-level values first, then one [table] each)."""
-    lines = [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
-    for name, table in doc.items():
-        if isinstance(table, dict):
-            lines.append(f"[{json.dumps(name)}]")
-            lines += [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in table.items()]
-    return "\n".join(lines) + "\n"
-
 
 def _read(name: str) -> dict[str, Any]:
     return tomllib.loads((CONFIG_DIR / name).read_text(encoding="utf-8"))

@@ -1,14 +1,11 @@
-"""PCIC framing, chunk walking, TOF_INFO and frame decoding (no sockets), plus a bounded fuzz."""
+"""PCIC framing, chunk walking, TOF_INFO and frame decoding (no sockets)."""
 
 from __future__ import annotations
 
-import contextlib
 import struct
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 from cellcal.core.camera import pixel_grid_rays
 from cellcal.devices.errors import ProtocolError
@@ -167,40 +164,5 @@ def test_missing_markers_and_short_pixel_data() -> None:
         image_view(p, chunk)
 
 
-# ---------------------------------------------------------------------- fuzz
-def _parse_everything(data: bytes) -> None:
-    for msg in iter_messages(data, max_payload=1 << 20):
-        if msg.ticket == "0000":
-            FrameDecoder().decode(msg.payload, walk_chunks(msg.payload))
-
-
-_VALID = image_message(plane_frame(INTR), count=1) + encode_message("0001", b"000000042:x")
-
-
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.data())
-def test_fuzz_mutated_streams_raise_only_protocol_error(data: st.DataObject) -> None:
-    buf = bytearray(_VALID)
-    for _ in range(data.draw(st.integers(1, 8))):
-        kind = data.draw(st.sampled_from(["flip", "cut", "insert", "u32"]))
-        pos = data.draw(st.integers(0, max(len(buf) - 1, 0)))
-        if kind == "flip" and buf:
-            buf[pos] ^= data.draw(st.integers(1, 255))
-        elif kind == "cut":
-            del buf[pos:pos + data.draw(st.integers(1, 64))]
-        elif kind == "insert":
-            buf[pos:pos] = data.draw(st.binary(min_size=1, max_size=16))
-        elif kind == "u32" and pos + 4 <= len(buf):
-            struct.pack_into("<I", buf, pos, data.draw(st.sampled_from([0, 1, 35, 47, 48, 0xFFFFFFFF,
-                                                                        0x7FFFFFFF, 65536])))
-    with contextlib.suppress(ProtocolError):
-        _parse_everything(bytes(buf))
-
-
-@settings(max_examples=200, deadline=None)
-@given(st.binary(max_size=600))
-def test_fuzz_random_bytes_raise_only_protocol_error(raw: bytes) -> None:
-    with contextlib.suppress(ProtocolError):
-        _parse_everything(b"0000L%09d\r\n0000star" % (len(raw) + 14) + raw + b"stop\r\n")
-    with contextlib.suppress(ProtocolError):
-        _parse_everything(raw)
+# The bounded fuzz of this parser lives in tests/test_fuzz_parsers.py (targets shared with
+# benchmarks/fuzz_parsers.py, see tests/fuzz_targets.py).

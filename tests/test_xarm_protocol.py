@@ -1,14 +1,11 @@
-"""xArm serial framing, CRC, register layouts, and a fuzz of the reply parser."""
+"""xArm serial framing, CRC, register layouts."""
 
 from __future__ import annotations
 
-import contextlib
 import math
 import struct
 
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 from cellcal.devices.errors import ProtocolError
 from cellcal.drivers.xarm import codes
@@ -123,39 +120,5 @@ def test_code_meanings() -> None:
     assert "no solution" in codes.warning_meaning(14)
 
 
-_valid_replies = st.builds(lambda s, d: encode_reply(s, d), st.integers(0, 255), st.binary(max_size=48))
-
-
-def _mutate(frame: bytes, data: st.DataObject) -> bytes:
-    out = bytearray(frame)
-    for _ in range(data.draw(st.integers(1, 4))):
-        op = data.draw(st.sampled_from(["flip", "cut", "insert", "delete"]))
-        if op == "flip" and out:
-            i = data.draw(st.integers(0, len(out) - 1))
-            out[i] ^= data.draw(st.integers(1, 255))
-        elif op == "cut":
-            out = out[: data.draw(st.integers(0, len(out)))]
-        elif op == "insert":
-            i = data.draw(st.integers(0, len(out)))
-            out[i:i] = data.draw(st.binary(min_size=1, max_size=4))
-        elif op == "delete" and out:
-            i = data.draw(st.integers(0, len(out) - 1))
-            del out[i]
-    return bytes(out)
-
-
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(frame=_valid_replies, raw=st.binary(max_size=80), data=st.data())
-def test_fuzz_reply_parser_raises_only_protocol_error(frame: bytes, raw: bytes, data: st.DataObject) -> None:
-    assert parse_reply(frame).data == frame[4:-2]
-    for candidate in (raw, _mutate(frame, data)):
-        try:
-            reply = parse_reply(candidate)
-        except ProtocolError:
-            pass
-        else:  # whatever passed is a consistent frame
-            assert encode_reply(reply.state, reply.data) == candidate
-        splitter = FrameSplitter.for_replies()
-        for piece in splitter.feed(candidate + frame):
-            with contextlib.suppress(ProtocolError):
-                parse_reply(piece)
+# The bounded fuzz of the frame parser lives in tests/test_fuzz_parsers.py (targets shared with
+# benchmarks/fuzz_parsers.py, see tests/fuzz_targets.py).
