@@ -435,3 +435,25 @@ def test_replay_entry_points_when_declared() -> None:
     assert names[("camera", "replay")] == "cellcal.drivers.replay:ReplayCamera"
     assert names[("arm", "replay")] == "cellcal.drivers.replay:ReplayArm"
     assert Registry().get("camera", "replay") is ReplayCamera and Registry().get("arm", "replay") is ReplayArm
+
+
+def test_replay_config_reanalyses_a_recording_with_other_methods(session: Any, tmp_path: Path,
+                                                                 cli_registry: None) -> None:
+    """A hand-written config: replay backends (file relative to it), same plan, other perimeters and methods."""
+    path, original, _ = session
+    (tmp_path / "s.mcap").write_bytes(path.read_bytes())
+    doc = json.loads(json.dumps(SIM_DOC))
+    doc["camera"] = {"backend": "replay", "file": "s.mcap"}
+    doc["arm"] = {"backend": "replay", "file": "s.mcap"}
+    doc["plan"].update(perimeters_px=[30], methods=["plane_fit"])
+    lines = []
+    for table, values in doc.items():
+        lines.append(f"[{table}]")
+        lines += [f"{k} = {json.dumps(v)}" for k, v in values.items()]
+    (tmp_path / "replay.toml").write_text("\n".join(lines) + "\n")
+    assert main(["calibrate", "--config", str(tmp_path / "replay.toml"), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    result = json.loads((tmp_path / "o" / "result.json").read_text())
+    rows = [m for p in result["poses"] for m in p["measurements"] if m["method"] == "plane_fit"]
+    want = [m for p in original["poses"] for m in p["measurements"]
+            if m["method"] == "plane_fit" and m["perimeter_px"] == 30]
+    assert len(rows) == N_POSES and [r["angle_deg"] for r in rows] == [w["angle_deg"] for w in want]
