@@ -13,10 +13,14 @@ import json
 import math
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from cellcal.devices.errors import ConfigError
+import numpy as np
+
+from cellcal.devices.arm import RobotArm
+from cellcal.devices.errors import CalibrationError, ConfigError
 
 from .calibrator import build_devices
 from .cli import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
@@ -31,7 +35,11 @@ from .monitor import (
     MonitorStatus,
     MonitorSummary,
 )
+from .planes import Plane
 from .report import write_json_atomic
+
+#: Schema tags of ``cellcal calibrate`` results start with this.
+CALIBRATION_SCHEMA_PREFIX = "cellcal.calibration/"
 
 EPILOG = ("exit status: 0 no drift flagged during the run; 1 drift flagged (or a device failed); "
           "2 bad configuration, baseline file or usage; 130 stopped with Ctrl-C (after the summary).")
@@ -50,7 +58,9 @@ def register(sub: Any) -> None:
     p.add_argument("--duration", metavar="S", type=float, help="stop after S seconds (scripted runs)")
     p.add_argument("--frames", metavar="N", type=int, help="stop after N frames per camera (scripted runs)")
     p.add_argument("--baseline", metavar="FILE",
-                   help="expected plane per camera, from --save-baseline (default: the mean of the first frames)")
+                   help="expected plane: a --save-baseline file, or a calibrate result.json (its plane in the "
+                   "base frame, seen from the arm's current pose; the arm is connected only to read that pose). "
+                   "Default: the mean of the first frames")
     p.add_argument("--save-baseline", metavar="FILE", help="write the baselines in use at the end of the run")
     p.add_argument("--quiet", action="store_true", help="print only drift events and the summary")
     p.set_defaults(func=run)
@@ -143,7 +153,58 @@ def _label(path: str | None, taken: set[str]) -> str:
     return label
 
 
-def read_baselines(path: str, labels: list[str]) -> dict[str, Baseline]:
+def read_json(path: str) -> Any:
+    """A JSON document from a file.
+
+    Raises:
+        ConfigError: Missing or unreadable file, invalid JSON.
+    """
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError("baseline file not found", source=path) from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"cannot read baseline file: {exc}", source=path) from None
+
+
+def is_calibration_result(doc: Any) -> bool:
+    """Whether a JSON document is a ``cellcal calibrate`` result."""
+    return isinstance(doc, dict) and str(doc.get("schema", "")).startswith(CALIBRATION_SCHEMA_PREFIX)
+
+
+def consensus_plane(doc: Mapping[str, Any], path: str) -> Plane:
+    """The calibrated plane in the base frame of a calibration result.
+
+    Raises:
+        ConfigError: If the result has no usable ``summary.plane_consistency.consensus_plane_base``.
+    """
+    key = "summary.plane_consistency.consensus_plane_base"
+    try:
+        table = doc["summary"]["plane_consistency"]["consensus_plane_base"]
+        return Plane(np.asarray(table["normal"], dtype=np.float64), float(table["offset_m"]))
+    except (KeyError, TypeError, ValueError, CalibrationError):
+        raise ConfigError("calibration result has no plane in the base frame (needs a [reference] plane "
+                          "and a cellcal version that writes it)", source=path, key=key) from None
+
+
+def baseline_from_result(doc: Mapping[str, Any], path: str, config: CellConfig, arm: RobotArm) -> Baseline:
+    """The expected plane at the arm's current pose, from a calibration result.
+
+    The arm is connected only to read its flange pose (nothing moves); the camera pose is
+    that pose @ the configuration's ``[mount]``.
+
+    Raises:
+        ConfigError: If the result holds no plane in the base frame.
+        DeviceError: If the arm cannot be reached.
+    """
+    plane = consensus_plane(doc, path)
+    timeout = config.monitor.connect_timeout_s
+    with arm.connect(timeout):
+        flange = arm.get_pose(timeout)
+    return Baseline.from_plane_in_base(plane, flange @ config.mount.pose())
+
+
+def read_baselines(path: str, labels: list[str], doc: Any = None) -> dict[str, Baseline]:
     """Baselines per label from a ``--save-baseline`` file.
 
     A file with a single camera applies to a single monitored camera whatever its label.
@@ -151,14 +212,10 @@ def read_baselines(path: str, labels: list[str]) -> dict[str, Baseline]:
     Raises:
         ConfigError: Unreadable file, wrong schema, or no entry for a monitored camera.
     """
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError("baseline file not found", source=path) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"cannot read baseline file: {exc}", source=path) from None
+    doc = read_json(path) if doc is None else doc
     if not isinstance(doc, dict) or doc.get("schema") != BASELINE_SCHEMA:
-        raise ConfigError(f"not a monitor baseline file (expected schema {BASELINE_SCHEMA!r})", source=path)
+        raise ConfigError(f"not a monitor baseline file or calibration result (expected schema "
+                          f"{BASELINE_SCHEMA!r} or {CALIBRATION_SCHEMA_PREFIX}N)", source=path)
     cams = doc.get("cameras")
     if not isinstance(cams, dict) or not cams:
         raise ConfigError("expected a non-empty table", source=path, key="cameras")
@@ -191,10 +248,17 @@ def run(args: argparse.Namespace) -> int:
     taken: set[str] = set()
     configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]
     labels = [label for label, _ in configs]
-    baselines = read_baselines(args.baseline, labels) if args.baseline else {}
+    doc = read_json(args.baseline) if args.baseline else None
+    from_result = is_calibration_result(doc)
+    if from_result and len(configs) > 1:
+        raise ConfigError("a calibration result is the baseline of one camera: give one --config, or use a "
+                          "--save-baseline file for several", source=args.baseline)
+    baselines = read_baselines(args.baseline, labels, doc) if args.baseline and not from_result else {}
     specs = []
     for label, config in configs:
-        camera, _arm = build_devices(config)  # the arm is never connected: nothing moves
+        camera, arm = build_devices(config)  # the arm is at most connected to read its pose
+        if from_result and isinstance(doc, dict):
+            baselines[label] = baseline_from_result(doc, args.baseline, config, arm)
         specs.append(MonitoredCamera(label, camera, config.monitor, config.full_frame,
                                      baselines.get(label)))
     printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -427,7 +428,7 @@ def test_cli_bad_input_exits_2(fast_config: Path, argv: list[str], message: str,
 def test_cli_rejects_a_baseline_file_of_another_kind(fast_config: Path, tmp_path: Path,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
     other = tmp_path / "other.json"
-    other.write_text(json.dumps({"schema": "cellcal.calibration/1"}))
+    other.write_text(json.dumps({"schema": "cellcal.study/1"}))
     assert main(["monitor", "--config", str(fast_config), "--baseline", str(other)]) == 2
     assert "not a monitor baseline file" in capsys.readouterr().err
 
@@ -459,3 +460,37 @@ def test_cli_ctrl_c_prints_the_summary_and_exits_130(fast_config: Path) -> None:
             proc.communicate()
     assert proc.returncode == 130, err
     assert "monitor interrupted after" in out and "fast:" in out and "Traceback" not in err
+
+
+def result_with_plane(path: Path, normal: tuple[float, float, float], offset_m: float) -> Path:
+    """A calibration result carrying only what the monitor reads: its plane in the base frame."""
+    doc = {"schema": "cellcal.calibration/2",
+           "summary": {"plane_consistency": {"consensus_plane_base": {"normal": list(normal), "offset_m": offset_m}}}}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_cli_baseline_from_a_calibration_result_at_the_arms_pose(fast_config: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    table = result_with_plane(tmp_path / "true.json", (0.0, 0.0, 1.0), 0.0)  # the sim's table, z = 0
+    assert main(["monitor", "--config", str(fast_config), "--frames", "15", "--baseline", str(table)]) == 0
+    line = re.search(r"\[fast\] baseline tilt_x (\S+) deg, tilt_y (\S+) deg, height (\S+) mm", capsys.readouterr().out)
+    assert line is not None  # the table seen from the arm's reported pose (its reading error: tens of um)
+    assert abs(float(line[1])) < 0.01 and abs(float(line[2])) < 0.01 and abs(float(line[3]) - 440.0) < 0.1
+    a = 0.5 * DEG  # a calibration that found the plane tilted by 0.5 deg about the base x axis
+    tilted = result_with_plane(tmp_path / "tilted.json", (0.0, -math.sin(a), math.cos(a)), 0.0)
+    assert main(["monitor", "--config", str(fast_config), "--frames", "15", "--quiet",
+                 "--baseline", str(tilted)]) == 1
+    event = re.search(r"DRIFT STARTED \(tilt\): tilt (\S+) deg", capsys.readouterr().out)
+    assert event is not None and abs(float(event[1]) - 0.5) < 0.01
+
+
+def test_cli_calibration_result_without_a_base_plane_or_with_two_cameras_exits_2(
+        fast_config: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({"schema": "cellcal.calibration/1", "summary": {}}))
+    assert main(["monitor", "--config", str(fast_config), "--baseline", str(bare)]) == 2
+    assert "consensus_plane_base" in capsys.readouterr().err
+    table = result_with_plane(tmp_path / "true.json", (0.0, 0.0, 1.0), 0.0)
+    assert main(["monitor", "--config", str(fast_config), "--config", str(fast_config), "--baseline", str(table)]) == 2
+    assert "baseline of one camera" in capsys.readouterr().err
