@@ -15,10 +15,11 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,13 +27,20 @@ import numpy as np
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import CalibrationQualityError
+from cellcal.devices.errors import (
+    CalibrationError,
+    CalibrationQualityError,
+    CellcalError,
+    SafetyError,
+    VendorError,
+)
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import Registry, default_registry
 from cellcal.devices.safety import SafeArm
 from cellcal.devices.types import Intrinsics
 
 from .config import CellConfig, plan_flange_poses
+from .journal import JournalEntry, JournalWriter, journal_path, plan_fingerprint, read_journal, remove_journal
 from .measure import (
     FULL_FRAME,
     ExpectedGeometry,
@@ -43,7 +51,7 @@ from .measure import (
     measure_full_frame,
 )
 from .planes import Plane
-from .report import RESULT_SCHEMA, summarize_poses
+from .report import RESULT_SCHEMA, summarize_poses, write_json_atomic
 
 ProgressFactory = Callable[[int], Any]
 
@@ -100,6 +108,47 @@ class PoseRecord:
             "full_frame": self.full_frame,
         }
 
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> PoseRecord:
+        """Rebuild a record from :meth:`to_dict`'s output (a result document or the resume journal).
+
+        Angles come back through degrees, so values may differ from the original in the
+        last bit; keys this version does not know are ignored.
+
+        Raises:
+            CalibrationError: If a required field is missing or malformed.
+        """
+        try:
+            exp = data.get("expected")
+            expected = None
+            if exp is not None:
+                pc = exp["plane_cam"]
+                expected = ExpectedGeometry(Plane(np.asarray(pc["normal"], float), float(pc["offset_m"])),
+                                            math.radians(exp["angle_deg"]), math.radians(exp["tilt_x_deg"]),
+                                            math.radians(exp["tilt_y_deg"]), float(exp["height_m"]),
+                                            float(exp["distance_normal_m"]))
+            measurements = []
+            for m in data["measurements"]:
+                sigma = m.get("angle_sigma_deg")
+                pc = m.get("plane_cam")
+                measurements.append(Measurement(
+                    method=str(m["method"]),
+                    perimeter_px=None if m["perimeter_px"] is None else int(m["perimeter_px"]),
+                    angle_rad=math.radians(m["angle_deg"]),
+                    angle_sigma_rad=None if sigma is None else math.radians(sigma),
+                    tilt_x_rad=math.radians(m["tilt_x_deg"]), tilt_y_rad=math.radians(m["tilt_y_deg"]),
+                    height_m=float(m["height_m"]), residual_rms_m=m.get("residual_rms_m"),
+                    error_pct=m.get("error_pct"),
+                    plane=None if pc is None else Plane(np.asarray(pc["normal"], float), float(pc["offset_m"]))))
+            intr = data.get("camera_intrinsics")
+            ff = data.get("full_frame")
+            return cls(int(data["index"]), Pose.from_dict(data["commanded_flange_pose"]),
+                       Pose.from_dict(data["reported_flange_pose"]), Pose.from_dict(data["camera_pose"]),
+                       expected, measurements, {k: float(v) for k, v in dict(data.get("timings_s") or {}).items()},
+                       None if intr is None else Intrinsics(**intr), None if ff is None else dict(ff))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationError(f"malformed pose record: {type(exc).__name__}: {exc}") from None
+
 
 def build_devices(config: CellConfig, registry: Registry | None = None) -> tuple[Camera3D, SafeArm]:
     """Create the (unconnected) camera and the safety-wrapped arm of a configuration.
@@ -117,6 +166,17 @@ def build_devices(config: CellConfig, registry: Registry | None = None) -> tuple
     camera = registry.create_camera(config.camera_section, ctx("camera"))
     arm: RobotArm = registry.create_arm(config.arm_section, ctx("arm"))
     return camera, SafeArm(arm, config.safety_limits())
+
+
+#: Seconds the calibrator allows the arm's stop command when a run fails.
+STOP_TIMEOUT_S = 1.0
+
+
+def format_pose(pose: Pose) -> str:
+    """``xyz=(x, y, z) m rpy=(r, p, y) deg`` of a flange pose, for messages."""
+    x, y, z = pose.translation
+    r = np.degrees(pose.rotation.as_euler("xyz"))
+    return f"xyz=({x:.4f}, {y:.4f}, {z:.4f}) m rpy=({r[0]:.2f}, {r[1]:.2f}, {r[2]:.2f}) deg"
 
 
 def _package_version() -> str:
@@ -143,6 +203,8 @@ class Calibrator:
         self.arm = arm
         self.progress = progress
         self.poses: Sequence[Pose] = plan_flange_poses(config)
+        #: The journal writer of the last :meth:`run` (None without a journal).
+        self.journal_writer: JournalWriter | None = None
 
     def check_plan(self, start: Pose | None = None) -> None:
         """Check every move of the plan against the safety envelope (nothing moves).
@@ -153,35 +215,68 @@ class Calibrator:
         plan = self.config.plan
         self.arm.limits.check_plan(start, self.poses, plan.speed_m_s, plan.acceleration_m_s2)
 
-    def run(self) -> dict[str, Any]:
-        """Run the whole plan and return the result document (not yet written).
+    def run(self, *, journal: str | Path | None = None, resume: bool = False) -> dict[str, Any]:
+        """Run the plan and return the result document (not yet written).
+
+        Args:
+            journal: Resume journal to append each measured pose to (see
+                :mod:`cellcal.core.journal`); None keeps no journal.
+            resume: Continue the run recorded in ``journal``: its poses are taken from
+                it (no move, no capture), the rest are measured.
 
         Raises:
-            CellcalError: Any device, safety or calibration failure; the arm has been
-                told to stop before the error propagates.
+            ConfigError: When resuming, if the journal was written for another
+                configuration or plan.
+            SafetyError: If a move of the plan leaves the envelope (before any move).
+            VendorError: If the arm reports an error before the first move or after a pose.
+            CellcalError: Any other device or calibration failure. Once the arm is
+                connected, any failure (and KeyboardInterrupt) tells it to stop first.
         """
         self.check_plan(None)
+        fingerprint = plan_fingerprint(self.config.document, self.poses)
+        done: list[JournalEntry] = []
+        if resume:
+            if journal is None:
+                raise CalibrationError("resuming needs the journal of the interrupted run")
+            done = [e for e in read_journal(journal, fingerprint) if 0 <= e.index < len(self.poses)]
+        writer = None if journal is None else JournalWriter(journal, fingerprint, len(self.poses), append=resume)
+        self.journal_writer = writer
         started = time.perf_counter()
         created = datetime.now(UTC).isoformat(timespec="seconds")
-        records: list[PoseRecord] = []
-        with contextlib.ExitStack() as stack:
-            stack.enter_context(self.arm)
-            stack.enter_context(self.camera)
-            t_connect = time.perf_counter() - started
-            self.check_plan(self.arm.get_pose())
-            bar = self.progress(len(self.poses)) if self.progress else None
-            if bar is not None:
-                stack.callback(bar.close)
-            try:
-                for i, target in enumerate(self.poses):
-                    records.append(self._measure_pose(i, target))
+        by_index: dict[int, tuple[PoseRecord, dict[str, Any]]] = {
+            e.index: (PoseRecord.from_dict(e.pose), e.pose) for e in done}
+        todo = [i for i in range(len(self.poses)) if i not in by_index]
+        t_connect = 0.0
+        if todo:
+            with contextlib.ExitStack() as stack:
+                try:
+                    stack.enter_context(self.arm)
+                    stack.enter_context(self.camera)
+                    t_connect = time.perf_counter() - started
+                    self._check_arm_ready("before the first move")
+                    self._check_moves(self.arm.get_pose(), todo)
+                    if done:
+                        self._restore_device_state(done[-1].device_state)
+                    bar = self.progress(len(todo)) if self.progress else None
                     if bar is not None:
-                        bar.update(1)
-            except BaseException:
-                with contextlib.suppress(Exception):
-                    self.arm.stop()
-                raise
+                        stack.callback(bar.close)
+                    for i in todo:
+                        record = self._measure_pose(i, self.poses[i])
+                        self._check_arm_ready(f"after plan pose {i + 1}")
+                        data = record.to_dict()
+                        if writer is not None:
+                            writer.append(i, data, self._device_state())
+                        by_index[i] = (record, data)
+                        if bar is not None:
+                            bar.update(1)
+                except BaseException:
+                    if self.arm.connected:
+                        with contextlib.suppress(Exception):
+                            self.arm.stop(min(STOP_TIMEOUT_S, self.arm.default_timeout_s))
+                    raise
         total = time.perf_counter() - started
+        records = [by_index[i][0] for i in sorted(by_index)]
+        poses = [by_index[i][1] for i in sorted(by_index)]
         return {
             "schema": RESULT_SCHEMA,
             "cellcal_version": _package_version(),
@@ -189,14 +284,50 @@ class Calibrator:
             "config_source": self.config.source,
             "config": dict(self.config.document),
             "mount": self.config.mount.pose().to_dict(),
-            "poses": [rec.to_dict() for rec in records],
-            "summary": summarize_poses([rec.to_dict() for rec in records], self._reference_plane()),
+            "poses": poses,
+            "summary": summarize_poses(poses, self._reference_plane()),
             "timings_s": {
                 "total": total,
                 "connect": t_connect,
                 "per_pose": [rec.timings_s for rec in records],
             },
+            **({"resumed_poses": sorted(e.index for e in done)} if resume else {}),
         }
+
+    def _check_arm_ready(self, when: str) -> None:
+        """Raise VendorError if the arm reports an error (e.g. a protective stop)."""
+        status = self.arm.status()
+        if status.error_code:
+            raise VendorError(self.arm.backend_name, status.error_code,
+                              f"{status.message or 'controller error'} ({when}; clear the arm's error first)")
+
+    def _check_moves(self, start: Pose, indices: Sequence[int]) -> None:
+        """Check the moves still to make, from ``start`` through ``indices`` in order."""
+        plan, limits = self.config.plan, self.arm.limits
+        previous = start
+        for i in indices:
+            problems = limits.violations(previous, self.poses[i], plan.speed_m_s, plan.acceleration_m_s2)
+            if problems:
+                raise SafetyError(f"plan pose {i + 1} ({format_pose(self.poses[i])}) rejected: " + "; ".join(problems))
+            previous = self.poses[i]
+
+    def _devices_for_state(self) -> dict[str, Any]:
+        return {"camera": self.camera, "arm": self.arm.inner}
+
+    def _device_state(self) -> dict[str, Any]:
+        """What the devices save for a resume (simulated devices: their noise streams)."""
+        out: dict[str, Any] = {}
+        for name, device in self._devices_for_state().items():
+            get = getattr(device, "resume_state", None)
+            if callable(get):
+                out[name] = get()
+        return out
+
+    def _restore_device_state(self, state: Mapping[str, Any]) -> None:
+        for name, device in self._devices_for_state().items():
+            restore = getattr(device, "restore_resume_state", None)
+            if callable(restore) and state.get(name) is not None:
+                restore(state[name])
 
     def _reference_plane(self) -> Plane | None:
         ref = self.config.reference
@@ -239,3 +370,32 @@ class Calibrator:
                           {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,
                            "compute_full_frame": t4 - t_ff},
                           frames[0].intrinsics, full_frame)
+
+
+def run_to_file(calibrator: Calibrator, out: str | Path, *, resume: bool = False) -> dict[str, Any]:
+    """Run with a resume journal beside ``out``, write the result atomically, drop the journal.
+
+    On failure an earlier ``out`` is untouched; the journal stays (if any pose was
+    measured) so ``resume=True`` can continue the run.
+
+    Raises:
+        CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`; CalibrationError if
+            the result cannot be written.
+    """
+    out = Path(out)
+    journal = journal_path(out)
+    document = calibrator.run(journal=journal, resume=resume)
+    write_json_atomic(out, document)
+    remove_journal(journal)
+    return document
+
+
+def poses_saved(calibrator: Calibrator) -> int:
+    """Poses of the current run's journal on disk (after a failure: what --resume would skip)."""
+    writer = calibrator.journal_writer
+    if writer is None or not writer.path.exists():
+        return 0
+    try:
+        return len(read_journal(writer.path, writer.fingerprint))
+    except CellcalError:
+        return 0

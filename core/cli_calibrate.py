@@ -9,12 +9,13 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import ConfigError
+from cellcal.devices.errors import CellcalError, ConfigError
 from cellcal.devices.safety import SafeArm
 
-from .calibrator import Calibrator, build_devices
+from .calibrator import Calibrator, build_devices, poses_saved, run_to_file
 from .config import CellConfig, load_config
-from .report import RESULT_FILENAME, format_full_frame, format_table, write_json_atomic
+from .journal import journal_path
+from .report import RESULT_FILENAME, format_full_frame, format_table
 
 
 def register(sub: Any) -> None:
@@ -28,6 +29,11 @@ def register(sub: Any) -> None:
     p.add_argument("--check", action="store_true",
                    help="validate the configuration and show what would connect to what; touch no device")
     p.add_argument("--quiet", action="store_true", help="no progress bar or table; only the result path")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from DIR/result.json.journal.jsonl: recorded poses are not "
+                   "moved to or captured again (the configuration must be unchanged)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print every move of the plan with its safety checks; connect and move nothing")
     p.add_argument("--replay", metavar="FILE.mcap",
                    help="re-run a session recorded with 'cellcal record' from the file alone (its recorded "
                    "configuration, replay camera and arm); reports whether the result is identical")
@@ -75,10 +81,25 @@ def _check(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Exit status of an interrupted run (as ``cellcal.core.cli.EXIT_INTERRUPTED``).
+EXIT_INTERRUPTED = 130
+
+
+def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
+    config = f" --config {args.config}" if args.config else ""
+    return (f"{saved} of {total} poses are saved in {journal_path(Path(args.out) / RESULT_FILENAME)}; "
+            f"'cellcal calibrate{config} --out {args.out} --resume' continues the run")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal calibrate``; returns the exit status."""
     if args.check:
         return _check(args)
+    if getattr(args, "dry_run", False):
+        from .dryrun import dry_run
+
+        dry_run(load_config(args.config))
+        return 0
     config, camera, arm = _session(args)
     out = Path(args.out) / RESULT_FILENAME
     progress = None
@@ -88,8 +109,19 @@ def run(args: argparse.Namespace) -> int:
         def progress(total: int) -> Any:
             return tqdm(total=total, desc="poses", unit="pose", file=sys.stderr, leave=False)
 
-    document = Calibrator(config, camera, arm, progress=progress).run()
-    write_json_atomic(out, document)
+    calibrator = Calibrator(config, camera, arm, progress=progress)
+    try:
+        document = run_to_file(calibrator, out, resume=getattr(args, "resume", False))
+    except KeyboardInterrupt:
+        saved = poses_saved(calibrator)
+        hint = f"; {_resume_hint(args, saved, len(calibrator.poses))}" if saved else ""
+        print(f"cellcal: interrupted{hint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except CellcalError as exc:
+        saved = poses_saved(calibrator)
+        if saved:  # keep the type (it sets the exit status) and the one-line message
+            exc.args = (f"{exc}; {_resume_hint(args, saved, len(calibrator.poses))}",)
+        raise
     if not args.quiet:
         rows = [row for pose in document["poses"] for row in pose["measurements"]]
         print(format_table(rows))

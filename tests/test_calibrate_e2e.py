@@ -135,7 +135,9 @@ def test_failed_run_leaves_the_earlier_result_untouched(tmp_path: Path, capsys: 
     assert code == 1
     assert err.count("\n") == 1 and err.startswith("cellcal: error: ")
     assert (out / "result.json").read_bytes() == before
-    assert sorted(p.name for p in out.iterdir()) == ["result.json"]
+    # beside it only the resume journal of the one pose measured, and the message says how to resume
+    assert sorted(p.name for p in out.iterdir()) == ["result.json", "result.json.journal.jsonl"]
+    assert "1 of 2 poses are saved" in err and "--resume" in err
 
 
 def test_check_touches_no_device(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
