@@ -111,10 +111,10 @@ class FullFrameSettings:
     min_coverage: float = field(default=0.75, metadata={"ge": 0.0, "le": 1.0})
     coverage_grid: tuple[int, int] = field(default=(4, 4), metadata={"ge": 1, "le": 64})
     min_cell_inlier_fraction: float = field(default=0.1, metadata={"ge": 0.0, "le": 1.0})
-    hypotheses: int = field(default=96, metadata={"ge": 8, "le": 10000})
-    sample_points: int = field(default=512, metadata={"ge": 32, "le": 100000})
+    hypotheses: int = field(default=128, metadata={"ge": 8, "le": 10000})
+    sample_points: int = field(default=192, metadata={"ge": 32, "le": 100000})
     hypothesis_quantile: float = field(default=0.25, metadata={"gt": 0.0, "lt": 1.0})
-    refine_points: int = field(default=8192, metadata={"ge": 256})
+    refine_points: int = field(default=4096, metadata={"ge": 256})
     max_iterations: int = field(default=6, metadata={"ge": 1, "le": 100})
     seed: int = field(default=0, metadata={"ge": 0})
 
@@ -295,11 +295,13 @@ def check_gates(result: FullFrameResult, settings: FullFrameSettings | None = No
 
 # ---------------------------------------------------------------------- numerics
 def _basis(n: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Two unit vectors completing ``n`` to a right-handed orthonormal basis."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.8 else np.array([0.0, 1.0, 0.0])
-    e1 = a - n * float(a @ n)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1)
+    """Two unit vectors completing the unit vector ``n`` to a right-handed orthonormal basis."""
+    x, y, z = float(n[0]), float(n[1]), float(n[2])
+    # e1 = normalise(ex - x n), or normalise(ey - y n) when n is close to ex
+    e1 = np.array([1.0 - x * x, -x * y, -x * z]) if abs(x) < 0.8 else np.array([-y * x, 1.0 - y * y, -y * z])
+    e1 /= math.sqrt(float(e1 @ e1))
+    a, b, c = float(e1[0]), float(e1[1]), float(e1[2])
+    return e1, np.array([y * c - z * b, z * a - x * c, x * b - y * a])
 
 
 def _truncation(c: float) -> tuple[float, float]:
@@ -322,37 +324,44 @@ class _Pass:
 
     step: FloatArray          # (d_e1, d_e2, d_offset)
     hessian: FloatArray       # J^T W J
-    meat: FloatArray          # sum (w rho)^2 J J^T
     n_inliers: int
     z2_sum: float             # sum of squared normalised residuals of the inliers
-    ortho2_sum: float         # sum of squared orthogonal residuals of the inliers
-    inliers: BoolArray
+    meat: FloatArray | None = None      # sum (w rho)^2 J J^T (final pass only)
+    ortho2_sum: float = math.nan        # sum of squared orthogonal residuals (final pass only)
+    inliers: BoolArray | None = None    # (final pass only)
 
 
 def _gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
-             thr: float, weighted: bool, exponent: float, sigma: F32 | None = None) -> _Pass:
-    """One reweighted Gauss-Newton pass of the range model over points ``p`` (N, 3).
+             thr: float, weighted: bool, exponent: float, sigma: F32 | None = None,
+             final: bool = False) -> _Pass:
+    """One reweighted Gauss-Newton pass of the range model over points ``p`` (3, N).
 
-    ``thr`` is the cut-off on the noise-normalised range residual; ``sigma`` (N,), if
-    given, is each point's range-noise sigma and replaces the noise model.
+    The range along the ray ``r = p / |p|`` predicted by the plane is
+    ``t = -offset / (r·n)``; the residual ``rho = |p| - t`` has the Jacobian
+    ``(t (r·e1) / (r·n), t (r·e2) / (r·n), 1 / (r·n))`` with respect to the normal's
+    tangent steps along ``e1``, ``e2`` and the offset.
+
+    Args:
+        thr: Cut-off on the noise-normalised range residual.
+        sigma: Per-point range-noise sigma (N,), replacing the noise model if given.
+        final: Also return the sandwich "meat", the orthogonal residual sum and the
+            inlier mask.
     """
-    basis = np.stack([n, e1, e2], axis=1).astype(np.float32)
-    b = p @ basis                              # (N, 3): p·n, p·e1, p·e2
-    inv_c = dm / b[:, 0]                       # 1 / cos(ray, normal), negative in front
+    basis = np.stack([n, e1, e2]).astype(np.float32)
+    b = basis @ p                              # (3, N): p·n, p·e1, p·e2
+    inv_c = dm / b[0]                       # 1 / cos(ray, normal), negative in front
     t = inv_c * np.float32(-offset)            # predicted range along the ray
     rho = dm - t
     if sigma is not None:
-        sig = sigma
-        z = rho / sig
+        sig: F32 | None = sigma
     elif weighted:
         if exponent == 1.5:
             sig = t * np.sqrt(np.abs(t * inv_c))
         else:
             sig = np.abs(t) ** np.float32(exponent) * np.sqrt(np.abs(inv_c))
-        z = rho / sig
     else:
         sig = None
-        z = rho
+    z = rho if sig is None else rho / sig
     inl = np.abs(z) < np.float32(thr)
     inl &= t > 0
     n_in = int(np.count_nonzero(inl))
@@ -361,49 +370,62 @@ def _gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, off
     w = inl.astype(np.float32)
     if sig is not None:
         w /= sig * sig
-    q = t * inv_c / dm                         # d rho / d e_k = q * (p·e_k)
-    jac = (q * b[:, 1], q * b[:, 2], inv_c)
+    q = t * inv_c
+    q /= dm                                    # d rho / d e_k = q * (p·e_k)
+    jac = (q * b[1], q * b[2], inv_c)
+    wr = w * rho
     wj = [w * j for j in jac]
     h = np.empty((3, 3))
     g = np.empty(3)
-    wjr = [x * rho for x in wj]
-    meat = np.empty((3, 3))
     for i in range(3):
-        g[i] = float(np.dot(wj[i], rho))
+        g[i] = float(np.dot(jac[i], wr))
         for k in range(i, 3):
             h[i, k] = h[k, i] = float(np.dot(wj[i], jac[k]))
-            meat[i, k] = meat[k, i] = float(np.dot(wjr[i], wjr[k]))
     try:
-        step: FloatArray = -np.linalg.solve(h, g)
+        step = np.asarray(-np.linalg.solve(h, g), dtype=np.float64)
     except np.linalg.LinAlgError:
         raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
-    zi = np.where(inl, z, np.float32(0.0))
-    z2 = float(np.dot(zi, zi))
-    ortho = np.where(inl, b[:, 0] + np.float32(offset), np.float32(0.0))
-    return _Pass(step, h, meat, n_in, z2, float(np.dot(ortho, ortho)), inl)
+    z2 = float(np.dot(wr, rho))
+    if not final:
+        return _Pass(step, h, n_in, z2)
+    meat = np.empty((3, 3))
+    wjr = [x * rho for x in wj]
+    for i in range(3):
+        for k in range(i, 3):
+            meat[i, k] = meat[k, i] = float(np.dot(wjr[i], wjr[k]))
+    ortho = b[0] + np.float32(offset)
+    ortho *= inl
+    return _Pass(step, h, n_in, z2, meat, float(np.dot(ortho, ortho)), inl)
 
 
-def _hypothesis(p: F32, dm: F32, settings: FullFrameSettings, rng: np.random.Generator
-                ) -> tuple[FloatArray, float]:
+def _hypothesis(p: F32, settings: FullFrameSettings, rng: np.random.Generator) -> tuple[FloatArray, float]:
     """Best triplet plane by the quantile of normalised orthogonal residuals (unit n, offset)."""
-    n_pts = p.shape[0]
+    n_pts = p.shape[1]
     m = min(n_pts, settings.sample_points)
-    sub = p[rng.integers(0, n_pts, m)].astype(np.float64)
-    scale = np.ones(m)
-    if settings.weighted:
-        scale = np.maximum(np.linalg.norm(sub, axis=1), 1e-9) ** settings.noise_distance_exponent
-    idx = rng.integers(0, m, size=(settings.hypotheses, 3))
-    a, b, c = sub[idx[:, 0]], sub[idx[:, 1]], sub[idx[:, 2]]
-    nrm = np.cross(b - a, c - a)
-    length = np.linalg.norm(nrm, axis=1)
-    ok = length > 1e-12 * np.maximum(np.einsum("ij,ij->i", b - a, b - a), 1e-300)
+    sub = np.take(p, rng.integers(0, n_pts, m), axis=1).T.astype(np.float64)
+    idx = rng.integers(0, m, size=(3, settings.hypotheses))
+    a = sub[idx[0]]
+    u = sub[idx[1]] - a
+    v = sub[idx[2]] - a
+    nrm = np.empty_like(u)
+    nrm[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+    nrm[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+    nrm[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))
+    ok = length > 1e-9 * np.einsum("ij,ij->i", u, u)
     if not ok.any():
         raise CalibrationError("full-frame fit: the points are collinear or coincident; no plane is defined")
     nrm = nrm[ok] / length[ok, None]
     off = -np.einsum("ij,ij->i", nrm, a[ok])
-    res = np.abs(sub @ nrm.T + off) / scale[:, None]       # (m, K)
+    sub32 = sub.astype(np.float32)
+    res = nrm.astype(np.float32) @ sub32.T                # (K, m) orthogonal distances
+    res += off.astype(np.float32)[:, None]
+    np.abs(res, out=res)
+    if settings.weighted:                                  # noise grows with the range
+        rng_m = np.sqrt(np.einsum("ij,ij->i", sub32, sub32))
+        res /= rng_m ** np.float32(settings.noise_distance_exponent)
     k = min(int(settings.hypothesis_quantile * m), m - 1)
-    score = np.partition(res, k, axis=0)[k]
+    score = np.partition(res, k, axis=1)[:, k]
     j = int(np.argmin(score))
     n = nrm[j]
     d = float(off[j])
@@ -413,11 +435,11 @@ def _hypothesis(p: F32, dm: F32, settings: FullFrameSettings, rng: np.random.Gen
 
 
 def _subsample(limit: int, *arrays: F32) -> list[F32]:
-    """Every k-th row (contiguous copies) so that at most ``limit`` rows remain."""
-    step = -(-arrays[0].shape[0] // limit)
+    """Every k-th point (last axis; contiguous copies) so that at most ``limit`` remain."""
+    step = -(-arrays[0].shape[-1] // limit)
     if step <= 1:
         return list(arrays)
-    return [np.ascontiguousarray(a[::step]) for a in arrays]
+    return [np.ascontiguousarray(a[..., ::step]) for a in arrays]
 
 
 @dataclass
@@ -432,12 +454,12 @@ class _Fit:
 
 
 def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None = None) -> _Fit:
-    """The three stages on finite camera-frame points ``p`` (N, 3) with ranges ``dm``.
+    """The three stages on finite camera-frame points ``p`` (3, N) with ranges ``dm``.
 
     ``sigma`` (N,), if given, is each point's range-noise sigma (replaces the model).
     """
     rng = np.random.default_rng(settings.seed)
-    n, offset = _hypothesis(p, dm, settings, rng)
+    n, offset = _hypothesis(p, settings, rng)
     k_sig = settings.inlier_threshold_sigma
     kept_var, cov_factor = _truncation(k_sig)
     if sigma is None:
@@ -450,7 +472,7 @@ def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None 
 
     # initial robust scale of the normalised range residuals on the subsample
     e1, e2 = _basis(n)
-    b0 = ps @ n.astype(np.float32)
+    b0 = n.astype(np.float32) @ ps
     inv_c = ds / b0
     t = inv_c * np.float32(-offset)
     rho = ds - t
@@ -465,7 +487,9 @@ def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None 
     else:
         z = rho
     q = settings.hypothesis_quantile
-    s = float(np.quantile(np.abs(z), q)) / float(ndtri(0.5 + q / 2.0))
+    az = np.abs(z)
+    kq = min(int(q * az.size), az.size - 1)
+    s = float(np.partition(az, kq)[kq]) / float(ndtri(0.5 + q / 2.0))
     lo = settings.min_inlier_threshold_m / sig_med
     hi = settings.max_inlier_threshold_m / sig_med
 
@@ -479,13 +503,19 @@ def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None 
         offset += float(it.step[2])
         e1, e2 = _basis(n)
         s_new = math.sqrt(it.z2_sum / it.n_inliers / kept_var)
-        small = abs(it.step[0]) + abs(it.step[1]) < 1e-9 and abs(it.step[2]) < 1e-9
-        converged = small and abs(s_new - s) <= 1e-3 * s
+        # converged: the step is a small fraction of the parameters' (subsample) sigma
+        # and the scale has settled; the full-data pass below finishes the job
+        try:
+            sd = np.sqrt(np.abs(np.diag(np.linalg.inv(it.hessian)))) * s_new
+        except np.linalg.LinAlgError:
+            sd = np.full(3, np.inf)
+        converged = bool(np.all(np.abs(it.step) <= 0.5 * sd)) and abs(s_new - s) <= 0.05 * s
         s = s_new
         if converged:
             break
     # the last pass over every point
-    fin = _gn_pass(p, dm, n, e1, e2, offset, threshold(s), weighted, expo, sigma)
+    fin = _gn_pass(p, dm, n, e1, e2, offset, threshold(s), weighted, expo, sigma, final=True)
+    assert fin.meat is not None and fin.inliers is not None
     n_fin = n + fin.step[0] * e1 + fin.step[1] * e2
     n_fin = n_fin / np.linalg.norm(n_fin)
     offset_fin = offset + float(fin.step[2])
@@ -501,29 +531,38 @@ def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None 
     return _Fit(plane, cov, e1, e2, fin.inliers, rms, noise)
 
 
+def _geometry(n: FloatArray, d: FloatArray) -> FloatArray:
+    """Angle to the optical axis, tilt x, tilt y, height along the axis of planes (K, 4).
+
+    Vectorised copies of :meth:`Plane.angle_to_optical_axis_rad`,
+    :meth:`Plane.tilt_about_x_rad`, :meth:`Plane.tilt_about_y_rad` and
+    :meth:`Plane.distance_along_optical_axis_m` (NaN where the axis misses the plane)
+    for unit normals ``n`` (K, 3) and offsets ``d`` (K,).
+    """
+    nz = n[:, 2]
+    f = np.where((nz > 0)[:, None], -n, n)            # the normal as seen from the camera
+    out = np.empty((n.shape[0], 4))
+    out[:, 0] = np.arcsin(np.minimum(1.0, np.abs(nz)))
+    out[:, 1] = np.arctan2(-f[:, 1], -f[:, 2])
+    out[:, 2] = np.arctan2(f[:, 0], -f[:, 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = -d / nz
+    out[:, 3] = np.where((np.abs(nz) >= 1e-12) & (h > 0), h, np.nan)
+    return out
+
+
 def _derived(fit: _Fit) -> tuple[list[float], list[float]]:
     """Angle, tilt x, tilt y, height and their 1-sigma (central-difference Jacobians)."""
     n0 = fit.plane.normal
     d0 = fit.plane.offset_m
-
-    def values(dp: FloatArray) -> FloatArray:
-        nn = n0 + dp[0] * fit.e1 + dp[1] * fit.e2
-        pl = Plane(nn, d0 + dp[2])
-        try:
-            h = pl.distance_along_optical_axis_m()
-        except CalibrationError:
-            h = math.nan
-        return np.array([pl.angle_to_optical_axis_rad(), pl.tilt_about_x_rad(), pl.tilt_about_y_rad(), h])
-
-    v0 = values(np.zeros(3))
-    jac = np.empty((4, 3))
-    steps = (1e-6, 1e-6, 1e-6 * max(abs(d0), 1e-3))
-    for k in range(3):
-        dp = np.zeros(3)
-        dp[k] = steps[k]
-        jac[:, k] = (values(dp) - values(-dp)) / (2.0 * steps[k])
+    steps = np.array([1e-6, 1e-6, 1e-6 * max(abs(d0), 1e-3)])
+    dp = np.concatenate([np.zeros((1, 3)), np.diag(steps), -np.diag(steps)])   # (7, 3)
+    nn = n0 + dp[:, :1] * fit.e1 + dp[:, 1:2] * fit.e2
+    norm = np.linalg.norm(nn, axis=1)
+    v = _geometry(nn / norm[:, None], (d0 + dp[:, 2]) / norm)
+    jac = ((v[1:4] - v[4:7]) / (2.0 * steps[:, None])).T                      # (4, 3)
     var = np.einsum("ij,jk,ik->i", jac, fit.cov, jac)
-    return v0.tolist(), np.sqrt(np.maximum(var, 0.0)).tolist()
+    return v[0].tolist(), np.sqrt(np.maximum(var, 0.0)).tolist()
 
 
 def _interval(value: float, sigma: float, z: float, lo: float = -math.inf, hi: float = math.inf
@@ -615,7 +654,7 @@ def fit_plane_points(points_m: ArrayLike, sigma_m: ArrayLike | None = None,
     if n_ok < MIN_POINTS:
         raise CalibrationQualityError("valid_fraction", valid_fraction, cfg.min_valid_fraction,
                                       f"only {n_ok} usable point(s); a full-frame fit needs {MIN_POINTS}")
-    p = np.ascontiguousarray(pts[ok])
+    p = np.ascontiguousarray(pts[ok].T)
     d = np.ascontiguousarray(dm[ok])
     fit = _robust_fit(p, d, cfg, None if sig is None else np.ascontiguousarray(sig[ok]))
     mask = np.zeros(n_all, dtype=bool)
@@ -625,7 +664,7 @@ def fit_plane_points(points_m: ArrayLike, sigma_m: ArrayLike | None = None,
 
 
 def _frames_points(frames: Frame | Sequence[Frame]) -> tuple[list[Frame], F32, F32, list[BoolArray]]:
-    """Validate frames; pooled valid points (N, 3), ranges (N,) and each frame's flat mask."""
+    """Validate frames; pooled valid points (3, N), ranges (N,) and each frame's flat mask."""
     if isinstance(frames, Frame):
         seq = [frames]
     else:
@@ -646,18 +685,18 @@ def _frames_points(frames: Frame | Sequence[Frame]) -> tuple[list[Frame], F32, F
         with np.errstate(invalid="ignore"):
             m = f.valid.reshape(-1) & (dist > 0)   # NaN compares False
         idx = np.flatnonzero(m)
-        p = np.take(f.xyz.reshape(-1, 3), idx, axis=0)
+        p = np.take(f.xyz.reshape(-1, 3).T, idx, axis=1)    # (3, n) structure of arrays
         d = np.take(dist, idx)
         if not (math.isfinite(float(p.sum())) and math.isfinite(float(d.sum()))):
-            fin = np.isfinite(p).all(axis=1) & np.isfinite(d)
+            fin = np.isfinite(p).all(axis=0) & np.isfinite(d)
             m[idx[~fin]] = False
-            p, d = p[fin], d[fin]
+            p, d = np.ascontiguousarray(p[:, fin]), d[fin]
         pts.append(p)
         dms.append(d)
         masks.append(m)
     if len(seq) == 1:
         return seq, pts[0], dms[0], masks
-    return seq, np.concatenate(pts), np.concatenate(dms), masks
+    return seq, np.concatenate(pts, axis=1), np.concatenate(dms), masks
 
 
 def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings | None = None) -> FullFrameResult:
@@ -681,7 +720,7 @@ def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings 
     seq, p, dm, masks = _frames_points(frames)
     h, w = seq[0].shape
     n_pixels = h * w * len(seq)
-    n_ok = p.shape[0]
+    n_ok = p.shape[1]
     valid_fraction = n_ok / n_pixels
     if n_ok < MIN_POINTS:
         raise CalibrationQualityError("valid_fraction", valid_fraction, cfg.min_valid_fraction,
