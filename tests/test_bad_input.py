@@ -242,6 +242,8 @@ class Case:
     doc: dict[str, Any]
     key: str
     expect: tuple[str, ...]
+    table: str = ""
+    kind: str = ""
 
 
 def _with(table: Table, key: str, value: Any = ..., *, delete: bool = False) -> dict[str, Any]:
@@ -316,12 +318,15 @@ def schema_cases() -> list[Case]:
         for key, (tp, default, meta) in schema_of(t.cls).items():
             dotted = f"{t.dotted}.{key}"
             for name, value, words, suffix in _bad_types(tp):
-                cases.append(Case(f"{tid}.{key}:type-{name}", _with(t, key, value), dotted + suffix, words))
+                cases.append(Case(f"{tid}.{key}:type-{name}", _with(t, key, value), dotted + suffix, words,
+                                  tid, "type"))
             for name, value, words in _bad_ranges(tp, meta):
-                cases.append(Case(f"{tid}.{key}:range-{name}", _with(t, key, value), dotted, words))
+                cases.append(Case(f"{tid}.{key}:range-{name}", _with(t, key, value), dotted, words, tid, "range"))
             if default is dataclasses.MISSING:
-                cases.append(Case(f"{tid}.{key}:missing", _with(t, key, delete=True), dotted, ("missing",)))
-        cases.append(Case(f"{tid}:unknown-key", _with(t, BOGUS, 1), f"{t.dotted}.{BOGUS}", ("unknown key",)))
+                cases.append(Case(f"{tid}.{key}:missing", _with(t, key, delete=True), dotted, ("missing",), tid,
+                                  "missing"))
+        cases.append(Case(f"{tid}:unknown-key", _with(t, BOGUS, 1), f"{t.dotted}.{BOGUS}", ("unknown key",), tid,
+                          "unknown"))
     return cases
 
 
@@ -558,3 +563,18 @@ def test_config_path_problems(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     empty.write_text("")
     _assert_one_line(*_run(["calibrate", "--config", str(empty)], capsys)[::2], str(empty), "key 'camera'",
                      "missing table")
+
+
+#: One case per table and kind of mistake, also run without ``--check``: the real command
+#: fails the same way before it connects to anything.
+SAMPLE = list({(c.table, c.kind): c for c in SCHEMA_CASES}.values())
+
+
+@pytest.mark.parametrize("case", SAMPLE, ids=lambda c: c.id)
+def test_calibrate_without_check_fails_the_same_way(tmp_path: Path, case: Case,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "cell.toml"
+    path.write_text(dump_toml(case.doc), encoding="utf-8")
+    code, out, err = _run(["calibrate", "--quiet", "--config", str(path), "--out", str(tmp_path / "out")], capsys)
+    _assert_one_line(code, err, str(path), f"key '{case.key}'", *case.expect)
+    assert out == "" and not (tmp_path / "out").exists()
