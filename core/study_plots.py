@@ -250,7 +250,7 @@ def plot_plane_fit(trial: TrialData, path: str | Path, *, max_points: int = 6000
     idx = rng.permutation(pts.shape[0])[:max_points]
     p, flag = pts[idx], is_in[idx]
 
-    fig = plt.figure(figsize=(11.5, 5.0))
+    fig = plt.figure(figsize=(11.5, 5.4))
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     # drawn as (x, -y, -z): image right, image up, toward the camera (boxes stand up)
     ax.scatter(p[flag, 0], -p[flag, 1], -p[flag, 2], s=0.6, c="#4c72b0", alpha=0.5, label="inliers",
@@ -269,6 +269,7 @@ def plot_plane_fit(trial: TrialData, path: str | Path, *, max_points: int = 6000
     ax.set_ylabel("-y, m")
     ax.set_zlabel("-z (depth), m")
     ax.view_init(elev=28, azim=-58)
+    ax.set_box_aspect((1.5, 1.0, 0.7))
     ax.legend(loc="upper left", fontsize=8, markerscale=8)
     c = trial.condition
     ax.set_title(f"camera-frame cloud: height {c.height_m:.2f} m, {c.inclination_deg:g} deg,\n"
@@ -286,8 +287,8 @@ def plot_plane_fit(trial: TrialData, path: str | Path, *, max_points: int = 6000
     ax2.set_ylabel("v, px")
     rows = _trial_errors(trial)
     if rows:
-        ax2.text(0.0, -0.14, rows, transform=ax2.transAxes, fontsize=8, va="top", family="monospace")
-    fig.subplots_adjust(left=0.0, right=0.97, top=0.9, bottom=0.14, wspace=0.12)
+        ax2.text(0.0, -0.12, rows, transform=ax2.transAxes, fontsize=8, va="top", family="monospace")
+    fig.subplots_adjust(left=0.0, right=0.97, top=0.9, bottom=0.2, wspace=0.12)
     return save_figure(fig, path)
 
 
@@ -298,8 +299,8 @@ def _trial_errors(trial: TrialData) -> str:
         return f"true tilt {true_tilt:.3f} deg"
     tilt = 90.0 - math.degrees(float(res.angle_rad))
     lo, hi = (90.0 - math.degrees(float(v)) for v in reversed(res.angle_ci_rad))
-    return (f"true tilt {true_tilt:.4f} deg, full frame {tilt:.4f} deg "
-            f"(95 % CI {lo:.4f}..{hi:.4f}), error {tilt - true_tilt:+.4f} deg")
+    return (f"true tilt {true_tilt:.4f} deg, full frame {tilt:.4f} deg (error {tilt - true_tilt:+.4f} deg)\n"
+            f"95 % interval {lo:.4f}..{hi:.4f} deg; {res.inlier_fraction * 100:.1f} % of the valid pixels are inliers")
 
 
 def write_plots(result: StudyResult, out_dir: str | Path) -> dict[str, Path]:
