@@ -19,6 +19,7 @@ Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal[...]``,
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import types
 import typing
@@ -30,6 +31,14 @@ from .errors import ConfigError
 T = TypeVar("T")
 
 _TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}
+
+
+_cached_type_hints = functools.lru_cache(maxsize=256)(get_type_hints)
+
+
+def _hints(cls: Any) -> dict[str, Any]:
+    """``get_type_hints`` of a config dataclass (cached: it re-evaluates every annotation)."""
+    return _cached_type_hints(cls)
 
 
 def _join(where: str, key: str) -> str:
@@ -181,7 +190,7 @@ def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str
         section = {}
     if not isinstance(section, Mapping):
         raise ConfigError(f"expected a table, got {type(section).__name__}", source=source, key=where or None)
-    hints = get_type_hints(cls)
+    hints = _hints(cls)
     known = {f.name: f for f in dataclasses.fields(cls) if f.init}
     for key in section:
         if key not in known and key not in ignore:
@@ -215,7 +224,7 @@ def schema_of(cls: type[Any]) -> dict[str, tuple[Any, Any, Mapping[str, Any]]]:
 
     The default is ``dataclasses.MISSING`` for required keys.
     """
-    hints = get_type_hints(cls)
+    hints = _hints(cls)
     out: dict[str, tuple[Any, Any, Mapping[str, Any]]] = {}
     for f in dataclasses.fields(cls):
         if not f.init:

@@ -43,7 +43,7 @@ from fuzz_targets import CONFIG_DIR, dump_toml
 from cellcal.core.calibrator import build_devices
 from cellcal.core.cli import build_parser, main
 from cellcal.core.config import TOP_LEVEL_TABLES, CellConfig, load_config
-from cellcal.devices.config import schema_of
+from cellcal.devices.config import parse_section, schema_of
 from cellcal.devices.registry import default_registry
 from cellcal.sims.world import SimConfig
 
@@ -399,11 +399,22 @@ def test_the_enumeration_covers_every_top_level_table() -> None:
 
 @pytest.mark.parametrize("table", all_tables(), ids=lambda t: f"{t.label}:{t.dotted}")
 def test_every_base_document_is_valid(tmp_path: Path, table: Table) -> None:
-    """The cases below fail only because of their one change: the base parses (config and devices)."""
+    """The cases below fail only because of their one change: the base parses (config and devices).
+
+    A backend with no packaged config gets a synthesised section; when its constructor
+    needs something outside the file (a recording, say), only its section is checked.
+    """
     path = tmp_path / "base.toml"
     path.write_text(dump_toml(table.doc), encoding="utf-8")
     assert tomllib.loads(path.read_text()) == table.doc
-    camera, arm = build_devices(load_config(path))
+    config = load_config(path)
+    if "+" in table.label:
+        kind = table.path[0]
+        section = table.doc[kind]
+        cls = default_registry().get(kind, section["backend"]).Config  # type: ignore[arg-type]
+        parse_section(cls, section, where=str(kind), source=str(path), ignore=("backend",))
+        return
+    camera, arm = build_devices(config)
     assert camera.backend_name == table.doc["camera"]["backend"]
     assert arm.inner.backend_name == table.doc["arm"]["backend"]
 
