@@ -266,7 +266,10 @@ def full_frame_document(result: FullFrameResult, camera_in_base: Pose,
     :meth:`FullFrameResult.to_dict` plus ``plane_base`` (the plane in the base frame via
     ``camera_in_base = T_base_flange @ T_flange_camera``) and, with an expected geometry,
     ``error`` (estimate minus expected) and ``expected_in_ci`` (whether each interval
-    holds the expected value).
+    holds the expected value). The expected geometry comes from the arm's *reported* pose:
+    its read-back error (e.g. 0.1 mm on an xArm) can exceed the height interval (~0.01 mm
+    on the sim), so ``expected_in_ci["height_m"]`` is often False through no fault of the
+    camera; the angles are not affected by a translation error.
     """
     out = result.to_dict()
     pb = result.plane.transformed(camera_in_base)

@@ -179,8 +179,9 @@ def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = 
     above the reference along the reference normal at the consensus reference point (m).
 
     Returns:
-        The :meth:`PlaneConsistency.to_dict` form plus those keys, or None when no pose
-        holds a plane.
+        The :meth:`PlaneConsistency.to_dict` form plus those keys; None when no pose
+        holds a plane; ``{"source_method", "verdict": "failed", "interpretation"}`` when
+        the planes are too far apart to be one plane (the run's data is still written).
     """
     pose_list = list(poses)
     for source in ("full_frame", "plane_fit"):
@@ -189,7 +190,11 @@ def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = 
             break
     else:
         return None
-    result = plane_consistency(planes)
+    try:
+        result = plane_consistency(planes)
+    except CalibrationError as exc:
+        return {"source_method": source, "n_poses": len(planes), "verdict": "failed",
+                "interpretation": f"{exc}: the hand-eye transform or the arm's pose readings are far off"}
     out: dict[str, Any] = {"source_method": source, **result.to_dict()}
     if reference is not None:
         n_ref = reference.normal if reference.normal @ result.consensus.normal >= 0 else -reference.normal
@@ -262,7 +267,9 @@ def format_full_frame(document: Mapping[str, Any]) -> str:
                 lines.append(f"          plane in base frame: normal {_vec(pb['normal'])}, "
                              f"offset {pb['offset_m']:+.5f} m")
     cons = (document.get("summary") or {}).get("plane_consistency")
-    if cons:
+    if cons and "consensus_plane_base" not in cons:
+        lines.append(f"plane in the base frame: {cons['verdict']} - {cons['interpretation']}")
+    elif cons:
         cp = cons["consensus_plane_base"]
         lines.append(f"plane in the base frame ({cons['source_method']}, {cons['n_poses']} poses): "
                      f"normal {_vec(cp['normal'])}, offset {cp['offset_m']:+.5f} m")
