@@ -339,7 +339,8 @@ def _gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, off
     The range along the ray ``r = p / |p|`` predicted by the plane is
     ``t = -offset / (r·n)``; the residual ``rho = |p| - t`` has the Jacobian
     ``(t (r·e1) / (r·n), t (r·e2) / (r·n), 1 / (r·n))`` with respect to the normal's
-    tangent steps along ``e1``, ``e2`` and the offset.
+    tangent steps along ``e1``, ``e2`` and the offset. Everything is whitened by the
+    point's noise sigma and masked to the inliers, in place on a few float32 buffers.
 
     Args:
         thr: Cut-off on the noise-normalised range residual.
@@ -347,53 +348,64 @@ def _gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, off
         final: Also return the sandwich "meat", the orthogonal residual sum and the
             inlier mask.
     """
-    basis = np.stack([n, e1, e2]).astype(np.float32)
+    f32 = np.float32
+    basis = np.stack([n, e1, e2]).astype(f32)
     b = basis @ p                              # (3, N): p·n, p·e1, p·e2
-    inv_c = dm / b[0]                       # 1 / cos(ray, normal), negative in front
-    t = inv_c * np.float32(-offset)            # predicted range along the ray
-    rho = dm - t
+    inv_c = np.divide(dm, b[0])                # 1 / cos(ray, normal), negative in front
+    t = inv_c * f32(-offset)                   # predicted range along the ray
+    z = np.subtract(dm, t)                     # range residual rho ...
     if sigma is not None:
-        sig: F32 | None = sigma
-    elif weighted:
+        isig = np.divide(f32(1.0), sigma)
+    elif weighted:                             # 1 / (t^e / sqrt|cos|)
+        isig = np.multiply(t, inv_c)
+        np.abs(isig, out=isig)
         if exponent == 1.5:
-            sig = t * np.sqrt(np.abs(t * inv_c))
+            np.sqrt(isig, out=isig)
+            isig *= t
         else:
-            sig = np.abs(t) ** np.float32(exponent) * np.sqrt(np.abs(inv_c))
+            np.power(isig, f32(0.5), out=isig)
+            isig *= np.abs(t) ** f32(exponent - 1.0) * t
+        np.divide(f32(1.0), isig, out=isig)
     else:
-        sig = None
-    z = rho if sig is None else rho / sig
-    inl = np.abs(z) < np.float32(thr)
+        isig = None
+    if isig is not None:
+        z *= isig                              # ... whitened
+    inl = np.abs(z) < f32(thr)
     inl &= t > 0
     n_in = int(np.count_nonzero(inl))
     if n_in < MIN_POINTS:
         raise CalibrationError(f"full-frame fit found only {n_in} inlier(s); no plane is defined")
-    w = inl.astype(np.float32)
-    if sig is not None:
-        w /= sig * sig
-    q = t * inv_c
-    q /= dm                                    # d rho / d e_k = q * (p·e_k)
-    jac = (q * b[1], q * b[2], inv_c)
-    wr = w * rho
-    wj = [w * j for j in jac]
+    z *= inl                                   # r: whitened, masked residual
+    if isig is None:
+        isig = inl.astype(f32)
+    else:
+        isig *= inl                            # masked 1 / sigma
+    t *= inv_c
+    t /= dm
+    t *= isig                                  # q = t / (|p| cos) / sigma
+    a1 = np.multiply(t, b[1])                  # whitened Jacobian columns
+    a2 = np.multiply(t, b[2], out=t)
+    a3 = np.multiply(inv_c, isig, out=inv_c)
+    cols = (a1, a2, a3)
     h = np.empty((3, 3))
     g = np.empty(3)
     for i in range(3):
-        g[i] = float(np.dot(jac[i], wr))
+        g[i] = float(np.dot(cols[i], z))
         for k in range(i, 3):
-            h[i, k] = h[k, i] = float(np.dot(wj[i], jac[k]))
+            h[i, k] = h[k, i] = float(np.dot(cols[i], cols[k]))
     try:
         step = np.asarray(-np.linalg.solve(h, g), dtype=np.float64)
     except np.linalg.LinAlgError:
         raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
-    z2 = float(np.dot(wr, rho))
+    z2 = float(np.dot(z, z))
     if not final:
         return _Pass(step, h, n_in, z2)
+    rz = [np.multiply(c, z, out=c if c is not a1 else None) for c in cols]
     meat = np.empty((3, 3))
-    wjr = [x * rho for x in wj]
     for i in range(3):
         for k in range(i, 3):
-            meat[i, k] = meat[k, i] = float(np.dot(wjr[i], wjr[k]))
-    ortho = b[0] + np.float32(offset)
+            meat[i, k] = meat[k, i] = float(np.dot(rz[i], rz[k]))
+    ortho = np.add(b[0], f32(offset), out=isig)
     ortho *= inl
     return _Pass(step, h, n_in, z2, meat, float(np.dot(ortho, ortho)), inl)
 
@@ -470,22 +482,23 @@ def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None 
     weighted = settings.weighted
     expo = settings.noise_distance_exponent
 
-    # initial robust scale of the normalised range residuals on the subsample
+    # initial robust scale of the normalised range residuals on <= 1024 of the points
     e1, e2 = _basis(n)
-    b0 = n.astype(np.float32) @ ps
-    inv_c = ds / b0
+    k0 = max(1, ps.shape[1] // 1024)
+    p0, d0 = ps[:, ::k0], ds[::k0]
+    inv_c = d0 / (n.astype(np.float32) @ p0)
     t = inv_c * np.float32(-offset)
-    rho = ds - t
+    z = d0 - t
     sig_med = 1.0
     if ss is not None:
-        sig_med = float(np.median(ss))
-        z = rho / ss
+        sig = ss[::k0]
+        z /= sig
     elif weighted:
-        sig = np.abs(t) ** np.float32(expo) / np.sqrt(np.abs(inv_c))
-        sig_med = float(np.median(sig[t > 0])) if np.any(t > 0) else 1.0
-        z = rho * np.sqrt(np.abs(inv_c)) / np.maximum(np.abs(t), 1e-9) ** np.float32(expo)
-    else:
-        z = rho
+        sig = (np.abs(t) ** np.float32(expo) / np.sqrt(np.abs(inv_c))).astype(np.float32)
+        z /= sig
+    if ss is not None or weighted:
+        mid = sig.size // 2
+        sig_med = max(float(np.partition(sig, mid)[mid]), 1e-12)
     q = settings.hypothesis_quantile
     az = np.abs(z)
     kq = min(int(q * az.size), az.size - 1)
