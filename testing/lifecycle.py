@@ -53,7 +53,7 @@ class _BodyError(Exception):
     """Raised inside a with block to see that __exit__ closes the device."""
 
 
-def lifecycle_checks(kind: str, base: type[Device], refusals: Refusals, use: Use
+def lifecycle_checks(kind: str, base: type[Any], refusals: Refusals, use: Use
                      ) -> tuple[tuple[Check[Any, Any], ...], Check[Any, Any]]:
     """The shared rules for one interface.
 
