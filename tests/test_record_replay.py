@@ -178,6 +178,15 @@ def test_mcap_file_has_the_documented_channels_schemas_and_counts(session: Any) 
 
 
 # ---------------------------------------------------------------------------- divergence
+def _write_toml(path: Path, doc: dict[str, Any]) -> None:
+    """A flat TOML file of ``doc`` (tables of scalars and arrays; JSON literals are valid TOML there)."""
+    lines = []
+    for table, values in doc.items():
+        lines.append(f"[{table}]")
+        lines += [f"{k} = {json.dumps(v)}" for k, v in values.items()]
+    path.write_text("\n".join(lines) + "\n")
+
+
 def _doc(**plan: Any) -> dict[str, Any]:
     doc = json.loads(json.dumps(SIM_DOC))
     doc["plan"].update(plan)
@@ -446,14 +455,50 @@ def test_replay_config_reanalyses_a_recording_with_other_methods(session: Any, t
     doc["camera"] = {"backend": "replay", "file": "s.mcap"}
     doc["arm"] = {"backend": "replay", "file": "s.mcap"}
     doc["plan"].update(perimeters_px=[30], methods=["plane_fit"])
-    lines = []
-    for table, values in doc.items():
-        lines.append(f"[{table}]")
-        lines += [f"{k} = {json.dumps(v)}" for k, v in values.items()]
-    (tmp_path / "replay.toml").write_text("\n".join(lines) + "\n")
+    _write_toml(tmp_path / "replay.toml", doc)
     assert main(["calibrate", "--config", str(tmp_path / "replay.toml"), "--out", str(tmp_path / "o"), "--quiet"]) == 0
     result = json.loads((tmp_path / "o" / "result.json").read_text())
     rows = [m for p in result["poses"] for m in p["measurements"] if m["method"] == "plane_fit"]
     want = [m for p in original["poses"] for m in p["measurements"]
             if m["method"] == "plane_fit" and m["perimeter_px"] == 30]
     assert len(rows) == N_POSES and [r["angle_deg"] for r in rows] == [w["angle_deg"] for w in want]
+
+
+def test_random_byte_flips_are_caught_or_harmless(session: Any, tmp_path: Path) -> None:
+    """Any single flipped byte: a one-line RecordingFileError, or (outside the data) the same content."""
+    data = session[0].read_bytes()
+    good = read_recording(session[0])
+    rng = np.random.default_rng(9)
+    outcomes = {"error": 0, "same": 0}
+    for pos in rng.integers(0, len(data), size=40):
+        bad = bytearray(data)
+        bad[pos] ^= 1 << int(rng.integers(0, 8))
+        path = tmp_path / "flip.mcap"
+        path.write_bytes(bytes(bad))
+        try:
+            rec = read_recording(path)
+        except RecordingFileError as exc:
+            assert "\n" not in str(exc)
+            outcomes["error"] += 1
+            continue
+        assert (rec.session, rec.captures, rec.arm_calls, rec.result) == \
+            (good.session, good.captures, good.arm_calls, good.result), f"flip at byte {pos} changed the content"
+        outcomes["same"] += 1
+    assert outcomes["error"] > 0
+    print(f"\n40 single-bit flips: {outcomes}")
+
+
+def test_cli_record_of_a_rejected_plan_is_discarded_unless_kept(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    doc = json.loads(json.dumps(SIM_DOC))
+    doc["safety"]["max_speed_m_s"] = 0.1  # below the plan's 0.3 m/s: rejected before the first move
+    _write_toml(tmp_path / "cell.toml", doc)
+    out = tmp_path / "rec" / "s.mcap"
+    args = ["record", "--config", str(tmp_path / "cell.toml"), "--out", str(out), "--quiet"]
+    assert main(args) == 1 and "speed 0.3 m/s exceeds max 0.1 m/s" in capsys.readouterr().err
+    assert list(out.parent.iterdir()) == []  # no recording, no temp file
+    assert main([*args, "--keep-failed"]) == 1
+    assert f"recording of the failed run written to {out}" in capsys.readouterr().err
+    kept = read_recording(out)
+    assert kept.result is not None and not kept.result["ok"] and kept.result["error"]["type"] == "SafetyError"
+    assert [p.name for p in out.parent.iterdir()] == ["s.mcap"]
