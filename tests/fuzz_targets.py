@@ -345,7 +345,8 @@ def config_target(directory: Path | None = None) -> Target:
     """The loader reads a real file: inputs are written to ``directory`` (default: a temporary one)."""
     tmp = None
     if directory is None:
-        tmp = tempfile.TemporaryDirectory(prefix="cellcal-fuzz-")
+        shm = Path("/dev/shm")  # a file system in memory: rewriting the file is 4x faster than on disk
+        tmp = tempfile.TemporaryDirectory(prefix="cellcal-fuzz-", dir=shm if shm.is_dir() else None)
         directory = Path(tmp.name)
     path = directory / "cell.toml"
 
