@@ -517,12 +517,15 @@ def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None 
         e1, e2 = _basis(n)
         s_new = math.sqrt(it.z2_sum / it.n_inliers / kept_var)
         # converged: the step is a small fraction of the parameters' (subsample) sigma
-        # and the scale has settled; the full-data pass below finishes the job
+        # and the scale has settled (noise-free data: the cut-off sits at its floor);
+        # the full-data pass below finishes the job
+        floor_scale = lo / k_sig
         try:
-            sd = np.sqrt(np.abs(np.diag(np.linalg.inv(it.hessian)))) * s_new
+            sd = np.sqrt(np.abs(np.diag(np.linalg.inv(it.hessian)))) * max(s_new, floor_scale)
         except np.linalg.LinAlgError:
             sd = np.full(3, np.inf)
-        converged = bool(np.all(np.abs(it.step) <= 0.5 * sd)) and abs(s_new - s) <= 0.05 * s
+        settled = abs(s_new - s) <= 0.05 * s or max(s, s_new) <= floor_scale
+        converged = bool(np.all(np.abs(it.step) <= 0.5 * sd)) and settled
         s = s_new
         if converged:
             break
