@@ -87,7 +87,9 @@ class Case:
     arm: str
     expected: type[BaseException]
     arm_connects: bool = True
-    budget_s: float = 5.0
+    #: Seconds the case may take: its timeouts (0.1-2 s) plus slack for a loaded machine, and far
+    #: below the injected stalls (30 s) and the default timeouts (60 s), so a hang fails it.
+    budget_s: float = 10.0
 
 
 def _step(step: str) -> tuple[str, int]:
@@ -111,7 +113,7 @@ def arrange(step: str, fault: str) -> tuple[Case, Callable[[Probe], None]]:
 
     if kind == "connect":
         if fault == "drop":
-            return (Case("o3r-emulated", "sim", DeviceConnectionError, budget_s=2.0 + O3R_IO_TIMEOUT_S + 3),
+            return (Case("o3r-emulated", "sim", DeviceConnectionError, budget_s=2.0 + O3R_IO_TIMEOUT_S + 10.0),
                     lambda p: setattr(p.calibrator.camera, "on_emulator_started", lambda emu: emu.go_offline()))
         if fault in ("stall", "corrupt"):
             spoil = "stall" if fault == "stall" else "corrupt_crc"
