@@ -455,7 +455,13 @@ def grid_rows(trial: TrialData, perimeters_px: Sequence[int], window_px: int) ->
                                   window_px=window_px)
     except CalibrationError:
         measured = []
-        for p in perimeters_px:  # one call per estimate, so one failure costs only itself
+        for p in perimeters_px:  # narrow down, so that one failure costs only its own estimate
+            try:
+                measured += measure_frames([trial.frame], perimeters_px=[p], methods=GRID_METHODS,
+                                           window_px=window_px)
+                continue
+            except CalibrationError:
+                pass
             for name in GRID_METHODS:
                 try:
                     measured += measure_frames([trial.frame], perimeters_px=[p], methods=[name], window_px=window_px)
