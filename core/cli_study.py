@@ -79,6 +79,10 @@ def _fmt(value: float | None, spec: str = ".4f", unit: str = "") -> str:
     return f"{value:{spec}}{unit}"
 
 
+def _scaled(value: float | None, factor: float, spec: str, unit: str) -> str:
+    return _fmt(None if value is None else value * factor, spec, unit)
+
+
 def _verdict(ok: bool | None) -> str:
     return "n/a" if ok is None else ("met" if ok else "MISSED")
 
@@ -98,6 +102,9 @@ def format_headline(h: Headline) -> str:
         f"  full frame, 95 % interval coverage   {_fmt(None if cov is None else cov * 100, '.1f', ' %')}    "
         f"(target {TARGET_COVERAGE[0] * 100:.0f}-{TARGET_COVERAGE[1] * 100:.0f} %: {_verdict(h.meets_coverage)}); "
         f"with clutter {_fmt(None if cov_c is None else cov_c * 100, '.1f', ' %')}",
+        f"  full frame, height                   mean |error| "
+        f"{_scaled(h.full_frame_height_error_m, 1000, '.3f', ' mm')}, "
+        f"95 % interval coverage {_scaled(h.full_frame_height_coverage, 100, '.1f', ' %')}",
         f"  full-frame fits that raised: {h.full_frame_failures} clean, {h.full_frame_failures_clutter} cluttered",
         f"  nine-point, nominal FOV (paper)      {_fmt(h.nominal_error_deg)} deg   "
         f"(30 % clutter: {_fmt(h.nominal_error_clutter_deg)} deg)",

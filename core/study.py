@@ -704,7 +704,10 @@ class Headline:
 
     Errors are mean absolute tilt errors in degrees over all trials (and, for the
     paper's methods, all perimeters); a failed estimate counts as missing and is
-    reported in the ``*_failures`` counts. None where the run had no such trials.
+    reported in the ``*_failures`` counts. Coverage is the fraction of full-frame
+    fits whose 95 % interval holds the truth. The height figures are for the
+    full frame without clutter (mean |error| in metres, interval coverage). None
+    where the run had no such trials.
     """
 
     n_trials: int
@@ -720,6 +723,8 @@ class Headline:
     law_of_cosines_error_deg: float | None
     nominal_error_clutter_deg: float | None
     clutter_achieved_mean: float | None
+    full_frame_height_error_m: float | None = None
+    full_frame_height_coverage: float | None = None
 
     @property
     def meets_error(self) -> bool | None:
@@ -745,6 +750,10 @@ class Headline:
         out.update(meets_error=self.meets_error, meets_error_clutter=self.meets_error_clutter,
                    meets_coverage=self.meets_coverage)
         return out
+
+
+def _mean_of(values: Sequence[float]) -> float | None:
+    return float(np.mean(values)) if len(values) else None
 
 
 def _mean_abs(rows: Sequence[Mapping[str, Any]]) -> float | None:
@@ -777,6 +786,9 @@ def headline(rows: Sequence[Mapping[str, Any]]) -> Headline:
         law_of_cosines_error_deg=_mean_abs(select(clean, method="law_of_cosines")),
         nominal_error_clutter_deg=_mean_abs(select(clut, method="plane_fit_nominal")),
         clutter_achieved_mean=float(np.mean(achieved)) if achieved else None,
+        full_frame_height_error_m=_mean_of([abs(r["height_error_m"]) for r in ff if r["ok"]]),
+        full_frame_height_coverage=_mean_of([bool(r["height_ci_contains"]) for r in ff
+                                             if r["ok"] and r["height_ci_contains"] is not None]),
     )
 
 
