@@ -52,8 +52,8 @@ class CellSection:
 class MountSection:
     """``[mount]``: the camera frame in the flange frame (hand-eye transform)."""
 
-    translation_m: Vec3 = (0.0, 0.0, 0.0)
-    rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+    translation_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -2.0, "le": 2.0})
+    rpy_deg: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
 
     def pose(self) -> Pose:
         """The flange -> camera transform (``T_flange_camera``)."""
@@ -64,8 +64,8 @@ class MountSection:
 class ReferenceSection:
     """``[reference]``: the measuring plane as the cell believes it, base frame."""
 
-    plane_point_m: Vec3 = (0.0, 0.0, 0.0)
-    plane_normal: Vec3 = (0.0, 0.0, 1.0)
+    plane_point_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -100.0, "le": 100.0})
+    plane_normal: Vec3 = field(default=(0.0, 0.0, 1.0), metadata={"ge": -1e6, "le": 1e6})  # norm cannot overflow
 
     def __post_init__(self) -> None:
         if not np.linalg.norm(self.plane_normal) > 0:
@@ -93,7 +93,7 @@ class PlanPose:
     """One explicit flange pose of ``[[plan.poses]]``, base frame."""
 
     xyz_m: Vec3
-    rpy_deg: Vec3 = (180.0, 0.0, 0.0)
+    rpy_deg: Vec3 = field(default=(180.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
 
     def pose(self) -> Pose:
         """The flange pose."""
