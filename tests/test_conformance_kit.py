@@ -153,14 +153,6 @@ CAMERA_MUTANTS = {
 }
 
 
-@pytest.mark.parametrize(("mutation", "failing"), CAMERA_MUTANTS.items(), ids=list(CAMERA_MUTANTS))
-def test_camera_mutant_fails_exactly_its_rules(mutation: str, failing: set[str]) -> None:
-    report = check_camera(camera_mutant(mutation), TOY_CAMERA_OPTIONS, raise_on_failure=False)
-    assert {r.rule for r in report.failures} == failing
-    for r in report.failures:
-        assert r.message.startswith(f"toy-cam: contract rule {r.rule} (")
-
-
 def test_failure_messages_say_what_was_wrong() -> None:
     def detail(mutation: str, rule: str) -> str:
         report = check_camera(camera_mutant(mutation), TOY_CAMERA_OPTIONS, only=[rule], raise_on_failure=False)
@@ -287,12 +279,19 @@ ARM_MUTANTS = {
 }
 
 
-@pytest.mark.parametrize(("mutation", "failing"), ARM_MUTANTS.items(), ids=list(ARM_MUTANTS))
-def test_arm_mutant_fails_exactly_its_rules(mutation: str, failing: set[str]) -> None:
-    report = check_arm(arm_mutant(mutation), TOY_ARM_OPTIONS, raise_on_failure=False)
+MUTANTS = [("camera", m, rules) for m, rules in CAMERA_MUTANTS.items()] + [
+    ("arm", m, rules) for m, rules in ARM_MUTANTS.items()]
+
+
+@pytest.mark.parametrize(("kind", "mutation", "failing"), MUTANTS, ids=[f"{k}-{m}" for k, m, _ in MUTANTS])
+def test_mutant_fails_exactly_its_rules(kind: str, mutation: str, failing: set[str]) -> None:
+    if kind == "camera":
+        report = check_camera(camera_mutant(mutation), TOY_CAMERA_OPTIONS, raise_on_failure=False)
+    else:
+        report = check_arm(arm_mutant(mutation), TOY_ARM_OPTIONS, raise_on_failure=False)
     assert {r.rule for r in report.failures} == failing
     for r in report.failures:
-        assert r.message.startswith(f"toy-arm: contract rule {r.rule} (")
+        assert r.message.startswith(f"toy-{kind[:3]}: contract rule {r.rule} (")
 
 
 def test_arm_in_degrees_fails_the_round_trip_by_the_right_amount() -> None:
