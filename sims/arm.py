@@ -304,19 +304,17 @@ class SimRobotArm(RobotArm):
 
         The arm stays where it is and keeps reporting that it is moving until it is
         stopped (:meth:`stop`, or a controller error); a waiting caller times out.
-        Meant for the ``"move"`` fault hook: a short motion at a small ``time_scale`` may
-        already have finished by then, and is then held at its start instead.
+        Meant for the ``"move"`` fault hook, right as the motion starts: the arm is held
+        at the motion's start (a short motion at a small ``time_scale`` may otherwise
+        have finished already; holding it where it is would race with that).
         """
         with self._lock:
             motion = self._motion
             if motion is None:
                 return
             model = self.world.arm
-            if model.is_moving():
-                here = model.halt()
-            else:
-                here = motion.start
-                model.set_flange_pose(here)
+            here = motion.start
+            model.set_flange_pose(here)
             model.start_motion(LinearMotion(here, motion.target, motion.speed, motion.acceleration), 1e12)
 
     def resume_state(self) -> dict[str, Any]:
