@@ -115,13 +115,15 @@ def format_headline(h: Headline) -> str:
 
 
 def format_summary(rows: list[dict[str, Any]]) -> str:
-    """Per method and clutter level: n, failures, mean/median/p95 |tilt error| (deg), coverage."""
-    head = f"{'method':<18} {'clutter':>7} {'n':>5} {'fail':>5} {'mean':>9} {'median':>9} {'p95':>9} {'cover':>6}"
+    """Per method and clutter level: n, failures, mean/median/p95 |tilt error| (deg), coverage, gates passed."""
+    head = (f"{'method':<18} {'clutter':>7} {'n':>5} {'fail':>5} {'mean':>9} {'median':>9} {'p95':>9} {'cover':>6} "
+            f"{'gates':>6}")
     out = [head, "-" * len(head)]
     for r in summary_table(rows):
         cov = "" if r["coverage"] is None else f"{r['coverage'] * 100:.1f}%"
+        gates = "" if r["gates_passed"] is None else f"{r['gates_passed'] * 100:.0f}%"
         out.append(f"{r['method']:<18} {r['clutter'] * 100:>6.0f}% {r['n']:>5} {r['failed']:>5} "
-                   f"{r['mean_deg']:>9.4f} {r['median_deg']:>9.4f} {r['p95_deg']:>9.4f} {cov:>6}")
+                   f"{r['mean_deg']:>9.4f} {r['median_deg']:>9.4f} {r['p95_deg']:>9.4f} {cov:>6} {gates:>6}")
     return "\n".join(out)
 
 

@@ -793,7 +793,8 @@ def headline(rows: Sequence[Mapping[str, Any]]) -> Headline:
 
 
 def summary_table(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Per method and clutter level at the paper's settings: n, failures, mean/median/p95 |error| (deg)."""
+    """Per method and clutter level at the paper's settings: n, failures, mean/median/p95 |error| (deg),
+    interval coverage and the fraction of fits passing the quality gates (full frame)."""
     paper = select(rows, height_m=PAPER_HEIGHTS_M, inclination_deg=PAPER_INCLINATION_DEG, noise_scale=1.0)
     out = []
     for clutter in sorted({r["clutter_target"] for r in paper}):
@@ -806,5 +807,7 @@ def summary_table(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
                         "mean_deg": float(err.mean()) if err.size else math.nan,
                         "median_deg": float(np.median(err)) if err.size else math.nan,
                         "p95_deg": float(np.percentile(err, 95)) if err.size else math.nan,
-                        "coverage": _coverage(sel)})
+                        "coverage": _coverage(sel),
+                        "gates_passed": _mean_of([bool(r["gates_passed"]) for r in sel
+                                                  if r["ok"] and r.get("gates_passed") is not None])})
     return out

@@ -170,6 +170,12 @@ def plot_error_vs_clutter(rows: Rows, path: str | Path) -> Path:
         labels.append(f"{c * 100:.0f} %\n(got {np.mean(ach) * 100:.1f} %)" if ach else f"{c * 100:.0f} %")
     ax.set_xticks(range(len(levels)), labels)
     ax.set_yscale("log")
+    for i, c in enumerate(levels):  # how often the full-frame result would pass its quality gates
+        gates = [bool(r["gates_passed"]) for r in select(sel, method=FULL_FRAME, clutter_target=c)
+                 if r["ok"] and r.get("gates_passed") is not None]
+        if gates:
+            ax.annotate(f"gates pass {np.mean(gates) * 100:.0f} %", (i + 0.3, 0.02), xycoords=("data", "axes fraction"),
+                        ha="center", fontsize=7, color=COLORS[FULL_FRAME])
     ax.set_xlabel("plane pixels hidden by boxes (requested, achieved mean)")
     ax.set_ylabel("|tilt error|, deg")
     ax.grid(True, axis="y", which="both", alpha=0.3)
