@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .argtypes import integer
 from .report import write_json_atomic
 from .study import (
     TARGET_CLUTTER,
@@ -34,26 +35,6 @@ DEFAULT_TRIALS = 20
 DEFAULT_QUICK_TRIALS = 8
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
-    return value
-
-
 def register(sub: Any) -> None:
     """Add the ``study`` subcommand."""
     p = sub.add_parser("study", help="Monte Carlo accuracy study of every method on the simulated cell",
@@ -61,11 +42,11 @@ def register(sub: Any) -> None:
                        "nominal field of view and with the real intrinsics, full frame) on simulated frames over "
                        "heights, inclinations, noise levels and clutter (boxes on the plane); write study.csv, "
                        "headline.json and PNG plots, and print the headline figures at the paper's settings.")
-    p.add_argument("--trials", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--trials", type=integer(ge=1), default=None, metavar="N",
                    help=f"trials per condition (default {DEFAULT_TRIALS}, with --quick {DEFAULT_QUICK_TRIALS}); "
                    "the headline conditions run 4x as many")
     p.add_argument("--out", metavar="DIR", default="cellcal-study", help="output directory (default: %(default)s)")
-    p.add_argument("--seed", type=_seed, default=0, metavar="S", help="root seed (default: %(default)s)")
+    p.add_argument("--seed", type=integer(ge=0), default=0, metavar="S", help="root seed (default: %(default)s)")
     p.add_argument("--quick", action="store_true",
                    help="small design: the paper's heights and inclination, no clutter and 30 %% clutter")
     p.add_argument("--no-plots", action="store_true", help="write the CSV and headline only")
