@@ -130,6 +130,23 @@ def test_tof_info_fields() -> None:
         parse_tof_info(payload[c.data_offset:c.data_offset + 100])
 
 
+@pytest.mark.parametrize(("field_off", "value", "match"), [
+    (4, float("nan"), "distanceResolution nan"),
+    (4, 0.0, "distanceResolution 0.0"),
+    (4, 5.0, "distanceResolution 5.0"),          # 65535 counts would be 330 km
+    (8, float("inf"), "amplitudeResolution inf"),
+    (8, 1e30, r"amplitudeResolution 1\.0\d*e\+30"),       # (a-1)^2 x 1e30 overflows float32
+    (8, -1.0, "amplitudeResolution -1.0"),
+])
+def test_tof_info_rejects_absurd_resolutions(field_off: int, value: float, match: str) -> None:
+    payload = bytearray(message("0000", FrameEncoder(models_from_intrinsics(INTR)).payload(plane_frame(INTR), 1))[16:])
+    c = next(c for c in walk_chunks(payload) if c.chunk_type == 420)
+    struct.pack_into("<f", payload, c.data_offset + field_off, value)
+    with pytest.raises(ProtocolError, match=match) as err:
+        parse_tof_info(payload[c.data_offset:c.data_offset + c.data_size], offset=c.data_offset)
+    assert err.value.offset == c.data_offset + field_off
+
+
 def _first_chunk_field(payload: bytearray, off: int, value: int) -> bytearray:
     struct.pack_into("<I", payload, 8 + off, value)
     return payload

@@ -49,6 +49,10 @@ _MODEL = struct.Struct("<I32f")
 _V2 = struct.Struct("<3Q3f")
 _V3 = struct.Struct("<f32s32s")
 #: Data bytes needed per TOF_INFO version (v1 ends after the inverse intrinsics).
+#: Largest plausible distance resolution, metres per count (65535 counts -> 655 m).
+MAX_DISTANCE_RESOLUTION_M = 0.01
+#: Largest plausible amplitude scale (keeps ``(a - 1)^2 x`` it finite in float32).
+MAX_AMPLITUDE_RESOLUTION = 1e6
 MIN_SIZE_V1 = _HEAD.size + 2 * _MODEL.size               # 312
 MIN_SIZE_V2 = MIN_SIZE_V1 + _V2.size                     # 348
 MIN_SIZE_V3 = MIN_SIZE_V2 + _V3.size                     # 416
@@ -109,7 +113,7 @@ def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> 
 
     Raises:
         ProtocolError: Too few bytes for the announced version, version 0, or a
-            non-positive / non-finite distance resolution.
+            distance or amplitude resolution that is not finite or out of range.
     """
     mv = memoryview(data).cast("B")
     if len(mv) < MIN_SIZE_V1:
@@ -122,9 +126,13 @@ def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> 
     if len(mv) < need:
         raise ProtocolError(f"TOF_INFO version {version} needs {need} bytes, got {len(mv)}", offset=offset)
     dist_res = float(head[1])
-    if not (np.isfinite(dist_res) and dist_res > 0):
-        raise ProtocolError(f"TOF_INFO distanceResolution {dist_res!r} is not a positive number",
+    if not (np.isfinite(dist_res) and 0 < dist_res <= MAX_DISTANCE_RESOLUTION_M):
+        raise ProtocolError(f"TOF_INFO distanceResolution {dist_res!r} is not in (0, {MAX_DISTANCE_RESOLUTION_M}] m",
                             offset=offset + 4)
+    amp_res = float(head[2])
+    if not (np.isfinite(amp_res) and 0 <= amp_res <= MAX_AMPLITUDE_RESOLUTION):
+        raise ProtocolError(f"TOF_INFO amplitudeResolution {amp_res!r} is not in [0, {MAX_AMPLITUDE_RESOLUTION:g}]",
+                            offset=offset + 8)
     m0 = _MODEL.unpack_from(mv, _HEAD.size)
     m1 = _MODEL.unpack_from(mv, _HEAD.size + _MODEL.size)
     ts: tuple[int, ...] = ()
@@ -140,7 +148,7 @@ def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> 
         mode = mraw.split(b"\0", 1)[0].decode("ascii", "replace")
         imager = iraw.split(b"\0", 1)[0].decode("ascii", "replace")
     return TofInfo(
-        version=version, distance_resolution_m=dist_res, amplitude_resolution=float(head[2]),
+        version=version, distance_resolution_m=dist_res, amplitude_resolution=amp_res,
         amp_norm_factors=(float(head[3]), float(head[4]), float(head[5])),
         extrinsic_optic_to_user=tuple(float(x) for x in head[6:12]),  # type: ignore[arg-type]
         intrinsic=IntrinsicModel(int(m0[0]), tuple(float(x) for x in m0[1:])),
