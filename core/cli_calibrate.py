@@ -53,7 +53,7 @@ def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
 
 
 #: Config keys that say where a device is, shown by ``--check``.
-ADDRESS_KEYS = ("host", "xmlrpc_port", "port", "pcic_port", "device_id", "baudrate", "axes")
+ADDRESS_KEYS = ("host", "xmlrpc_port", "port", "pcic_port", "device_id", "baudrate", "axes", "file")
 
 
 def _where(device: Any) -> str:

@@ -110,12 +110,17 @@ class PlanSection:
     Unless explicit ``poses`` are given, one camera pose is generated per height: the
     optical axis hits ``target_m`` on the reference plane at ``height`` metres, tilted
     so it makes ``inclination_deg`` with the plane, by a rotation about the camera's
-    ``tilt_axis`` (the paper's experiment: 0.46/0.59/0.61 m at 80 deg).
+    ``tilt_axis`` (the paper's experiment: 0.46/0.59/0.61 m at 80 deg). Each height is
+    repeated at every ``azimuths_deg`` (the pose turned about the plane normal through
+    the target): views from several sides are what makes the cross-pose consistency of
+    the plane a real check on the hand-eye transform; the default, one azimuth, is the
+    paper's plan.
     """
 
     heights_m: tuple[float, ...] = field(default=(0.46, 0.59, 0.61), metadata={"gt": 0, "min_items": 1})
     inclination_deg: float = field(default=80.0, metadata={"gt": 0, "le": 90})
     tilt_axis: Literal["x", "y"] = "x"
+    azimuths_deg: tuple[float, ...] = field(default=(0.0,), metadata={"ge": -360, "le": 360, "min_items": 1})
     target_m: Vec3 = (0.3, 0.0, 0.0)
     poses: tuple[PlanPose, ...] = ()
     perimeters_px: tuple[int, ...] = field(default=(20, 30, 40, 50), metadata={"gt": 0, "min_items": 1})
@@ -301,5 +306,13 @@ def plan_flange_poses(config: CellConfig) -> list[Pose]:
     mount_inv = config.mount.pose().inv()
     target = np.asarray(plan.target_m, float)
     normal = np.asarray(config.reference.plane_normal, float)
+    normal /= np.linalg.norm(normal)
     incl = math.radians(plan.inclination_deg)
-    return [look_at_pose(target, normal, h, incl, plan.tilt_axis) @ mount_inv for h in plan.heights_m]
+    poses = []
+    for h in plan.heights_m:
+        camera = look_at_pose(target, normal, h, incl, plan.tilt_axis)
+        for az in plan.azimuths_deg:
+            turn = Rotation.from_rotvec(math.radians(az) * normal)
+            about_target = Pose(turn, target - turn.apply(target))
+            poses.append(about_target @ camera @ mount_inv)
+    return poses
