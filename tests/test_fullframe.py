@@ -9,6 +9,7 @@ import tomllib
 
 import numpy as np
 import pytest
+from scipy.ndimage import binary_dilation
 
 from cellcal.core.config import load_config, parse_config
 from cellcal.core.fullframe import (
@@ -111,8 +112,11 @@ def test_clutter_of_boxes_is_rejected() -> None:
     # boxes (more than 2 cm above the table) are outliers; the table is mostly inliers
     tall = _off_plane(frame, pose, 0.02)
     assert np.count_nonzero(res.inlier_mask & tall) == 0
+    # the table is inlier except a thin rim around the boxes (edge_margin_deg: 1 px here)
     table = frame.valid & ~off
-    assert np.count_nonzero(res.inlier_mask & table) / table.sum() > 0.98
+    assert np.count_nonzero(res.inlier_mask & table) / table.sum() > 0.93
+    far = table & ~binary_dilation(off | ~frame.valid, iterations=3)
+    assert np.count_nonzero(res.inlier_mask & far) / far.sum() > 0.99
     # the noise scale found matches the sim's model: 3.2 mm at 1 m (+ 1 mm quantisation)
     assert 0.0030 < res.noise_scale_m < 0.0036
 
