@@ -352,3 +352,17 @@ def test_to_dict_is_json_in_degrees() -> None:
     assert d["tilt_x_ci_deg"][0] < d["tilt_x_deg"] < d["tilt_x_ci_deg"][1]
     assert set(d["gates"]) == {"valid_fraction", "inlier_fraction", "residual_rms_m", "coverage"}
     assert d["passed"] is True and d["gates"]["coverage"]["passed"] is True
+
+
+def test_edge_margin_drops_rims_of_patches_not_of_isolated_outliers() -> None:
+    from cellcal.core.fullframe import _edge_keep
+    h, w = 20, 30
+    valid = np.ones((h, w), bool)
+    inl = np.ones((h, w), bool)
+    inl[5:10, 5:10] = False                              # a 5x5 box: a patch
+    inl[15, 20] = False                                  # one noisy pixel: isolated
+    keep = _edge_keep(inl.reshape(-1), [valid.reshape(-1)], (h, w), 2).reshape(h, w)
+    assert not keep[3:12, 3:12].any()                    # patch grown by 2 px
+    assert keep[2, 5] and keep[5, 12] and keep[12, 12]
+    assert keep[14:17, 19:22].all()                      # the isolated outlier leaves its neighbours
+    assert np.count_nonzero(~keep) == 81
