@@ -20,8 +20,9 @@ Each library gets the *same* valid points (N, 3) of each cloud:
   iteration count; 1 cm like Open3D).
 
 Time: the median over seeds and repetitions of the process CPU time per fit (one core:
-BLAS/OpenMP are pinned to one thread; CPU time is insensitive to other jobs on a
-shared machine) and of the wall time. Tilt error: the angle between the fitted and the
+BLAS/OpenMP are limited to one thread and the process is pinned to one CPU, since
+Open3D starts threads of its own; CPU time is insensitive to other jobs on a shared
+machine) and of the wall time. Tilt error: the angle between the fitted and the
 true normal, degrees, mean over the seeds. Errors below ``FLOOR_DEG`` are at the
 float32 resolution of the coordinates, where a ratio means nothing: the accuracy
 target is judged only on the noisy and cluttered clouds.
@@ -172,6 +173,8 @@ def timed(fn: Callable[[], Any], reps: int, stats: Stats) -> Any:
 
 def run(seeds: int, reps: int, sizes: tuple[tuple[int, int], ...]) -> bool:
     o3d, pyransac3d = _peers()
+    if hasattr(os, "sched_setaffinity"):   # Open3D ignores OMP_NUM_THREADS: pin the process to one core
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     o3d.utility.random.seed(0)
     print("cellcal full-frame fit vs Open3D segment_plane (0.01 m, ransac_n 3, 1000 it.) vs pyransac3d "
           "Plane.fit (0.01 m, 1000 it.)")

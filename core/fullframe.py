@@ -19,11 +19,13 @@ measuring plane to *all* valid pixels of one or more frames of a static camera:
    would bias the fit). Regressing the range on the exact rays is consistent; an
    orthogonal (TLS) fit with noise along the rays is not (its bias does not shrink
    with the number of points). The passes run on a strided subsample
-   (``refine_points``); one last Gauss-Newton pass uses every point.
+   (``refine_points``); one last Gauss-Newton pass uses every point. Before it, for
+   frames, inliers within ``edge_margin_deg`` of solid patches of outliers (box walls'
+   feet, depth-edge mixed pixels) are dropped.
 3. **Uncertainty**: the sandwich (heteroscedasticity-robust) covariance of the three
    plane parameters from the last pass, corrected for the hard inlier cut-off, is
-   propagated by Jacobians (central differences of the :class:`Plane` methods
-   themselves) to the angle to the optical axis, the tilts about x and y and the height
+   propagated by Jacobians (central differences of vectorised copies of the
+   :class:`Plane` methods) to the angle to the optical axis, the tilts about x and y and the height
    along the optical axis; the intervals are ``value ± z sigma`` with ``z`` the normal
    quantile of ``confidence``.
 4. **Gates**: valid-pixel fraction, inlier fraction, inlier residual RMS and the
@@ -119,8 +121,8 @@ class FullFrameSettings:
     coverage_grid: tuple[int, int] = field(default=(6, 6), metadata={"ge": 1, "le": 64})
     min_cell_inlier_fraction: float = field(default=0.2, metadata={"ge": 0.0, "le": 1.0})
     edge_margin_deg: float = field(default=0.2, metadata={"ge": 0.0, "le": 10.0})
-    hypotheses: int = field(default=128, metadata={"ge": 8, "le": 10000})
-    sample_points: int = field(default=192, metadata={"ge": 32, "le": 100000})
+    hypotheses: int = field(default=96, metadata={"ge": 8, "le": 10000})
+    sample_points: int = field(default=160, metadata={"ge": 32, "le": 100000})
     hypothesis_quantile: float = field(default=0.25, metadata={"gt": 0.0, "lt": 1.0})
     refine_points: int = field(default=4096, metadata={"ge": 256})
     max_iterations: int = field(default=6, metadata={"ge": 1, "le": 100})
@@ -373,7 +375,7 @@ def _residuals(b0: F32, dm: F32, offset: float, thr: float, weighted: bool, expo
 
 def _gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
              thr: float, weighted: bool, exponent: float, sigma: F32 | None = None,
-             final: bool = False, keep: BoolArray | None = None) -> _Pass:
+             final: bool = False, refine: Callable[[BoolArray], BoolArray] | None = None) -> _Pass:
     """One reweighted Gauss-Newton pass of the range model over points ``p`` (3, N).
 
     The range along the ray ``r = p / |p|`` predicted by the plane is
@@ -387,14 +389,14 @@ def _gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, off
         sigma: Per-point range-noise sigma (N,), replacing the noise model if given.
         final: Also return the sandwich "meat", the orthogonal residual sum and the
             inlier mask.
-        keep: Points allowed to be inliers (N,), default all.
+        refine: Maps the inlier mask (N,) to the points allowed to stay inliers.
     """
     f32 = np.float32
     basis = np.stack([n, e1, e2]).astype(f32)
     b = basis @ p                              # (3, N): p·n, p·e1, p·e2
     inv_c, t, z, isig, inl = _residuals(b[0], dm, offset, thr, weighted, exponent, sigma)
-    if keep is not None:
-        inl &= keep
+    if refine is not None:
+        inl &= refine(inl)
     n_in = int(np.count_nonzero(inl))
     if n_in < MIN_POINTS:
         raise CalibrationError(f"full-frame fit found only {n_in} inlier(s); no plane is defined")
@@ -550,17 +552,13 @@ def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None 
             sd = np.sqrt(np.abs(np.diag(np.linalg.inv(it.hessian)))) * max(s_new, floor_scale)
         except np.linalg.LinAlgError:
             sd = np.full(3, np.inf)
-        settled = abs(s_new - s) <= 0.05 * s or max(s, s_new) <= floor_scale
+        settled = abs(s_new - s) <= 0.15 * s or max(s, s_new) <= floor_scale
         converged = bool(np.all(np.abs(it.step) <= 0.5 * sd)) and settled
         s = s_new
         if converged:
             break
     # the last pass over every point
-    keep = None
-    if refine_mask is not None:
-        b0 = n.astype(np.float32) @ p
-        keep = refine_mask(_residuals(b0, dm, offset, threshold(s), weighted, expo, sigma)[4])
-    fin = _gn_pass(p, dm, n, e1, e2, offset, threshold(s), weighted, expo, sigma, final=True, keep=keep)
+    fin = _gn_pass(p, dm, n, e1, e2, offset, threshold(s), weighted, expo, sigma, final=True, refine=refine_mask)
     assert fin.meat is not None and fin.inliers is not None
     n_fin = n + fin.step[0] * e1 + fin.step[1] * e2
     n_fin = n_fin / np.linalg.norm(n_fin)
@@ -623,7 +621,7 @@ def _coverage(mask: BoolArray, settings: FullFrameSettings) -> float:
     rows, cols = min(rows, h), min(cols, w)
     r_edges = (np.arange(rows) * h) // rows
     c_edges = (np.arange(cols) * w) // cols
-    per_row = np.add.reduceat(mask, r_edges, axis=0, dtype=np.int64)
+    per_row = np.add.reduceat(mask.view(np.uint8), r_edges, axis=0, dtype=np.int32)
     counts = np.add.reduceat(per_row, c_edges, axis=1)
     r_size = np.diff(np.append(r_edges, h))
     c_size = np.diff(np.append(c_edges, w))
