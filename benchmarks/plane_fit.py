@@ -41,6 +41,10 @@ import os
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # one core
     os.environ.setdefault(_var, "1")
+if __name__ == "__main__" and hasattr(os, "sched_setaffinity"):
+    # Open3D starts a thread pool of its own whatever OMP_NUM_THREADS says: pin the
+    # process to one CPU before anything is imported (threads inherit the affinity)
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 import argparse  # noqa: E402
 import math  # noqa: E402
@@ -173,8 +177,6 @@ def timed(fn: Callable[[], Any], reps: int, stats: Stats) -> Any:
 
 def run(seeds: int, reps: int, sizes: tuple[tuple[int, int], ...]) -> bool:
     o3d, pyransac3d = _peers()
-    if hasattr(os, "sched_setaffinity"):   # Open3D ignores OMP_NUM_THREADS: pin the process to one core
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     o3d.utility.random.seed(0)
     print("cellcal full-frame fit vs Open3D segment_plane (0.01 m, ransac_n 3, 1000 it.) vs pyransac3d "
           "Plane.fit (0.01 m, 1000 it.)")
