@@ -117,7 +117,7 @@ class FullFrameSettings:
     min_valid_fraction: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
     min_inlier_fraction: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
     max_residual_rms_m: float = field(default=0.01, metadata={"gt": 0.0})
-    min_coverage: float = field(default=0.75, metadata={"ge": 0.0, "le": 1.0})
+    min_coverage: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
     coverage_grid: tuple[int, int] = field(default=(6, 6), metadata={"ge": 1, "le": 64})
     min_cell_inlier_fraction: float = field(default=0.2, metadata={"ge": 0.0, "le": 1.0})
     edge_margin_deg: float = field(default=0.2, metadata={"ge": 0.0, "le": 10.0})
