@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from test_calibrate_e2e import write_toml
 
 from cellcal.core.calibrator import Calibrator, PoseRecord, build_devices
 from cellcal.core.cli import main
@@ -122,24 +123,6 @@ def test_cli_prints_intervals_gates_and_the_base_frame(tmp_path: Path, capsys: p
     assert "plane in the base frame (full_frame, 3 poses)" in out
     assert "consistency: normal spread" in out and "verdict: blind" in out and "vs [reference] plane" in out
     assert "full_frame         mean |error|" in out
-
-
-def write_toml(path: Path, doc: dict[str, Any]) -> Path:
-    def value(v: Any) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, str):
-            return json.dumps(v)
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(value(x) for x in v) + "]"
-        return repr(v)
-
-    lines = []
-    for table, values in doc.items():
-        lines.append(f"[{table}]")
-        lines += [f"{k} = {value(v)}" for k, v in values.items()]
-    path.write_text("\n".join(lines) + "\n")
-    return path
 
 
 def test_a_failed_gate_exits_1_and_keeps_the_earlier_result(tmp_path: Path,
