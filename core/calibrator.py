@@ -36,7 +36,7 @@ from cellcal.devices.errors import (
 )
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import Registry, default_registry
-from cellcal.devices.safety import SafeArm
+from cellcal.devices.safety import SafeArm, format_pose
 from cellcal.devices.types import Intrinsics
 
 from .config import CellConfig, plan_flange_poses
@@ -170,13 +170,6 @@ def build_devices(config: CellConfig, registry: Registry | None = None) -> tuple
 
 #: Seconds the calibrator allows the arm's stop command when a run fails.
 STOP_TIMEOUT_S = 1.0
-
-
-def format_pose(pose: Pose) -> str:
-    """``xyz=(x, y, z) m rpy=(r, p, y) deg`` of a flange pose, for messages."""
-    x, y, z = pose.translation
-    r = np.degrees(pose.rotation.as_euler("xyz"))
-    return f"xyz=({x:.4f}, {y:.4f}, {z:.4f}) m rpy=({r[0]:.2f}, {r[1]:.2f}, {r[2]:.2f}) deg"
 
 
 def _package_version() -> str:

@@ -17,9 +17,8 @@ import numpy as np
 
 from cellcal.devices.errors import SafetyError
 from cellcal.devices.pose import Pose
-from cellcal.devices.safety import SafetyLimits
+from cellcal.devices.safety import SafetyLimits, format_pose
 
-from .calibrator import format_pose
 from .config import CellConfig, plan_flange_poses
 
 

@@ -29,7 +29,8 @@ PATH_SAMPLES_PER_M = 200
 MIN_PATH_SAMPLES = 16
 
 
-def _fmt(pose: Pose) -> str:
+def format_pose(pose: Pose) -> str:
+    """``xyz=(x, y, z) m rpy=(r, p, y) deg`` of a flange pose, for messages."""
     x, y, z = pose.translation
     r = np.degrees(pose.rotation.as_euler("xyz"))
     return f"xyz=({x:.4f}, {y:.4f}, {z:.4f}) m rpy=({r[0]:.2f}, {r[1]:.2f}, {r[2]:.2f}) deg"
@@ -139,7 +140,7 @@ class SafetyLimits:
         """Raise :class:`SafetyError` naming the target pose and every violated rule."""
         problems = self.violations(start, target, speed, acceleration)
         if problems:
-            raise SafetyError(f"move to {_fmt(target)} rejected: " + "; ".join(problems))
+            raise SafetyError(f"move to {format_pose(target)} rejected: " + "; ".join(problems))
 
     def check_plan(self, start: Pose | None, targets: Sequence[Pose], speed: float, acceleration: float) -> None:
         """Check a whole sequence of moves before the first one is made.
@@ -151,7 +152,7 @@ class SafetyLimits:
         for i, target in enumerate(targets, 1):
             problems = self.violations(previous, target, speed, acceleration)
             if problems:
-                raise SafetyError(f"plan pose {i} ({_fmt(target)}) rejected: " + "; ".join(problems))
+                raise SafetyError(f"plan pose {i} ({format_pose(target)}) rejected: " + "; ".join(problems))
             previous = target
 
 
