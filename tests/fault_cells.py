@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import copy
-import gc
-import os
 import signal
 import threading
 import time
@@ -13,6 +11,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any
+
+from test_xarm_emulated import _open_fds as open_fds  # open descriptors as (number, target)
 
 from cellcal.core.calibrator import Calibrator, build_devices
 from cellcal.core.config import parse_config
@@ -81,18 +81,6 @@ def interrupt() -> None:
     assert threading.current_thread() is threading.main_thread()
     signal.raise_signal(signal.SIGINT)
     time.sleep(1.0)  # not reached: the handler raises before this returns
-
-
-def open_fds() -> set[tuple[str, str]]:
-    """Open descriptors as (number, target)."""
-    gc.collect()
-    out = set()
-    for fd in os.listdir("/proc/self/fd"):
-        try:
-            out.add((fd, os.readlink(f"/proc/self/fd/{fd}")))
-        except OSError:
-            continue
-    return out
 
 
 def leftovers(threads_before: set[threading.Thread], fds_before: set[tuple[str, str]],
