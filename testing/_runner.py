@@ -205,6 +205,16 @@ def check_bad_timeouts(calls: dict[str, Callable[[Any], Any]]) -> None:
             raises(CellcalError, functools.partial(call, bad), f"{name}(timeout={bad!r})", contains="timeout")
 
 
+def check_bad_connect_timeouts(factory: Callable[[], Any], base: type[Any], kind: str) -> None:
+    """``connect(bad)`` on a fresh device must raise (see :func:`check_bad_timeouts`) and leave it unconnected."""
+    device = make(factory, base)
+    try:
+        check_bad_timeouts({"connect": device.connect})
+        expect(not device.connected, f"connect() with a rejected timeout left the {kind} connected")
+    finally:
+        device.close()
+
+
 # ---------------------------------------------------------------- resource accounting
 def _descriptors() -> dict[int, str]:
     """Open file descriptors of this process and what they point to (Linux; {} elsewhere)."""

@@ -22,7 +22,17 @@ from cellcal.devices.errors import CellcalError, DeviceTimeoutError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus
 
-from ._runner import Check, ConformanceReport, check_bad_timeouts, connected, expect, make, raises, run_checks, timed
+from ._runner import (
+    Check,
+    ConformanceReport,
+    check_bad_connect_timeouts,
+    check_bad_timeouts,
+    connected,
+    expect,
+    raises,
+    run_checks,
+    timed,
+)
 from .lifecycle import CommonOptions, lifecycle_checks
 
 Factory = Callable[[], RobotArm]
@@ -83,7 +93,6 @@ def _near(a: Pose, b: Pose, o: ArmOptions) -> bool:
     return bool(a.distance_to(b) <= o.pose_tolerance_m and a.angle_to(b) <= o.pose_tolerance_rad)
 
 
-# ---------------------------------------------------------------- life cycle
 # ---------------------------------------------------------------- state
 def _status(factory: Factory, o: ArmOptions) -> None:
     with connected(factory, RobotArm, o.connect_timeout_s) as arm:
@@ -181,12 +190,7 @@ def _timeout_validation(factory: Factory, o: ArmOptions) -> None:
         })
         now = arm.get_pose(o.io_timeout_s)
         expect(_near(now, start, o), f"move_linear with a rejected timeout moved the arm by {_pose_error(now, start)}")
-    arm2 = make(factory, RobotArm)
-    try:
-        check_bad_timeouts({"connect": arm2.connect})
-        expect(not arm2.connected, "connect() with a rejected timeout left the arm connected")
-    finally:
-        arm2.close()
+    check_bad_connect_timeouts(factory, RobotArm, "arm")
 
 
 def _timeout_bounded(factory: Factory, o: ArmOptions) -> None:
