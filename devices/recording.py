@@ -420,17 +420,17 @@ class SessionRecorder:
         self._fh = os.fdopen(fd, "wb")
         try:
             self._writer = writer_mod.Writer(self._fh, compression=kinds[compression])
-            self._writer.start(profile=MCAP_PROFILE, library=f"cellcal {_package_version()}")
+            cellcal_version = _package_version()
+            self._writer.start(profile=MCAP_PROFILE, library=f"cellcal {cellcal_version}")
             schema_ids = {name: self._writer.register_schema(name=name, encoding="jsonschema",
                                                              data=json.dumps(schema).encode("utf-8"))
                           for name, schema in SCHEMAS.items()}
             self._channels = {topic: self._writer.register_channel(topic=topic, message_encoding="json",
                                                                    schema_id=schema_ids[schema])
                               for topic, schema in CHANNELS.items()}
-            self._writer.add_metadata("cellcal", {"format": RECORDING_FORMAT,
-                                                  "cellcal_version": _package_version()})
+            self._writer.add_metadata("cellcal", {"format": RECORDING_FORMAT, "cellcal_version": cellcal_version})
             self.log(TOPIC_SESSION, {
-                "format": RECORDING_FORMAT, "cellcal_version": _package_version(),
+                "format": RECORDING_FORMAT, "cellcal_version": cellcal_version,
                 "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "config_source": config_source,
                 "config": None if config_document is None else dict(config_document),
@@ -595,7 +595,7 @@ class RecordingCamera(Camera3D):
         return frame
 
 
-def _encode_result(method: str, result: Any) -> Any:
+def _encode_result(result: Any) -> Any:
     if isinstance(result, Pose):
         return encode_pose(result)
     if isinstance(result, ArmStatus):
@@ -636,7 +636,7 @@ class RecordingArm(RobotArm):
             self.recorder.log(TOPIC_ARM_CALL, {**record, "result": None, "error": encode_error(exc),
                                                "duration_s": time.perf_counter() - started}, event=event)
             raise
-        self.recorder.log(TOPIC_ARM_CALL, {**record, "result": _encode_result(method, result), "error": None,
+        self.recorder.log(TOPIC_ARM_CALL, {**record, "result": _encode_result(result), "error": None,
                                            "duration_s": time.perf_counter() - started}, event=event)
         if isinstance(result, Pose):
             self.recorder.log(TOPIC_FLANGE_POSE, _foxglove_pose(result, time.time()))
