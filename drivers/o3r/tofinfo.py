@@ -48,11 +48,11 @@ _HEAD = struct.Struct("<I2f3f6f")            # version, dist res, ampl res, 3 no
 _MODEL = struct.Struct("<I32f")
 _V2 = struct.Struct("<3Q3f")
 _V3 = struct.Struct("<f32s32s")
-#: Data bytes needed per TOF_INFO version (v1 ends after the inverse intrinsics).
 #: Largest plausible distance resolution, metres per count (65535 counts -> 655 m).
 MAX_DISTANCE_RESOLUTION_M = 0.01
-#: Largest plausible amplitude scale (keeps ``(a - 1)^2 x`` it finite in float32).
+#: Largest plausible amplitude scale (keeps ``(a - 1)^2 x resolution`` finite in float32).
 MAX_AMPLITUDE_RESOLUTION = 1e6
+#: Data bytes needed per TOF_INFO version (v1 ends after the inverse intrinsics).
 MIN_SIZE_V1 = _HEAD.size + 2 * _MODEL.size               # 312
 MIN_SIZE_V2 = MIN_SIZE_V1 + _V2.size                     # 348
 MIN_SIZE_V3 = MIN_SIZE_V2 + _V3.size                     # 416
