@@ -123,7 +123,7 @@ class PoseRecord:
             expected = None
             if exp is not None:
                 pc = exp["plane_cam"]
-                expected = ExpectedGeometry(Plane(np.asarray(pc["normal"], float), float(pc["offset_m"])),
+                expected = ExpectedGeometry(Plane.from_dict(pc),
                                             math.radians(exp["angle_deg"]), math.radians(exp["tilt_x_deg"]),
                                             math.radians(exp["tilt_y_deg"]), float(exp["height_m"]),
                                             float(exp["distance_normal_m"]))
@@ -139,7 +139,7 @@ class PoseRecord:
                     tilt_x_rad=math.radians(m["tilt_x_deg"]), tilt_y_rad=math.radians(m["tilt_y_deg"]),
                     height_m=float(m["height_m"]), residual_rms_m=m.get("residual_rms_m"),
                     error_pct=m.get("error_pct"),
-                    plane=None if pc is None else Plane(np.asarray(pc["normal"], float), float(pc["offset_m"]))))
+                    plane=None if pc is None else Plane.from_dict(pc)))
             intr = data.get("camera_intrinsics")
             ff = data.get("full_frame")
             return cls(int(data["index"]), Pose.from_dict(data["commanded_flange_pose"]),

@@ -17,8 +17,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.errors import CalibrationError, ConfigError
 
@@ -181,7 +179,7 @@ def consensus_plane(doc: Mapping[str, Any], path: str) -> Plane:
     key = "summary.plane_consistency.consensus_plane_base"
     try:
         table = doc["summary"]["plane_consistency"]["consensus_plane_base"]
-        return Plane(np.asarray(table["normal"], dtype=np.float64), float(table["offset_m"]))
+        return Plane.from_dict(table)
     except (KeyError, TypeError, ValueError, CalibrationError):
         raise ConfigError("calibration result has no plane in the base frame (needs a [reference] plane "
                           "and a cellcal version that writes it)", source=path, key=key) from None

@@ -169,7 +169,7 @@ class PlaneConsistency:
 
         return {
             "n_poses": self.n_poses,
-            "consensus_plane_base": {"normal": self.consensus.normal.tolist(), "offset_m": self.consensus.offset_m},
+            "consensus_plane_base": self.consensus.to_dict(),
             "reference_point_m": self.reference_point_m.tolist(),
             "normal_deviation_deg": [math.degrees(v) for v in self.normal_deviation_rad],
             "height_deviation_m": list(self.height_deviation_m),

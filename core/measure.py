@@ -76,7 +76,7 @@ class ExpectedGeometry:
             "tilt_y_deg": math.degrees(self.tilt_y_rad),
             "height_m": self.height_m,
             "distance_normal_m": self.distance_normal_m,
-            "plane_cam": {"normal": self.plane_cam.normal.tolist(), "offset_m": self.plane_cam.offset_m},
+            "plane_cam": self.plane_cam.to_dict(),
         }
 
 
@@ -135,8 +135,7 @@ class Measurement:
             "tilt_y_deg": math.degrees(self.tilt_y_rad),
             "height_m": self.height_m,
             "residual_rms_m": self.residual_rms_m,
-            "plane_cam": None if self.plane is None else {
-                "normal": self.plane.normal.tolist(), "offset_m": self.plane.offset_m},
+            "plane_cam": None if self.plane is None else self.plane.to_dict(),
         }
 
 
@@ -272,8 +271,7 @@ def full_frame_document(result: FullFrameResult, camera_in_base: Pose,
     camera; the angles are not affected by a translation error.
     """
     out = result.to_dict()
-    pb = result.plane.transformed(camera_in_base)
-    out["plane_base"] = {"normal": pb.normal.tolist(), "offset_m": pb.offset_m}
+    out["plane_base"] = result.plane.transformed(camera_in_base).to_dict()
     if expected is not None:
         pairs = {
             "angle_deg": (result.angle_rad, expected.angle_rad, result.angle_ci_rad, True),

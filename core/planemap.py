@@ -55,7 +55,7 @@ def _as_array(values: ArrayLike, dim: int, what: str) -> FloatArray:
 
 def _plane_from_dict(data: Any, what: str) -> Plane:
     try:
-        return Plane(np.asarray(data["normal"], dtype=np.float64), float(data["offset_m"]))
+        return Plane.from_dict(data)
     except (KeyError, TypeError, ValueError):
         raise CalibrationError(f"{what} must be {{'normal': [3 numbers], 'offset_m': number}}") from None
 

@@ -22,8 +22,9 @@ true angular error exceeds ``3 * normal_sigma_rad`` with probability below 0.3 %
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -94,6 +95,20 @@ class Plane:
         n = np.asarray(normal, dtype=np.float64)
         nn = n / np.linalg.norm(n)
         return cls(nn, -float(nn @ np.asarray(point_m, dtype=np.float64)))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Plane:
+        """Inverse of :meth:`to_dict` (``{"normal": [3 numbers], "offset_m": number}``).
+
+        Raises:
+            KeyError, TypeError, ValueError: If a key is missing or not numeric.
+            CalibrationError: If the normal is not a finite non-zero 3-vector.
+        """
+        return cls(np.asarray(data["normal"], dtype=np.float64), float(data["offset_m"]))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form: ``{"normal": [3 numbers], "offset_m": number}``."""
+        return {"normal": self.normal.tolist(), "offset_m": self.offset_m}
 
     def oriented_toward_origin(self) -> Plane:
         """The same plane with the normal pointing to the origin's side (offset >= 0).

@@ -147,10 +147,6 @@ def format_table(rows: list[Mapping[str, Any]]) -> str:
 
 
 # ---------------------------------------------------------------------- the plane in the base frame
-def _plane(data: Mapping[str, Any]) -> Plane:
-    return Plane(np.asarray(data["normal"], dtype=np.float64), float(data["offset_m"]))
-
-
 def _pose_plane(pose: Mapping[str, Any], method: str) -> PosePlane | None:
     """The plane a pose record holds for ``method`` (``plane_fit``: at the largest perimeter)."""
     camera = Pose.from_dict(pose["camera_pose"])
@@ -159,14 +155,14 @@ def _pose_plane(pose: Mapping[str, Any], method: str) -> PosePlane | None:
         if not ff:
             return None
         cov = np.asarray(ff["normal_covariance"], dtype=np.float64)
-        return PosePlane.from_camera(_plane(ff["plane_cam"]), camera,
+        return PosePlane.from_camera(Plane.from_dict(ff["plane_cam"]), camera,
                                      normal_sigma_rad=float(np.sqrt(max(np.trace(cov), 0.0))),
                                      offset_sigma_m=ff["plane_cam"].get("offset_sigma_m"))
     fits = [m for m in pose.get("measurements", []) if m["method"] == method and m.get("plane_cam")]
     if not fits:
         return None
     best = max(fits, key=lambda m: m["perimeter_px"] or 0)
-    return PosePlane.from_camera(_plane(best["plane_cam"]), camera)
+    return PosePlane.from_camera(Plane.from_dict(best["plane_cam"]), camera)
 
 
 def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = None) -> dict[str, Any] | None:
