@@ -131,3 +131,21 @@ def test_calibrate_with_a_wrong_mount_is_flagged_only_by_a_multi_azimuth_plan(tm
         doc = json.loads((tmp_path / name / "result.json").read_text())
         verdicts[name] = doc["summary"]["plane_consistency"]["verdict"]
     assert verdicts == {"four_sides": "inconsistent", "one_side": "blind"}
+
+
+def test_commented_optional_tables_in_sim_toml_show_the_real_defaults() -> None:
+    import tomllib
+    from dataclasses import fields
+
+    from cellcal.core.config import CellConfig
+
+    text = (Path(__file__).parents[1] / "configs" / "sim.toml").read_text()
+    block = text[text.index("# Optional tables"):text.index("# The simulated world")]
+    shown = tomllib.loads("\n".join(line[2:] for line in block.splitlines()
+                                    if line.startswith("# [") or (line.startswith("# ") and " = " in line)))
+    assert set(shown) == {"full_frame", "monitor"}
+    defaults = {f.name: f.default_factory() if callable(f.default_factory) else f.default  # type: ignore[misc]
+                for f in fields(CellConfig) if f.name in shown}
+    for table, values in shown.items():
+        for key, value in values.items():
+            assert getattr(defaults[table], key) == value, f"{table}.{key}"
