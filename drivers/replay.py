@@ -55,6 +55,7 @@ from cellcal.devices.recording import (
     decode_pose,
     read_recording,
 )
+from cellcal.devices.safety import format_pose
 from cellcal.devices.types import ArmStatus, DeviceInfo, Frame, Intrinsics
 
 T = TypeVar("T")
@@ -133,12 +134,6 @@ def _decoded(recording: Recording, fn: Callable[[], T]) -> T:
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise RecordingFileError(f"recorded entry is malformed: {type(exc).__name__}: {exc}",
                                  source=str(recording.path)) from None
-
-
-def _fmt(pose: Pose) -> str:
-    x, y, z = pose.translation
-    r = np.degrees(pose.rotation.as_euler("xyz"))
-    return f"xyz=({x:.4f}, {y:.4f}, {z:.4f}) m rpy=({r[0]:.2f}, {r[1]:.2f}, {r[2]:.2f}) deg"
 
 
 class ReplayCamera(Camera3D):
@@ -323,8 +318,8 @@ class ReplayArm(RobotArm):
         d, a = pose.distance_to(target), pose.angle_to(target)
         if d > self.config.position_tolerance_m or a > self.config.angle_tolerance_rad:
             raise ReplayMismatchError(
-                f"{self.name}: move {self._moves} goes to {_fmt(pose)}, but the recorded session moved to "
-                f"{_fmt(target)} ({d * 1e3:.3f} mm, {math.degrees(a):.4f} deg apart): the plan differs "
+                f"{self.name}: move {self._moves} goes to {format_pose(pose)}, but the recorded session moved to "
+                f"{format_pose(target)} ({d * 1e3:.3f} mm, {math.degrees(a):.4f} deg apart): the plan differs "
                 "from the recording")
         for what, value, unit in (("speed_m_s", speed, "m/s"), ("acceleration_m_s2", acceleration, "m/s^2")):
             recorded = args.get(what)
