@@ -28,17 +28,24 @@ DOWN = Rotation.from_euler("xyz", [math.pi, 0.0, 0.0])
 
 
 class RecordingArm(RobotArm):
-    """An arm that records every command it receives and moves instantly."""
+    """A backend that records every motion command and moves instantly.
+
+    With a non-zero ``error_code`` it reports that controller error (a protective
+    stop) and does not move, until its errors are cleared.
+    """
 
     backend_name = "recording"
 
-    def __init__(self, start: Pose):
+    def __init__(self, start: Pose, error_code: int = 0):
         super().__init__()
         self.pose = start
+        self.start = start
+        self.error_code = error_code
         self.commands: list[tuple[Pose, float, float]] = []
 
     def _connect(self, timeout: float) -> None: ...
     def _close(self) -> None: ...
+
     def _info(self) -> DeviceInfo:
         return DeviceInfo("recording", "test", "recording arm")
 
@@ -47,16 +54,19 @@ class RecordingArm(RobotArm):
 
     def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
         self.commands.append((pose, speed, acceleration))
-        self.pose = pose
+        if not self.error_code:
+            self.pose = pose
 
     def _stop(self, timeout: float) -> None: ...
+
     def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
-        return np.zeros(5)
+        return np.zeros(6)
 
     def _status(self, timeout: float) -> ArmStatus:
-        return ArmStatus()
+        return ArmStatus(self.error_code, 0, "protective stop" if self.error_code else "", self.error_code == 0)
 
-    def _clear_errors(self, timeout: float) -> None: ...
+    def _clear_errors(self, timeout: float) -> None:
+        self.error_code = 0
 
 
 def inside(limits: SafetyLimits, start: Pose, target: Pose, speed: float, acc: float) -> bool:

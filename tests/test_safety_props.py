@@ -30,12 +30,12 @@ import numpy as np
 from fault_cells import cell_document
 from hypothesis import HealthCheck, Phase, assume, event, given, settings
 from hypothesis import strategies as st
-from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
+from test_safety import RecordingArm
 
 from cellcal.core.calibrator import Calibrator
 from cellcal.core.config import CellConfig, parse_config, plan_flange_poses
-from cellcal.devices import ArmStatus, DeviceInfo, Pose, RobotArm
+from cellcal.devices import Pose
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import CellcalError, SafetyError, VendorError
 from cellcal.devices.safety import SafeArm
@@ -43,44 +43,6 @@ from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig
 
 MARGIN_M = 1e-4
 SAMPLES = 401
-
-
-class RecordingArm(RobotArm):
-    """A backend that records every motion command and moves instantly."""
-
-    backend_name = "recording"
-
-    def __init__(self, start: Pose, error_code: int = 0):
-        super().__init__()
-        self.pose = start
-        self.start = start
-        self.error_code = error_code
-        self.commands: list[tuple[Pose, float, float]] = []
-
-    def _connect(self, timeout: float) -> None: ...
-    def _close(self) -> None: ...
-
-    def _info(self) -> DeviceInfo:
-        return DeviceInfo("recording", "test", "recording arm")
-
-    def _get_pose(self, timeout: float) -> Pose:
-        return self.pose
-
-    def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
-        self.commands.append((pose, speed, acceleration))
-        if not self.error_code:
-            self.pose = pose
-
-    def _stop(self, timeout: float) -> None: ...
-
-    def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
-        return np.zeros(6)
-
-    def _status(self, timeout: float) -> ArmStatus:
-        return ArmStatus(self.error_code, 0, "protective stop" if self.error_code else "", self.error_code == 0)
-
-    def _clear_errors(self, timeout: float) -> None:
-        self.error_code = 0
 
 
 def margin(config: CellConfig, start: Pose | None, target: Pose, speed: float, acc: float) -> float:
