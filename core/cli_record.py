@@ -22,7 +22,8 @@ from typing import Any
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CellcalError
-from cellcal.devices.recording import RecordingError, RecordingFileError, SessionRecorder, json_safe, read_recording
+from cellcal.devices.jsonsafe import json_safe
+from cellcal.devices.recording import RecordingError, RecordingFileError, SessionRecorder, read_recording
 from cellcal.devices.registry import Registry, default_registry
 from cellcal.devices.safety import SafeArm
 

@@ -34,9 +34,8 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.devices.errors import CalibrationError, ConfigError
+from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
-
-from .report import _clean
 
 JOURNAL_SCHEMA = "cellcal.journal/1"
 JOURNAL_SUFFIX = ".journal.jsonl"
@@ -56,7 +55,7 @@ def plan_fingerprint(document: Mapping[str, Any], poses: Sequence[Pose]) -> str:
     """
     plan = [[round(float(v), 9) for v in p.translation] + [round(float(v), 12) for v in p.rotation.as_quat()]
             for p in poses]
-    text = json.dumps({"config": _clean(document), "plan": plan}, sort_keys=True, separators=(",", ":"))
+    text = json.dumps({"config": json_safe(document), "plan": plan}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
@@ -105,7 +104,7 @@ class JournalWriter:
         self.appended = 0
 
     def _write_line(self, fh: Any, obj: Mapping[str, Any]) -> None:
-        fh.write(json.dumps(_clean(obj), allow_nan=False, separators=(",", ":")) + "\n")
+        fh.write(json.dumps(json_safe(obj), allow_nan=False, separators=(",", ":")) + "\n")
 
     def append(self, index: int, pose: Mapping[str, Any], device_state: Mapping[str, Any]) -> None:
         """Record one measured pose (flushed and fsync'd before returning).

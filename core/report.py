@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from cellcal.devices.errors import CalibrationError
+from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
 
 from .consistency import PosePlane, plane_consistency
@@ -39,26 +40,14 @@ RESULT_SCHEMA = "cellcal.calibration/2"
 RESULT_FILENAME = "result.json"
 
 
-def _clean(value: Any) -> Any:
-    """JSON-safe copy: NaN/inf become None, tuples lists, numpy scalars Python numbers."""
-    if isinstance(value, Mapping):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if hasattr(value, "tolist"):
-        return _clean(value.tolist())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def write_json_atomic(path: str | Path, document: Mapping[str, Any]) -> Path:
-    """Write JSON to ``path`` atomically (see :func:`write_bytes_atomic`).
+    """Write JSON to ``path`` atomically (see :func:`write_bytes_atomic`), cleaned by :func:`json_safe`.
 
     Raises:
         CalibrationError: If the directory cannot be created or written.
+        TypeError: If ``document`` holds an object that is not JSON data (nothing is written).
     """
-    text = json.dumps(_clean(document), indent=2, allow_nan=False) + "\n"
+    text = json.dumps(json_safe(document), indent=2, allow_nan=False) + "\n"
     return write_bytes_atomic(path, text.encode("utf-8"))
 
 

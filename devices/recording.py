@@ -51,6 +51,7 @@ from . import errors as _errors
 from .arm import RobotArm
 from .camera import Camera3D
 from .errors import CellcalError, ConfigError, DeviceError, MissingDependencyError
+from .jsonsafe import json_safe
 from .pose import Pose
 from .types import ArmStatus, DeviceInfo, Frame, Intrinsics
 
@@ -208,25 +209,6 @@ def _package_version() -> str:
 
 
 # ---------------------------------------------------------------------------- codecs
-def json_safe(value: Any) -> Any:
-    """Strict-JSON copy: NaN/inf become None, tuples lists, numpy values Python ones, other objects str.
-
-    The same cleaning :mod:`cellcal.core.report` applies to result documents, so a
-    result read back from a recording compares equal to a fresh one cleaned here.
-    """
-    if isinstance(value, Mapping):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set, frozenset)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, (np.ndarray, np.generic)):
-        return json_safe(value.tolist())
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if value is None or isinstance(value, (str, int)):
-        return value
-    return str(value)
-
-
 def _dumps(payload: Mapping[str, Any]) -> bytes:
     return json.dumps(json_safe(payload), separators=(",", ":"), allow_nan=False).encode("utf-8")
 
