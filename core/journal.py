@@ -24,7 +24,6 @@ line (the process died while writing it) is ignored.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
@@ -36,6 +35,8 @@ from typing import Any
 from cellcal.devices.errors import CalibrationError, ConfigError
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
+
+from .report import write_bytes_atomic
 
 JOURNAL_SCHEMA = "cellcal.journal/1"
 JOURNAL_SUFFIX = ".journal.jsonl"
@@ -74,15 +75,6 @@ class JournalEntry:
     device_state: dict[str, Any]
 
 
-def _fsync_dir(path: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(path, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 class JournalWriter:
     """Appends pose records to a journal, durably.
 
@@ -103,8 +95,9 @@ class JournalWriter:
         self._started = append and self.path.exists()
         self.appended = 0
 
-    def _write_line(self, fh: Any, obj: Mapping[str, Any]) -> None:
-        fh.write(json.dumps(json_safe(obj), allow_nan=False, separators=(",", ":")) + "\n")
+    @staticmethod
+    def _line(obj: Mapping[str, Any]) -> str:
+        return json.dumps(json_safe(obj), allow_nan=False, separators=(",", ":")) + "\n"
 
     def append(self, index: int, pose: Mapping[str, Any], device_state: Mapping[str, Any]) -> None:
         """Record one measured pose (flushed and fsync'd before returning).
@@ -114,26 +107,22 @@ class JournalWriter:
         """
         line = {"kind": "pose", "index": int(index), "fingerprint": self.fingerprint, "pose": pose,
                 "device_state": device_state}
-        try:
-            if not self._started:
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = self.path.with_name(f".{self.path.name}.tmp")
-                with open(tmp, "w", encoding="utf-8") as fh:
-                    self._write_line(fh, {"kind": "header", "schema": JOURNAL_SCHEMA, "fingerprint": self.fingerprint,
-                                          "poses": self.n_poses})
-                    self._write_line(fh, line)
-                    fh.flush()
-                    os.fsync(fh.fileno())
-                os.replace(tmp, self.path)
-                _fsync_dir(self.path.parent)
-                self._started = True
-            else:
+        if not self._started:  # a new journal appears whole or not at all, its directory entry durable
+            header = {"kind": "header", "schema": JOURNAL_SCHEMA, "fingerprint": self.fingerprint,
+                      "poses": self.n_poses}
+            try:
+                write_bytes_atomic(self.path, (self._line(header) + self._line(line)).encode("utf-8"), fsync_dir=True)
+            except CalibrationError as exc:
+                raise CalibrationError(f"resume journal: {exc}") from None
+            self._started = True
+        else:
+            try:
                 with open(self.path, "a", encoding="utf-8") as fh:
-                    self._write_line(fh, line)
+                    fh.write(self._line(line))
                     fh.flush()
                     os.fsync(fh.fileno())
-        except OSError as exc:
-            raise CalibrationError(f"cannot write the resume journal {self.path}: {exc.strerror or exc}") from None
+            except OSError as exc:
+                raise CalibrationError(f"cannot write the resume journal {self.path}: {exc.strerror or exc}") from None
         self.appended += 1
 
 

@@ -17,6 +17,7 @@ Schema ``cellcal.calibration/2`` (changes from /1):
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -51,11 +52,18 @@ def write_json_atomic(path: str | Path, document: Mapping[str, Any]) -> Path:
     return write_bytes_atomic(path, text.encode("utf-8"))
 
 
-def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+def write_bytes_atomic(path: str | Path, data: bytes, *, fsync_dir: bool = False) -> Path:
     """Write bytes to ``path`` atomically: a temp file in the same directory, fsync, rename.
 
     An earlier file at ``path`` is replaced only once the new one is complete, and
     no temporary file is left behind on failure. The file gets mode 0644.
+
+    Args:
+        path: The file to write.
+        data: Its whole content.
+        fsync_dir: Also fsync the directory after the rename, so the new directory
+            entry itself survives a power loss (the resume journal needs that; a
+            filesystem that cannot fsync a directory is tolerated).
 
     Raises:
         CalibrationError: If the directory cannot be created or written.
@@ -78,7 +86,18 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
         if isinstance(exc, OSError):
             raise CalibrationError(f"cannot write {path}: {exc.strerror or exc}") from None
         raise
+    if fsync_dir:
+        _fsync_dir(path.parent)
     return path
+
+
+def _fsync_dir(directory: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:

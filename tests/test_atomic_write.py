@@ -1,0 +1,75 @@
+"""write_bytes_atomic (core.report) and the resume journal's first write, which uses it."""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from cellcal.core.journal import JOURNAL_SCHEMA, JournalWriter, read_journal
+from cellcal.core.report import write_bytes_atomic
+from cellcal.devices.errors import CalibrationError
+
+
+@pytest.fixture
+def fsynced(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Kinds ("dir"/"file") of the descriptors os.fsync is called on (the real fsync still runs)."""
+    kinds: list[str] = []
+    real = os.fsync
+
+    def spy(fd: int) -> None:
+        kinds.append("dir" if stat.S_ISDIR(os.fstat(fd).st_mode) else "file")
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", spy)
+    return kinds
+
+
+@pytest.mark.parametrize(("fsync_dir", "expected"), [(False, ["file"]), (True, ["file", "dir"])])
+def test_fsync_dir_also_syncs_the_directory_after_the_rename(tmp_path: Path, fsynced: list[str], fsync_dir: bool,
+                                                             expected: list[str]) -> None:
+    out = write_bytes_atomic(tmp_path / "sub" / "x.bin", b"\x00abc\n", fsync_dir=fsync_dir)
+    assert out.read_bytes() == b"\x00abc\n"
+    assert stat.S_IMODE(out.stat().st_mode) == 0o644
+    assert fsynced == expected
+    assert [p.name for p in out.parent.iterdir()] == ["x.bin"]
+
+
+def test_failure_leaves_the_earlier_file_and_no_temp_file(tmp_path: Path) -> None:
+    target = tmp_path / "r.json"
+    target.write_bytes(b"old")
+    (tmp_path / "blocker").write_text("a file, not a directory")
+    with pytest.raises(CalibrationError, match=r"cannot write .*blocker"):
+        write_bytes_atomic(tmp_path / "blocker" / "r.json", b"new", fsync_dir=True)
+    assert target.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blocker", "r.json"]
+
+
+def test_first_journal_write_is_header_and_pose_made_durable(tmp_path: Path, fsynced: list[str]) -> None:
+    path = tmp_path / "out" / "result.json.journal.jsonl"
+    writer = JournalWriter(path, "f" * 64, 3)
+    writer.append(0, {"index": 0, "angle_deg": 30.5}, {"camera": {"state": [1, 2]}})
+    header = {"kind": "header", "schema": JOURNAL_SCHEMA, "fingerprint": "f" * 64, "poses": 3}
+    pose = {"kind": "pose", "index": 0, "fingerprint": "f" * 64, "pose": {"index": 0, "angle_deg": 30.5},
+            "device_state": {"camera": {"state": [1, 2]}}}
+    assert path.read_text(encoding="utf-8") == "".join(
+        json.dumps(o, separators=(",", ":")) + "\n" for o in (header, pose))
+    assert fsynced == ["file", "dir"]
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+    assert [p.name for p in path.parent.iterdir()] == [path.name]
+
+    writer.append(1, {"index": 1, "angle_deg": 31.0}, {})  # later poses are appended and fsync'd in place
+    assert fsynced == ["file", "dir", "file"]
+    assert [e.index for e in read_journal(path, "f" * 64)] == [0, 1]
+    assert writer.appended == 2
+
+
+def test_journal_that_cannot_be_created_says_so(tmp_path: Path) -> None:
+    (tmp_path / "blocker").write_text("")
+    writer = JournalWriter(tmp_path / "blocker" / "r.json.journal.jsonl", "f" * 64, 1)
+    with pytest.raises(CalibrationError, match=r"^resume journal: cannot write .*r\.json\.journal\.jsonl"):
+        writer.append(0, {}, {})
+    assert writer.appended == 0
