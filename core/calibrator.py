@@ -13,6 +13,7 @@ Devices come from the registry; this module never names a driver or a simulator.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -31,12 +32,11 @@ from cellcal.devices.errors import (
     CalibrationError,
     CalibrationQualityError,
     CellcalError,
-    SafetyError,
     VendorError,
 )
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import Registry, default_registry
-from cellcal.devices.safety import SafeArm, format_pose
+from cellcal.devices.safety import SafeArm
 from cellcal.devices.types import Intrinsics
 
 from .config import CellConfig, plan_flange_poses
@@ -295,14 +295,15 @@ class Calibrator:
                               f"{status.message or 'controller error'} ({when}; clear the arm's error first)")
 
     def _check_moves(self, start: Pose, indices: Sequence[int]) -> None:
-        """Check the moves still to make, from ``start`` through ``indices`` in order."""
-        plan, limits = self.config.plan, self.arm.limits
+        """Check the moves still to make, from ``start`` through ``indices`` (0-based, ascending) in order."""
+        plan = self.config.plan
         previous = start
-        for i in indices:
-            problems = limits.violations(previous, self.poses[i], plan.speed_m_s, plan.acceleration_m_s2)
-            if problems:
-                raise SafetyError(f"plan pose {i + 1} ({format_pose(self.poses[i])}) rejected: " + "; ".join(problems))
-            previous = self.poses[i]
+        for _, run in itertools.groupby(enumerate(indices), key=lambda pair: pair[1] - pair[0]):
+            block = [i for _, i in run]  # consecutive plan indices, so the messages number them right
+            targets = [self.poses[i] for i in block]
+            self.arm.limits.check_plan(previous, targets, plan.speed_m_s, plan.acceleration_m_s2,
+                                       first_index=block[0] + 1)
+            previous = targets[-1]
 
     def _devices_for_state(self) -> dict[str, Any]:
         return {"camera": self.camera, "arm": self.arm.inner}

@@ -142,14 +142,23 @@ class SafetyLimits:
         if problems:
             raise SafetyError(f"move to {format_pose(target)} rejected: " + "; ".join(problems))
 
-    def check_plan(self, start: Pose | None, targets: Sequence[Pose], speed: float, acceleration: float) -> None:
+    def check_plan(self, start: Pose | None, targets: Sequence[Pose], speed: float, acceleration: float, *,
+                   first_index: int = 1) -> None:
         """Check a whole sequence of moves before the first one is made.
 
+        Args:
+            start: Current flange pose, or None to check the first target alone.
+            targets: Commanded flange poses, in the order they will be visited.
+            speed: Commanded speed, m/s.
+            acceleration: Commanded acceleration, m/s².
+            first_index: The 1-based plan number of ``targets[0]`` in messages (a
+                resumed run checks only the poses still to do, e.g. from pose 4 on).
+
         Raises:
-            SafetyError: Naming the first offending pose (1-based index) and why.
+            SafetyError: Naming the first offending pose (1-based plan number) and why.
         """
         previous = start
-        for i, target in enumerate(targets, 1):
+        for i, target in enumerate(targets, first_index):
             problems = self.violations(previous, target, speed, acceleration)
             if problems:
                 raise SafetyError(f"plan pose {i} ({format_pose(target)}) rejected: " + "; ".join(problems))

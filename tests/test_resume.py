@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from fault_cells import SIM_DOC, Probe, cell_document, interrupt, make_probe
 from test_calibrate_e2e import write_toml
@@ -21,7 +22,8 @@ from test_calibrate_e2e import write_toml
 from cellcal.core.calibrator import run_to_file
 from cellcal.core.cli import main
 from cellcal.core.journal import journal_path, plan_fingerprint, read_journal
-from cellcal.devices.errors import ConfigError
+from cellcal.devices.errors import ConfigError, SafetyError
+from cellcal.devices.pose import Pose
 
 N_POSES = 3
 
@@ -157,3 +159,19 @@ def test_torn_last_line_is_ignored(tmp_path: Path) -> None:
     probe = make_probe(doc)
     resumed = run_to_file(probe.calibrator, out, resume=True)
     assert resumed["resumed_poses"] == [0, 1] and probe.sim_arm.moves_started == 1
+
+
+def test_resumed_run_checks_the_move_from_where_the_arm_is_and_names_the_plan_pose(tmp_path: Path) -> None:
+    """The remaining moves are checked from the arm's current pose, numbered as in the whole plan."""
+    doc = cell_document()
+    out = tmp_path / "result.json"
+    interrupted(doc, out, after=1)
+    probe = make_probe(doc)
+    # someone jogged the arm above the workspace box (z max 0.9 m) while the run was interrupted
+    probe.sim_arm.world.arm.set_flange_pose(Pose.from_xyz_rpy([0.3, 0.0, 0.95], np.radians([180.0, 0.0, 0.0])))
+    with pytest.raises(SafetyError, match=r"^plan pose 2 \(xyz=\(.*\) rejected: flange leaves the workspace box "
+                                          r"on the path at \(0\.3000, -?0\.0000, 0\.9500\) m"):
+        run_to_file(probe.calibrator, out, resume=True)
+    assert probe.sim_arm.moves_started == 0
+    fingerprint = plan_fingerprint(probe.calibrator.config.document, probe.calibrator.poses)
+    assert [e.index for e in read_journal(journal_path(out), fingerprint)] == [0]

@@ -155,3 +155,15 @@ def test_limits_validate_themselves() -> None:
         SafetyLimits((0, 0, 0), (1, 1, 0), 1.0, 1.0)
     with pytest.raises(SafetyError, match="max_speed_m_s"):
         SafetyLimits((0, 0, 0), (1, 1, 1), 0.0, 1.0)
+
+
+def test_plan_check_numbers_poses_from_first_index() -> None:
+    """A resumed run checks only the poses still to do; messages keep their plan numbers."""
+    poses = [Pose(DOWN, [0.3, 0.0, 0.6]), Pose(DOWN, [0.3, 0.6, 0.5]), Pose(DOWN, [0.3, 0.0, 0.5])]
+    with pytest.raises(SafetyError) as default:
+        LIMITS.check_plan(START, poses, 0.1, 1.0)
+    with pytest.raises(SafetyError, match=r"^plan pose 5 \(xyz=\(0.3000, 0.6000, 0.5000\)") as shifted:
+        LIMITS.check_plan(START, poses, 0.1, 1.0, first_index=4)
+    assert str(default.value).startswith("plan pose 2 (")
+    assert str(shifted.value) == str(default.value).replace("plan pose 2", "plan pose 5", 1)
+    LIMITS.check_plan(START, poses[:1], 0.1, 1.0, first_index=7)  # a safe sequence passes whatever its numbering
