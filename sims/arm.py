@@ -4,7 +4,7 @@
 from the base axis ``min_radius_m <= r <= reach_m`` (defaults 0.10 m and 0.70 m, the
 xArm 5's quoted reach) and ``z_min_m <= z <= z_max_m`` (defaults -0.10 m and 0.90 m).
 A target outside it is refused: the arm does not move and enters error state
-**21** ("Kinematic Error", as the xArm controller reports an unsolvable target);
+**21** ("Kinematic error", as the xArm controller reports an unsolvable target);
 :meth:`SimRobotArm.move_linear` raises ``VendorError("sim", 21, ...)``. Orientation is
 not restricted (a real 5-DoF arm cannot reach every orientation; see the IK below).
 
@@ -73,18 +73,22 @@ ROTATION_RADIUS_M = 0.1
 MAX_SPEED_M_S = 1.0
 MAX_ACCELERATION_M_S2 = 50.0
 
-#: xArm controller error codes the sim uses (titles as the controller reports them).
+#: xArm controller error codes the sim raises or latches, with their meanings. The sim
+#: arm speaks the xArm controller's codes by design; the full table is the xArm driver's
+#: (``cellcal.drivers.xarm.codes.ERRORS``), which this generic sim may not import (sims
+#: depend on devices only), so the codes it needs are repeated here, worded as there
+#: (capitalised); tests/test_sim_arm.py checks that every one agrees with the driver's.
 ERROR_MEANINGS: dict[int, str] = {
-    1: "Emergency Stop Button Pushed In",
-    2: "Emergency IO Triggered",
-    3: "Emergency Stop of Three-state Switch",
-    21: "Kinematic Error",
-    22: "Self-Collision Error",
-    23: "Joints Angle Exceed Limit",
-    24: "Speed Exceeds Limit",
-    25: "Planning Error",
-    31: "Collision Caused Abnormal Current",
-    35: "Safety Boundary Limit",
+    1: "Emergency stop button on the controller pressed",
+    2: "Emergency IO of the control box triggered",
+    3: "Emergency stop button of the three-state switch pressed",
+    21: "Kinematic error (target not reachable)",
+    22: "Self-collision error",
+    23: "Joint angle exceeds limit",
+    24: "Speed exceeds limit",
+    25: "Planning error",
+    31: "Collision caused abnormal current",
+    35: "Safety boundary limit (target outside the allowed workspace)",
 }
 ERROR_OUT_OF_REACH = 21
 

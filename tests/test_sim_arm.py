@@ -14,9 +14,11 @@ from cellcal.devices.errors import DeviceTimeoutError, NotConnectedError, Vendor
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.sims.arm import (
+    ERROR_MEANINGS,
     ERROR_OUT_OF_REACH,
     SimRobotArm,
     SimRobotArmConfig,
+    error_meaning,
     forward_position,
     inverse_kinematics,
     trapezoid_duration,
@@ -214,3 +216,15 @@ def test_inconsistent_arm_config_is_a_config_error() -> None:
         SimRobotArm.from_config({"reach_m": 0.1, "min_radius_m": 0.2}, BackendContext(section="arm"))
     with pytest.raises(ConfigError, match=r"arm\.time_scale"):
         SimRobotArm.from_config({"time_scale": -1.0}, BackendContext(section="arm"))
+
+
+def test_sim_error_codes_mean_what_the_xarm_driver_says_they_mean() -> None:
+    """The sim speaks the xArm controller's codes: each one it knows agrees with the driver's table."""
+    from cellcal.drivers.xarm import codes  # tests may see both layers; sims/arm.py may not
+
+    assert set(ERROR_MEANINGS) <= set(codes.ERRORS), "the sim uses a code the xArm table does not have"
+    for code, meaning in ERROR_MEANINGS.items():
+        assert meaning.casefold() == codes.ERRORS[code].casefold(), code
+        assert error_meaning(code) == meaning
+    assert ERROR_MEANINGS[ERROR_OUT_OF_REACH] == "Kinematic error (target not reachable)"
+    assert error_meaning(99) == "Controller Error 99"  # a code the sim does not know still reads as one
