@@ -20,6 +20,7 @@ from typing import Any
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.errors import CalibrationError, ConfigError
 
+from .argtypes import integer, real
 from .calibrator import build_devices
 from .cli import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from .config import CellConfig, load_config
@@ -53,8 +54,8 @@ def register(sub: Any) -> None:
     p.add_argument("--config", metavar="PATH", action="append",
                    help="cell configuration (TOML), one camera each; repeat for several cameras "
                    "(default: packaged sim.toml)")
-    p.add_argument("--duration", metavar="S", type=float, help="stop after S seconds (scripted runs)")
-    p.add_argument("--frames", metavar="N", type=int, help="stop after N frames per camera (scripted runs)")
+    p.add_argument("--duration", metavar="S", type=real(gt=0), help="stop after S seconds (scripted runs)")
+    p.add_argument("--frames", metavar="N", type=integer(ge=1), help="stop after N frames per camera (scripted runs)")
     p.add_argument("--baseline", metavar="FILE",
                    help="expected plane: a --save-baseline file, or a calibrate result.json (its plane in the "
                    "base frame, seen from the arm's current pose; the arm is connected only to read that pose). "
@@ -238,10 +239,6 @@ def write_baselines(path: str, cameras: list[CameraSummary]) -> Path:
 # ---------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal monitor``; returns the exit status."""
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
-    if args.frames is not None and args.frames < 1:
-        raise ConfigError(f"--frames must be >= 1, got {args.frames}")
     paths: list[str | None] = list(args.config) if args.config else [None]
     taken: set[str] = set()
     configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]

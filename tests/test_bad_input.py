@@ -484,7 +484,7 @@ def _numeric_options() -> list[tuple[str, list[str], str, Any, Any]]:
 
 NUMERIC_OPTIONS = _numeric_options()
 #: Options a command checks itself when it runs (before any work), not in the parser.
-RUN_TIME_CHECKED = {("paper", "--true-angle"), ("monitor", "--duration")}
+RUN_TIME_CHECKED = {("paper", "--true-angle")}
 PAPER_TABLE = Path(__file__).parent / "data" / "paper_table2.csv"
 
 
@@ -533,7 +533,6 @@ def test_out_of_range_numbers_are_usage_errors(argv: list[str], option: str,
 
 @pytest.mark.parametrize(("argv", "option"), [
     *[(["paper", str(PAPER_TABLE), f"--true-angle={v}"], "--true-angle") for v in ("nan", "inf", "0", "-5", "91")],
-    *[(["monitor", f"--duration={v}"], "--duration") for v in ("nan", "inf", "0", "-1")],
 ], ids=lambda a: " ".join(a[:1] + a[-1:]) if isinstance(a, list) else "")
 def test_options_checked_at_run_time_fail_before_any_work(argv: list[str], option: str,
                                                           capsys: pytest.CaptureFixture[str]) -> None:

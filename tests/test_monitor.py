@@ -414,15 +414,24 @@ def test_cli_baseline_round_trip_and_drift_exit_status(fast_config: Path, tmp_pa
     assert "now DRIFTING" in out
 
 
+def test_cli_missing_baseline_exits_2(fast_config: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["monitor", "--config", str(fast_config), "--baseline", "missing.json"]) == 2
+    assert "baseline file not found" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(("argv", "message"), [
-    (["--baseline", "missing.json"], "baseline file not found"),
-    (["--duration", "-1"], "--duration must be a positive"),
-    (["--frames", "0"], "--frames must be >= 1"),
+    (["--duration", "-1"], "argument --duration: expected a finite number > 0, got '-1'"),
+    (["--duration", "nan"], "argument --duration: expected a finite number > 0, got 'nan'"),
+    (["--frames", "0"], "argument --frames: expected an integer >= 1, got '0'"),
+    (["--frames", "2.5"], "argument --frames: expected an integer >= 1, got '2.5'"),
 ])
-def test_cli_bad_input_exits_2(fast_config: Path, argv: list[str], message: str,
-                               capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["monitor", "--config", str(fast_config), *argv]) == 2
-    assert message in capsys.readouterr().err
+def test_cli_bad_duration_or_frames_is_a_usage_error(fast_config: Path, argv: list[str], message: str,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Checked by the parser (cellcal.core.argtypes): status 2, one line, before any device is built."""
+    with pytest.raises(SystemExit) as info:
+        main(["monitor", "--config", str(fast_config), *argv])
+    assert info.value.code == 2
+    assert capsys.readouterr().err == f"cellcal monitor: error: {message}\n"
 
 
 def test_cli_rejects_a_baseline_file_of_another_kind(fast_config: Path, tmp_path: Path,
