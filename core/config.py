@@ -14,6 +14,7 @@ dotted key and what was expected.
 
 from __future__ import annotations
 
+import logging
 import math
 import tomllib
 from collections.abc import Mapping
@@ -37,6 +38,11 @@ MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal", "full_f
 ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame")
 TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor",
                     "full_frame")
+#: Backends built on the simulated world, the only readers of ``[sim]`` (tests/test_config.py
+#: checks this against the registered backends that live in ``cellcal.sims``).
+SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated"})
+
+log = logging.getLogger(__name__)
 DEFAULT_CONFIG_NAME = "sim.toml"
 
 
@@ -220,6 +226,9 @@ class CellConfig:
 def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
     """Validate a parsed TOML document.
 
+    A ``[sim]`` table next to backends that are all real is logged as a one-line warning
+    (logger ``cellcal.core.config``): it is valid but has no effect.
+
     Raises:
         ConfigError: Naming ``source``, the key and the expectation.
     """
@@ -233,6 +242,10 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
             raise ConfigError("missing table (it needs at least backend = \"...\")", source=source, key=required)
         if not isinstance(document[required].get("backend"), str):
             raise ConfigError("missing or non-string 'backend'", source=source, key=f"{required}.backend")
+    if "sim" in document and not {document["camera"]["backend"], document["arm"]["backend"]} & SIM_BACKENDS:
+        log.warning("%s: [sim] has no effect: camera backend '%s' and arm backend '%s' are not simulated "
+                    "(only %s read it)", source, document["camera"]["backend"], document["arm"]["backend"],
+                    ", ".join(sorted(SIM_BACKENDS)))
     ref = document.get("reference")
     plan = parse_section(PlanSection, document.get("plan"), where="plan", source=source)
     if plan.inclination_deg < 90 and not plan.poses and ref is None:
