@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import CalibrationError
+from .jsonsafe import json_safe
 
 #: Order of the OpenCV distortion vector (14 terms; tauX/tauY unsupported and always 0).
 OPENCV_DISTORTION_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
@@ -128,7 +129,12 @@ class DeviceInfo:
         model: Model name.
         serial: Serial number or other unique id ("" if unknown).
         firmware: Firmware / software version ("" if unknown).
-        extra: Backend-specific details.
+        extra: Backend-specific details: JSON data only (dicts with string keys,
+            lists, numbers, strings, booleans, None; numpy values and tuples are
+            fine), because reports and recordings store it.
+
+    Raises:
+        TypeError: If ``extra`` holds anything else, naming the backend and the key.
     """
 
     backend: str
@@ -137,6 +143,12 @@ class DeviceInfo:
     serial: str = ""
     firmware: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        try:
+            json_safe(self.extra)
+        except TypeError as exc:
+            raise TypeError(f"DeviceInfo.extra of backend {self.backend!r}: {exc}") from None
 
 
 @dataclass(frozen=True, eq=False)

@@ -63,3 +63,12 @@ def test_journal_lines_are_cleaned_the_same_way(tmp_path: Path) -> None:
     writer.append(0, {"angle": np.float32(1.5), "rms": math.inf, "t": (1, 2)}, {})
     (entry,) = read_journal(tmp_path / "j.jsonl", fp)
     assert entry.pose == {"angle": 1.5, "rms": None, "t": [1, 2]}
+
+
+def test_device_info_extra_must_be_json_data() -> None:
+    from cellcal.devices.types import DeviceInfo
+
+    ok = DeviceInfo("acme", "ACME", "Z1", extra={"fw": (1, 2), "temp_c": np.float32(41.5), "port": None})
+    assert json_safe(ok.extra) == {"fw": [1, 2], "temp_c": 41.5, "port": None}
+    with pytest.raises(TypeError, match=r"^DeviceInfo.extra of backend 'acme': .*Pose at \$\.mount is not JSON"):
+        DeviceInfo("acme", "ACME", "Z1", extra={"mount": Pose.identity()})
