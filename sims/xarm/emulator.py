@@ -6,7 +6,9 @@ serial port — cellcal's :class:`~cellcal.drivers.xarm.arm.XArmRobot` or UFACTO
 own ``xarm-python-sdk`` — talks to it as to a real controller. Motion, workspace and
 errors come from the simulated arm (:class:`ArmModel`, satisfied by
 ``cellcal.sims.arm.SimRobotArm``); the emulator adds the controller's state machine
-(motion enable, mode, state, error/warning latching, command counter).
+(motion enable, mode, state, error/warning latching, command counter). Its framing,
+CRC and register layouts are its own (:mod:`cellcal.sims.xarm.wire`), not the driver's,
+so a wire bug in the driver shows up as a disagreement with the emulator.
 
 Fault injection (tests): :meth:`XArmEmulator.inject` corrupts the CRC of, drops,
 truncates or stalls upcoming replies; :meth:`XArmEmulator.fail_next_move` raises a
@@ -31,30 +33,29 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cellcal.core.transforms import pose_from_xarm, pose_to_xarm
-from cellcal.devices.errors import CellcalError, ProtocolError
+from cellcal.devices.errors import CellcalError
 from cellcal.devices.pose import Pose
-from cellcal.drivers.xarm import codes
-from cellcal.drivers.xarm.protocol import (
-    STATE_ERROR,
-    STATE_INVALID,
-    STATE_NOT_READY,
-    STATE_WARNING,
-    FrameSplitter,
-    Request,
-    encode_reply,
-    parse_request,
-)
-from cellcal.drivers.xarm.registers import (
-    ALL_AXES,
-    JOINT_FLOATS,
-    MOVE_LINE_COMMON_REPLY,
-    VERSION_LEN,
-    ArmState,
-    MoveLine,
-    Reg,
-    SetState,
-    decode_move_line,
-    pack_floats,
+from cellcal.sims.arm import ERROR_OUT_OF_REACH
+
+from .wire import (
+    EVERY_JOINT,
+    EXTENDED_LINE_REPLY_BYTES,
+    FLAG_ERROR,
+    FLAG_INVALID,
+    FLAG_NOT_READY,
+    FLAG_WARNING,
+    JOINT_REPLY_FLOATS,
+    TEXT_REPLY_BYTES,
+    Command,
+    LineMove,
+    Register,
+    RequestReader,
+    RobotState,
+    StateCommand,
+    floats,
+    read_line_move,
+    reply_frame,
+    text_field,
 )
 
 FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall"]
@@ -132,14 +133,17 @@ class XArmEmulator:
         self.robot_sn = robot_sn
         self.box_sn = box_sn
         self.version_text = f"{axes},{axes},{robot_sn},{box_sn},v{firmware[0]}.{firmware[1]}.{firmware[2]}"
-        if len(self.version_text) >= VERSION_LEN:
+        serials = f"{robot_sn}\0{box_sn}"
+        if len(self.version_text) >= TEXT_REPLY_BYTES or len(serials) >= TEXT_REPLY_BYTES:
             raise CellcalError(f"xarm emulator: version string too long: {self.version_text!r}")
+        self._version_reply = text_field(self.version_text)
+        self._serials_reply = text_field(serials)
         self.path = ""
         self.requests: dict[int, int] = {}
         self.bad_requests = 0
         self.stop_requests = 0
         self.last_reported_pose: tuple[float, ...] | None = None
-        self.last_move: MoveLine | None = None
+        self.last_move: LineMove | None = None
         self._lock = threading.RLock()
         self._enabled = start_ready
         self._ready = start_ready
@@ -153,20 +157,20 @@ class XArmEmulator:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._handlers: dict[int, Callable[[bytes], tuple[int, bytes]]] = {
-            Reg.GET_VERSION: self._get_version,
-            Reg.GET_ROBOT_SN: self._get_robot_sn,
-            Reg.MOTION_EN: self._motion_en,
-            Reg.SET_STATE: self._set_state,
-            Reg.GET_STATE: self._get_state,
-            Reg.GET_CMDNUM: self._get_cmdnum,
-            Reg.GET_ERROR: self._get_error,
-            Reg.CLEAN_ERR: self._clean_err,
-            Reg.CLEAN_WAR: self._clean_war,
-            Reg.SET_MODE: self._set_mode,
-            Reg.MOVE_LINE: self._move_line,
-            Reg.GET_TCP_POSE: self._get_tcp_pose,
-            Reg.GET_JOINT_POS: self._get_joint_pos,
-            Reg.GET_TCP_POSE_AA: self._get_tcp_pose_aa,
+            Register.GET_VERSION: self._get_version,
+            Register.GET_ROBOT_SN: self._get_robot_sn,
+            Register.MOTION_EN: self._motion_en,
+            Register.SET_STATE: self._set_state,
+            Register.GET_STATE: self._get_state,
+            Register.GET_CMDNUM: self._get_cmdnum,
+            Register.GET_ERROR: self._get_error,
+            Register.CLEAN_ERR: self._clean_err,
+            Register.CLEAN_WAR: self._clean_war,
+            Register.SET_MODE: self._set_mode,
+            Register.MOVE_LINE: self._move_line,
+            Register.GET_TCP_POSE: self._get_tcp_pose,
+            Register.GET_JOINT_POS: self._get_joint_pos,
+            Register.GET_TCP_POSE_AA: self._get_tcp_pose_aa,
         }
 
     # ------------------------------------------------------------------ life cycle
@@ -241,18 +245,18 @@ class XArmEmulator:
     def _state_value(self) -> int:
         code, _ = self._errors()
         if code or not self._ready:
-            return int(ArmState.STOPPED)
-        return int(ArmState.MOVING if self.arm.is_moving() else ArmState.SLEEPING)
+            return int(RobotState.STOPPED)
+        return int(RobotState.MOVING if self.arm.is_moving() else RobotState.SLEEPING)
 
     def _state_byte(self) -> int:
         code, warn = self._errors()
         flags = 0
         if code:
-            flags |= STATE_ERROR
+            flags |= FLAG_ERROR
         if warn:
-            flags |= STATE_WARNING
+            flags |= FLAG_WARNING
         if code or not self._ready or not self._enabled:
-            flags |= STATE_NOT_READY
+            flags |= FLAG_NOT_READY
         return flags
 
     def _halt(self) -> None:
@@ -269,14 +273,14 @@ class XArmEmulator:
 
     # ------------------------------------------------------------------ handlers: (flags, data)
     def _get_version(self, _p: bytes) -> tuple[int, bytes]:
-        return 0, self.version_text.encode("ascii").ljust(VERSION_LEN, b"\0")
+        return 0, self._version_reply
 
     def _get_robot_sn(self, _p: bytes) -> tuple[int, bytes]:
-        return 0, (self.robot_sn.encode() + b"\0" + self.box_sn.encode() + b"\0").ljust(VERSION_LEN, b"\0")
+        return 0, self._serials_reply
 
     def _motion_en(self, p: bytes) -> tuple[int, bytes]:
-        if len(p) != 2 or not (1 <= p[0] <= ALL_AXES):
-            return STATE_INVALID, b""
+        if len(p) != 2 or not (1 <= p[0] <= EVERY_JOINT):
+            return FLAG_INVALID, b""
         if p[1]:
             self._enabled = True
         else:
@@ -287,19 +291,19 @@ class XArmEmulator:
 
     def _set_state(self, p: bytes) -> tuple[int, bytes]:
         if len(p) != 1:
-            return STATE_INVALID, b""
+            return FLAG_INVALID, b""
         value = p[0]
-        if value == SetState.RUN:
+        if value == StateCommand.RUN:
             code, _ = self._errors()
             if self._enabled and code == 0:
                 self._ready = True
             return 0, b""
-        if value in (SetState.STOP, SetState.DECELERATE_STOP):
+        if value in (StateCommand.STOP, StateCommand.DECELERATE_STOP):
             self.stop_requests += 1
             self._halt()
             self._ready = False
             return 0, b""
-        return STATE_INVALID, b""
+        return FLAG_INVALID, b""
 
     def _get_state(self, _p: bytes) -> tuple[int, bytes]:
         sched = self._scheduled
@@ -332,13 +336,13 @@ class XArmEmulator:
 
     def _set_mode(self, p: bytes) -> tuple[int, bytes]:
         if len(p) not in (1, 2):
-            return STATE_INVALID, b""
+            return FLAG_INVALID, b""
         self._halt()
         self._mode = p[0]
         self._ready = False
         return 0, b""
 
-    def _target_pose(self, cmd: MoveLine) -> Pose:
+    def _target_pose(self, cmd: LineMove) -> Pose:
         current = np.asarray(pose_to_xarm(self.arm.true_flange_pose()), dtype=np.float64)
         values = [c if math.isinf(v) else v for v, c in zip(cmd.pose, current, strict=True)]
         if cmd.axis_angle:
@@ -349,12 +353,11 @@ class XArmEmulator:
         return pose_from_xarm(np.asarray(values, dtype=np.float64))
 
     def _move_line(self, p: bytes) -> tuple[int, bytes]:
-        try:
-            cmd = decode_move_line(p)
-        except ProtocolError:
-            return STATE_INVALID, b""
+        cmd = read_line_move(p)
+        if cmd is None:
+            return FLAG_INVALID, b""
         self.last_move = cmd
-        extra = bytes(MOVE_LINE_COMMON_REPLY) if cmd.common else b""
+        extra = bytes(EXTENDED_LINE_REPLY_BYTES) if cmd.common else b""
         code, _ = self._errors()
         if code:
             return 0, extra
@@ -363,7 +366,7 @@ class XArmEmulator:
         if cmd.coord != 0 or any(math.isnan(v) for v in cmd.pose) \
                 or not (cmd.speed_mm_s > 0 and cmd.acc_mm_s2 > 0) \
                 or not (math.isfinite(cmd.speed_mm_s) and math.isfinite(cmd.acc_mm_s2)):
-            return STATE_INVALID, extra
+            return FLAG_INVALID, extra
         target = self._target_pose(cmd)
         if cmd.only_check:
             return 0, extra
@@ -372,7 +375,7 @@ class XArmEmulator:
         except CellcalError:
             # Refused by the model: the controller latches an error.
             if not self._errors()[0]:
-                self.arm.set_error(codes.KINEMATIC_ERROR)
+                self.arm.set_error(ERROR_OUT_OF_REACH)
         if self._errors()[0]:
             # The sim arm latches error 21 for a target outside its workspace and does not move.
             self._ready = False
@@ -385,29 +388,29 @@ class XArmEmulator:
     def _get_tcp_pose(self, _p: bytes) -> tuple[int, bytes]:
         values = np.asarray(pose_to_xarm(self.arm.get_pose()), dtype=np.float64)
         self.last_reported_pose = tuple(float(v) for v in values.astype(np.float32))
-        return 0, pack_floats(list(values))
+        return 0, floats(list(values))
 
     def _get_tcp_pose_aa(self, _p: bytes) -> tuple[int, bytes]:
         pose = self.arm.get_pose()
-        return 0, pack_floats([*(pose.translation * 1000.0), *pose.rotation.as_rotvec()])
+        return 0, floats([*(pose.translation * 1000.0), *pose.rotation.as_rotvec()])
 
     def _get_joint_pos(self, _p: bytes) -> tuple[int, bytes]:
-        joints = np.zeros(JOINT_FLOATS)
-        q = np.asarray(self.arm.joint_positions(), dtype=np.float64).ravel()[:JOINT_FLOATS]
+        joints = np.zeros(JOINT_REPLY_FLOATS)
+        q = np.asarray(self.arm.joint_positions(), dtype=np.float64).ravel()[:JOINT_REPLY_FLOATS]
         joints[: q.size] = q
-        return 0, pack_floats(list(joints))
+        return 0, floats(list(joints))
 
     # ------------------------------------------------------------------ serving
-    def handle(self, request: Request) -> bytes:
+    def handle(self, request: Command) -> bytes:
         """Execute one request and return the reply frame (before fault injection)."""
         with self._lock:
             self.requests[request.register] = self.requests.get(request.register, 0) + 1
             handler = self._handlers.get(request.register)
             if handler is None:
-                flags, data = STATE_INVALID, b""
+                flags, data = FLAG_INVALID, b""
             else:
                 flags, data = handler(request.params)
-            return encode_reply(self._state_byte() | flags, data)
+            return reply_frame(self._state_byte() | flags, data)
 
     def _next_fault(self, register: int) -> _Fault | None:
         with self._lock:
@@ -440,7 +443,7 @@ class XArmEmulator:
             view = view[n:]
 
     def _serve(self) -> None:
-        splitter = FrameSplitter.for_requests()
+        reader = RequestReader()
         while not self._stop.is_set():
             try:
                 ready, _, _ = select.select([self._master, self._wake_r], [], [], 0.5)
@@ -454,15 +457,13 @@ class XArmEmulator:
                 data = os.read(self._master, 4096)
             except OSError:
                 continue
-            for frame in splitter.feed(data):
-                try:
-                    request = parse_request(frame)
-                except ProtocolError:
-                    self.bad_requests += 1
-                    continue
+            dropped = reader.bad_frames
+            requests = reader.feed(data)
+            self.bad_requests += reader.bad_frames - dropped
+            for request in requests:
                 try:
                     reply = self.handle(request)
                 except Exception:
                     self.bad_requests += 1
-                    reply = encode_reply(STATE_INVALID)
+                    reply = reply_frame(FLAG_INVALID)
                 self._send(reply, request.register)
