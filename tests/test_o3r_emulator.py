@@ -245,6 +245,8 @@ def test_emulated_backend_equals_pure_sim_for_same_seed() -> None:
     emu = EmulatedO3RCamera(EmulatedO3RConfig(), BackendContext(document=doc, seed=11)).connect(timeout=5.0)
     try:
         assert emu.intrinsics.fx == float(np.float32(pure.intrinsics.fx))
+        before_capture = emu.intrinsics  # read back from the emulator's models: no frame triggered
+        assert emu.driver is not None and emu.driver.backend_name == "o3r"  # the registry's o3r driver
         for _ in range(3):
             a, b = pure.capture(2.0), emu.capture(5.0)
             assert a.sequence == b.sequence
@@ -253,6 +255,7 @@ def test_emulated_backend_equals_pure_sim_for_same_seed() -> None:
             assert np.max(np.abs(a.distance[ok] - b.distance[ok])) < 1e-6  # 1 mm steps are exact on the wire
             assert np.max(np.abs(a.xyz[ok] - b.xyz[ok])) < 0.1 * MM
         assert emu.info().backend == "o3r-emulated"
+        assert emu.intrinsics == before_capture  # now decoded by the driver from the frames' TOF_INFO
     finally:
         emu.close()
         pure.close()

@@ -24,12 +24,34 @@ from typing import Literal
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import NotConnectedError
+from cellcal.devices.registry import default_registry
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
-from cellcal.drivers.o3r.camera import O3RCamera, O3RConfig
-from cellcal.drivers.o3r.tofinfo import IntrinsicModel, TofInfo, intrinsics_from_models
 
 from ..camera import SimCamera3D, SimCamera3DConfig
 from .emulator import O3REmulator
+from .wire import O3RModels
+
+DRIVER_BACKEND = "o3r"
+"""Registry name of the driver the emulated camera connects (never imported by name: sims
+depend on devices only)."""
+
+
+def intrinsics_from_inverse_model(models: O3RModels, width: int, height: int) -> Intrinsics:
+    """The OpenCV intrinsics the emulator's inverse model 1 (ray -> pixel) carries.
+
+    Undoes :func:`~cellcal.sims.o3r.wire.models_from_intrinsics` on the float32 values
+    it put on the wire: ``cx = mx - 0.5``, ``cy = my - 0.5``, and the ifm coefficients
+    ``k1, k2, k3, k4, k5`` are OpenCV's ``k1, k2, p1, p2, k3``.
+
+    Args:
+        models: The emulator's models.
+        width: Image width, pixels.
+        height: Image height, pixels.
+    """
+    fx, fy, mx, my, _alpha, k1, k2, p1, p2, k3 = models.inverse[:10]
+    return Intrinsics(width=width, height=height, fx=fx, fy=fy, cx=mx - 0.5, cy=my - 0.5,
+                      k1=k1, k2=k2, k3=k3, p1=p1, p2=p2)
 
 
 @dataclass(frozen=True)
@@ -48,9 +70,17 @@ class EmulatedO3RConfig(SimCamera3DConfig):
 class EmulatedO3RCamera(Camera3D):
     """``O3RCamera`` connected to an in-process O3R emulator around ``SimCamera3D``.
 
+    The driver is the camera registered as :data:`DRIVER_BACKEND` (``"o3r"``), built
+    by the registry from a config section, as a cell config would build it.
+
     Args:
         config: Backend config; None uses the defaults.
         context: Backend context (gives the shared simulated world).
+
+    Attributes:
+        sim: The simulated camera behind the emulator.
+        emulator: The running emulator (None until connected).
+        driver: The connected ``o3r`` driver (None until connected).
     """
 
     backend_name = "o3r-emulated"
@@ -64,12 +94,14 @@ class EmulatedO3RCamera(Camera3D):
         self.sim = SimCamera3D(sim_cfg, context)
         self.default_timeout_s: float = max(2.0, self.config.io_timeout_s)
         self.emulator: O3REmulator | None = None
-        self.driver: O3RCamera | None = None
+        self.driver: Camera3D | None = None
         #: Fault injection (tests): called with the started emulator before the driver connects.
         self.on_emulator_started: Callable[[O3REmulator], None] | None = None
+        self._captured = False
 
     def _connect(self, timeout: float) -> None:
         cfg = self.config
+        self._captured = False
         self.sim.connect(timeout)
         self.emulator = O3REmulator(self.sim, port_name=cfg.port_name,
                                     state="IDLE" if cfg.trigger == "software" else "RUN",
@@ -77,10 +109,10 @@ class EmulatedO3RCamera(Camera3D):
                                     header_version=cfg.header_version).start()
         if self.on_emulator_started is not None:
             self.on_emulator_started(self.emulator)
-        self.driver = O3RCamera(O3RConfig(host="127.0.0.1", xmlrpc_port=self.emulator.xmlrpc_port,
-                                          port=cfg.port_name, trigger=cfg.trigger, set_state=False,
-                                          io_timeout_s=cfg.io_timeout_s,
-                                          connect_timeout_s=min(cfg.io_timeout_s, timeout)))
+        section = {"backend": DRIVER_BACKEND, "host": "127.0.0.1", "xmlrpc_port": self.emulator.xmlrpc_port,
+                   "port": cfg.port_name, "trigger": cfg.trigger, "set_state": False,
+                   "io_timeout_s": cfg.io_timeout_s, "connect_timeout_s": min(cfg.io_timeout_s, timeout)}
+        self.driver = default_registry().create_camera(section, BackendContext(section="camera.driver"))
         self.driver.connect(timeout)
 
     def _close(self) -> None:
@@ -101,17 +133,23 @@ class EmulatedO3RCamera(Camera3D):
                                  "pcic_port": self.emulator.pcic_port})
 
     def _capture(self, timeout: float) -> Frame:
-        assert self.driver is not None
-        return self.driver.capture(timeout)
+        if self.driver is None:
+            raise NotConnectedError("o3r-emulated: not connected")
+        frame = self.driver.capture(timeout)
+        self._captured = True
+        return frame
 
     def _intrinsics(self) -> Intrinsics:
-        """The intrinsics exactly as the driver decodes them, without triggering a frame."""
-        assert self.driver is not None and self.emulator is not None
-        if self.driver.tof_info is not None:
+        """The intrinsics exactly as the driver decodes them, without triggering a frame.
+
+        After the first capture they are the driver's (decoded from the frames' TOF_INFO);
+        before it, asking the driver would trigger a frame and draw the simulated camera's
+        random numbers, so they are read back from the models the emulator sends, as the
+        driver will decode them.
+        """
+        if self.driver is None or self.emulator is None:
+            raise NotConnectedError("o3r-emulated: not connected")
+        if self._captured:
             return self.driver.intrinsics
-        m = self.emulator.models
-        info = TofInfo(version=3, distance_resolution_m=self.config.distance_resolution_m, amplitude_resolution=1.0,
-                       amp_norm_factors=(1.0, 1.0, 1.0), extrinsic_optic_to_user=(0.0,) * 6,  # type: ignore[arg-type]
-                       intrinsic=IntrinsicModel(0, m.forward), inverse_intrinsic=IntrinsicModel(1, m.inverse))
         intr = self.sim.intrinsics
-        return intrinsics_from_models(info, intr.width, intr.height)
+        return intrinsics_from_inverse_model(self.emulator.models, intr.width, intr.height)
