@@ -9,6 +9,8 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import (
@@ -22,10 +24,12 @@ from cellcal.devices.errors import (
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.drivers.xarm.arm import XArmRobot
-from cellcal.drivers.xarm.registers import Reg
+from cellcal.drivers.xarm.protocol import encode_request, parse_reply
+from cellcal.drivers.xarm.registers import Reg, encode_move_line
 from cellcal.sims.arm import SimRobotArm, SimRobotArmConfig
 from cellcal.sims.xarm.backend import EmulatedXArmRobot
 from cellcal.sims.xarm.emulator import XArmEmulator
+from cellcal.sims.xarm.wire import Command, RequestReader, modbus_crc, read_line_move, reply_frame
 
 
 def _open_fds() -> set[tuple[str, str]]:
@@ -285,4 +289,51 @@ def test_emulated_backend_from_registry_shares_the_world(leak_check: None) -> No
         assert world.arm.flange_pose().distance_to(target) < 1e-6
         assert arm.get_pose().distance_to(target) <= arm.sim_arm.config.repeatability_m
         assert arm.info().backend == "xarm-emulated"
+        assert arm.driver is not None and arm.driver.backend_name == "xarm"  # the registry's xarm driver
     assert arm.emulator is None and arm.driver is None
+
+
+# ---------------------------------------------------------------- the emulator's own wire code vs the driver's
+def test_emulator_wire_reads_the_spec_example_and_skips_junk() -> None:
+    assert modbus_crc(b"123456789") == 0x4B37  # the CRC-16/MODBUS check value
+    reader = RequestReader()
+    # protocols.md D1: get-version is AA 55 01 01 F1 BC; junk before it, one byte at a time.
+    stream = b"\x00\xaa\x13" + bytes.fromhex("AA 55 01 01 F1 BC")
+    got = [cmd for byte in stream for cmd in reader.feed(bytes([byte]))]
+    assert got == [Command(1, b"")]
+    assert reader.skipped_bytes == 3 and reader.bad_frames == 0
+    assert reader.feed(bytes.fromhex("AA 55 01 01 F1 BD")) == []  # CRC off by one bit
+    assert reader.bad_frames == 1
+    assert reader.feed(bytes.fromhex("AA 55 01 0D")) == []  # GET_STATE, CRC not yet arrived
+    assert len(reader.feed(encode_request(13)[4:])) == 1  # the rest of a good frame completes one
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 255), st.binary(max_size=60)), min_size=1, max_size=5),
+       st.integers(1, 17))
+def test_driver_requests_reach_the_emulator_reader_intact(frames: list[tuple[int, bytes]], chunk: int) -> None:
+    stream = b"".join(encode_request(reg, params) for reg, params in frames)
+    reader = RequestReader()
+    got = [cmd for i in range(0, len(stream), chunk) for cmd in reader.feed(stream[i:i + chunk])]
+    assert got == [Command(reg, params) for reg, params in frames]
+    assert reader.bad_frames == 0 and reader.skipped_bytes == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 255), st.binary(max_size=48))
+def test_emulator_replies_parse_in_the_driver(flags: int, data: bytes) -> None:
+    reply = parse_reply(reply_frame(flags, data))
+    assert (reply.state, reply.data) == (flags, data)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-1000, 1000, width=32), min_size=6, max_size=6),
+       st.floats(0.125, 1000, width=32), st.floats(0.125, 50000, width=32), st.booleans())
+def test_driver_move_line_reads_back_in_the_emulator(pose: list[float], speed: float, acc: float,
+                                                     common: bool) -> None:
+    move = read_line_move(encode_move_line(pose, speed, acc, common=common))
+    assert move is not None
+    assert (list(move.pose), move.speed_mm_s, move.acc_mm_s2, move.common) == (pose, speed, acc, common)
+    assert (move.coord, move.axis_angle, move.only_check) == (0, False, 0)
+    assert move.radius_mm == (-1.0 if common else None)
+    assert read_line_move(encode_move_line(pose, speed, acc, common=common)[:-4]) is None  # fits no layout

@@ -3,7 +3,8 @@
 :class:`EmulatedXArmRobot` builds the simulated arm of the shared sim world
 (:class:`~cellcal.sims.arm.SimRobotArm`), serves it with an
 :class:`~cellcal.sims.xarm.emulator.XArmEmulator` on a pseudo-terminal, and delegates
-every call to a real :class:`~cellcal.drivers.xarm.arm.XArmRobot` connected to that
+every call to the real xArm driver (the arm registered as ``"xarm"``, built by the
+registry from a config section as a cell config would build it) connected to that
 pty. So a cell configured with it exercises the whole serial stack — framing, CRC,
 state polling, unit conversion — against the same simulated world a ``sim`` camera
 sees. ``close()`` shuts down the driver, the emulator thread and the pty.
@@ -26,11 +27,15 @@ from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError, NotConnectedError
 from cellcal.devices.pose import Pose
+from cellcal.devices.registry import default_registry
 from cellcal.devices.types import ArmStatus, DeviceInfo
-from cellcal.drivers.xarm.arm import XArmRobot
 from cellcal.sims.arm import SimRobotArm, SimRobotArmConfig
 
 from .emulator import XArmEmulator
+
+DRIVER_BACKEND = "xarm"
+"""Registry name of the driver the emulated arm connects (never imported by name: sims
+depend on devices only)."""
 
 _OWN_FIELDS: list[tuple[str, Any, Any]] = [
     ("axes", Literal[5, 6, 7], dataclasses.field(default=5, metadata={"doc": "axis count the emulator reports"})),
@@ -84,7 +89,7 @@ class EmulatedXArmRobot(RobotArm):
     Attributes:
         sim_arm: The simulated arm behind the emulator.
         emulator: The running emulator (None until connected).
-        driver: The connected :class:`XArmRobot` (None until connected).
+        driver: The connected ``xarm`` driver (None until connected).
     """
 
     backend_name = "xarm-emulated"
@@ -97,7 +102,7 @@ class EmulatedXArmRobot(RobotArm):
         sim_cfg = SimRobotArmConfig(**{name: getattr(self.config, name) for name in _SIM_NAMES})
         self.sim_arm = SimRobotArm(sim_cfg, context)
         self.emulator: XArmEmulator | None = None
-        self.driver: XArmRobot | None = None
+        self.driver: RobotArm | None = None
         #: Fault injection (tests): called with the started emulator before the driver connects.
         self.on_emulator_started: Callable[[XArmEmulator], None] | None = None
 
@@ -113,9 +118,9 @@ class EmulatedXArmRobot(RobotArm):
         path = self.emulator.start()
         if self.on_emulator_started is not None:
             self.on_emulator_started(self.emulator)
-        self.driver = XArmRobot(XArmRobot.Config(
-            port=path, axes=cfg.axes, reply_timeout_s=cfg.reply_timeout_s, retries=cfg.retries,
-            poll_interval_s=cfg.poll_interval_s), self.context)
+        section = {"backend": DRIVER_BACKEND, "port": path, "axes": cfg.axes, "reply_timeout_s": cfg.reply_timeout_s,
+                   "retries": cfg.retries, "poll_interval_s": cfg.poll_interval_s}
+        self.driver = default_registry().create_arm(section, self.context)
         self.driver.default_motion_timeout_s = self.default_motion_timeout_s
         self.driver.connect(timeout)
 
@@ -128,7 +133,7 @@ class EmulatedXArmRobot(RobotArm):
             emulator.close()
         self.sim_arm.close()
 
-    def _drv(self) -> XArmRobot:
+    def _drv(self) -> RobotArm:
         if self.driver is None:
             raise NotConnectedError("xarm-emulated: not connected")
         return self.driver
@@ -157,5 +162,6 @@ class EmulatedXArmRobot(RobotArm):
         self._drv().clear_errors(timeout)
 
     def recover(self, timeout: float | None = None) -> None:
-        """The xArm recovery sequence (see :meth:`XArmRobot.recover`)."""
+        """The xArm recovery sequence (the driver's ``clear_errors``: clean warning, clean error,
+        motion enable, mode 0, state 0)."""
         self.clear_errors(timeout)
