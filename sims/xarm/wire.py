@@ -37,7 +37,11 @@ FLAG_INVALID = 0x08
 
 
 class Register(IntEnum):
-    """The registers (commands) the emulated controller serves."""
+    """The registers (commands) the emulated controller serves.
+
+    The driver keeps its own table of the same numbers on purpose (see the module
+    docstring); tests/test_xarm_sdk.py checks both against UFACTORY's SDK.
+    """
 
     GET_VERSION = 1
     GET_ROBOT_SN = 2
