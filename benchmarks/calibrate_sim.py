@@ -31,8 +31,8 @@ def end_to_end(runs: int) -> list[float]:
 
 
 def per_pose(runs: int) -> tuple[list[float], list[float], list[float]]:
-    from cellcal.core.calibrator import Calibrator, build_devices
-    from cellcal.core.config import load_config
+    from cellcal.core.calibration.calibrator import Calibrator, build_devices
+    from cellcal.core.calibration.config import load_config
 
     overhead, motion, full_frame = [], [], []
     for _ in range(runs):

@@ -1,7 +1,7 @@
 """PCIC ingest throughput: decoded frames/s and MB/s vs a raw recv loop on the same bytes.
 
 A sender process streams the emulator's O3R frame messages (224 x 172, chunks 100,
-101, 300, 420, encoded by ``cellcal.sims.o3r.wire`` from a SimCamera3D frame) over
+101, 300, 420, encoded by ``cellcal.sims.o3r.wire`` from a SimCamera frame) over
 127.0.0.1 as fast as TCP allows. The same stream is consumed twice:
 
 * raw — a plain ``recv_into`` loop that only counts bytes;
@@ -34,15 +34,15 @@ import numpy as np
 from cellcal.devices.base import BackendContext
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.pcic import HEADER_LEN, check_payload, parse_header, walk_chunks
-from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig
+from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.o3r.wire import FrameEncoder, message, models_from_intrinsics
 
 
 def frame_messages(n_distinct: int = 8) -> list[bytes]:
     """A few distinct encoded frame messages of the simulated O3R222."""
-    from cellcal.core.camera import pixel_grid_rays
+    from cellcal.devices.geometry.camera_model import pixel_grid_rays
 
-    cam = SimCamera3D(SimCamera3DConfig(), BackendContext(seed=1)).connect()
+    cam = SimCamera(SimCameraConfig(), BackendContext(seed=1)).connect()
     enc = FrameEncoder(models_from_intrinsics(cam.intrinsics, pixel_grid_rays(cam.intrinsics)))
     return [message("0000", enc.payload(cam.capture(1.0), i + 1)) for i in range(n_distinct)]
 

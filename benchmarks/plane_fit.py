@@ -11,7 +11,7 @@ Clouds come from the built-in simulator (``cellcal.sims``): an O3R222-like ToF c
 
 Each library gets the *same* valid points (N, 3) of each cloud:
 
-* cellcal: :func:`cellcal.core.fullframe.fit_full_frame` on the frame (this includes
+* cellcal: :func:`cellcal.core.methods.fullframe.fit_full_frame` on the frame (this includes
   pulling the valid pixels out of the frame) with the default ``[full_frame]`` settings;
 * Open3D ``PointCloud.segment_plane(distance_threshold=0.01, ransac_n=3,
   num_iterations=1000)`` (the values of Open3D's own tutorial; the default probability);
@@ -58,12 +58,12 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from cellcal.core.config import look_at_pose  # noqa: E402
-from cellcal.core.fullframe import fit_full_frame  # noqa: E402
-from cellcal.core.planes import Plane  # noqa: E402
+from cellcal.core.calibration.config import look_at_pose  # noqa: E402
+from cellcal.core.geometry.planes import Plane  # noqa: E402
+from cellcal.core.methods.fullframe import fit_full_frame  # noqa: E402
 from cellcal.devices.pose import Pose  # noqa: E402
 from cellcal.devices.types import Frame  # noqa: E402
-from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig, noise_sigma_m  # noqa: E402
+from cellcal.sims.camera import SimCamera, SimCameraConfig, noise_sigma_m  # noqa: E402
 from cellcal.sims.scene import Box, Scene  # noqa: E402
 from cellcal.sims.world import SimWorld  # noqa: E402
 
@@ -89,13 +89,13 @@ def _peers() -> tuple[Any, Any]:
 
 
 # ---------------------------------------------------------------------- clouds
-def _camera(size: tuple[int, int], scene: Scene, seed: int, noisy: bool) -> tuple[SimCamera3D, Pose]:
+def _camera(size: tuple[int, int], scene: Scene, seed: int, noisy: bool) -> tuple[SimCamera, Pose]:
     w, h = size
     fov_x = 60.0
     fov_y = math.degrees(2 * math.atan(h / w * math.tan(math.radians(fov_x / 2))))
-    cfg = SimCamera3DConfig(width=w, height=h, fov_x_deg=fov_x, fov_y_deg=fov_y, noise=noisy,
+    cfg = SimCameraConfig(width=w, height=h, fov_x_deg=fov_x, fov_y_deg=fov_y, noise=noisy,
                             quantisation_m=0.001 if noisy else 0.0, seed=seed)
-    cam = SimCamera3D(cfg, world=SimWorld(scene, Pose.identity(), seed=seed))
+    cam = SimCamera(cfg, world=SimWorld(scene, Pose.identity(), seed=seed))
     pose = look_at_pose(TARGET_M, PLANE_NORMAL, HEIGHT_M, math.radians(INCLINATION_DEG), "x")
     return cam, pose
 

@@ -14,9 +14,16 @@ still tell them apart::
     │   ├── NotConnectedError       device used before connect() / after close()
     │   ├── ProtocolError           malformed bytes on a vendor wire
     │   └── VendorError             the device reported an error code
+    ├── UsbBackendMissingError      pyusb found no native USB library (libusb-1.0)
+    ├── MonitorError                a monitored camera keeps failing
     ├── SafetyError                 a command outside the safety envelope
-    └── CalibrationError            bad input to, or failure of, a calibration
-        └── CalibrationQualityError a result failed a quality gate
+    ├── CalibrationError            bad input to, or failure of, a calibration
+    │   └── CalibrationQualityError a result failed a quality gate
+    ├── RecordingError              a recording cannot be written or replayed
+    │   ├── RecordingFileError      (also a ConfigError) unreadable or foreign file
+    │   ├── ReplayMismatchError     (also a DeviceError) replay asked for something else
+    │   └── ReplayExhaustedError    (also a DeviceError) replay ran out of data
+    └── ConformanceError            (also an AssertionError) a backend broke a contract rule
 
 Messages are one line and name what was wrong, so the CLI can print ``str(err)``
 as-is.
@@ -25,6 +32,7 @@ as-is.
 from __future__ import annotations
 
 import builtins
+from typing import Any
 
 
 class CellcalError(Exception):
@@ -141,3 +149,41 @@ class CalibrationQualityError(CalibrationError):
         self.threshold = threshold
         text = f"quality gate '{gate}' failed: {value:.6g} vs threshold {threshold:.6g}"
         super().__init__(f"{text}; {message}" if message else text)
+
+
+class UsbBackendMissingError(CellcalError):
+    """``pyusb`` is installed but found no native USB library (libusb-1.0)."""
+
+
+class MonitorError(CellcalError):
+    """A monitored camera keeps failing (capture timeouts or no plane in its frames)."""
+
+
+class RecordingError(CellcalError):
+    """A recording cannot be written, or a replay cannot go on."""
+
+
+class RecordingFileError(RecordingError, ConfigError):
+    """A recording file is missing, unreadable, truncated, corrupt or of another format."""
+
+
+class ReplayMismatchError(RecordingError, DeviceError):
+    """The replayed session asked for something else than the recorded one did."""
+
+
+class ReplayExhaustedError(RecordingError, DeviceError):
+    """The replayed session asked for more data than the recording holds."""
+
+
+class ConformanceError(CellcalError, AssertionError):
+    """One or more contract rules of the conformance kit (:mod:`cellcal.testing`) were violated.
+
+    Derives from ``AssertionError`` so pytest reports it as a test failure.
+
+    Attributes:
+        failures: The failed checks (``cellcal.testing.CheckResult`` objects).
+    """
+
+    def __init__(self, message: str, failures: list[Any]):
+        self.failures = failures
+        super().__init__(message)

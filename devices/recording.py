@@ -6,7 +6,7 @@ wrapped device unchanged and log it: the configuration document, device identity
 and intrinsics at connect, every captured frame with its exact array bytes, and
 every arm call with its arguments, its result (or typed error) and its duration.
 :func:`read_recording` parses such a file into a :class:`Recording`, which the
-``replay`` backends (:mod:`cellcal.drivers.replay`) play back bit-exactly.
+``replay`` backends (:mod:`cellcal.drivers.replay.backends`) play back bit-exactly.
 
 Layout (all channels ``json`` message encoding with ``jsonschema`` schemas, so
 Foxglove and ``mcap cat --json`` read them)::
@@ -50,7 +50,13 @@ from scipy.spatial.transform import Rotation
 from . import errors as _errors
 from .arm import RobotArm
 from .camera import Camera3D
-from .errors import CellcalError, ConfigError, DeviceError, MissingDependencyError
+from .errors import (
+    CellcalError,
+    DeviceError,
+    MissingDependencyError,
+    RecordingError,
+    RecordingFileError,
+)
 from .jsonsafe import json_safe
 from .pose import Pose
 from .types import ArmStatus, DeviceInfo, Frame, Intrinsics
@@ -172,23 +178,6 @@ CHANNELS: dict[str, str] = {
     TOPIC_ARM_CALL: "cellcal.ArmCall",
     TOPIC_FLANGE_POSE: "foxglove.PoseInFrame",
 }
-
-
-# ---------------------------------------------------------------------------- errors
-class RecordingError(CellcalError):
-    """A recording cannot be written, or a replay cannot go on."""
-
-
-class RecordingFileError(RecordingError, ConfigError):
-    """A recording file is missing, unreadable, truncated, corrupt or of another format."""
-
-
-class ReplayMismatchError(RecordingError, DeviceError):
-    """The replayed session asked for something else than the recorded one did."""
-
-
-class ReplayExhaustedError(RecordingError, DeviceError):
-    """The replayed session asked for more data than the recording holds."""
 
 
 def _import_mcap() -> tuple[Any, Any]:

@@ -2,6 +2,6 @@
 
 Import the submodules you need (``cellcal.sims.camera``, ``cellcal.sims.arm``,
 ``cellcal.sims.world``, ``cellcal.sims.scene``); this package module imports nothing
-heavy itself. The ``sim`` backends are registered through entry points pointing at
-``cellcal.sims.backends``.
+heavy itself. The ``sim`` backends are :class:`cellcal.sims.camera.SimCamera` and
+:class:`cellcal.sims.arm.SimArm` (entry points ``cameras: sim`` and ``arms: sim``).
 """

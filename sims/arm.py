@@ -5,7 +5,7 @@ from the base axis ``min_radius_m <= r <= reach_m`` (defaults 0.10 m and 0.70 m,
 xArm 5's quoted reach) and ``z_min_m <= z <= z_max_m`` (defaults -0.10 m and 0.90 m).
 A target outside it is refused: the arm does not move and enters error state
 **21** ("Kinematic error", as the xArm controller reports an unsolvable target);
-:meth:`SimRobotArm.move_linear` raises ``VendorError("sim", 21, ...)``. Orientation is
+:meth:`SimArm.move_linear` raises ``VendorError("sim", 21, ...)``. Orientation is
 not restricted (a real 5-DoF arm cannot reach every orientation; see the IK below).
 
 **Motion**: straight line in position, slerp in orientation, both following one
@@ -15,7 +15,7 @@ trapezoidal speed profile over the path length
 are clamped to the xArm 5's limits (1.0 m/s, 50 m/s²). Simulated time advances by
 ``T``; the wall clock waits ``T · time_scale`` (0 = instantaneous, 1 = real time; the
 default 0.01 keeps the default run fast). A new target replaces a motion under way,
-starting from where the flange is; :meth:`SimRobotArm.stop` halts where it is.
+starting from where the flange is; :meth:`SimArm.stop` halts where it is.
 
 **Read-back**: :meth:`get_pose` returns the true flange pose plus Gaussian noise on
 each translation axis with ``sigma = repeatability_m / 4`` (xArm 5: ±0.1 mm), so
@@ -33,12 +33,12 @@ roll. J1 and J5 are unwrapped towards the previous reading, so the joints are
 continuous along a motion. Angles: J2 from vertical (forward positive), J3 and J4
 relative to the previous link.
 
-**Fault injection** (tests): :attr:`SimRobotArm.fault_hook`, if set, is called as
+**Fault injection** (tests): :attr:`SimArm.fault_hook`, if set, is called as
 ``hook("connect", n)`` on the n-th connect and ``hook("move", n)`` right after the
-n-th motion has started (``n`` = :attr:`SimRobotArm.moves_started`); from there a test
+n-th motion has started (``n`` = :attr:`SimArm.moves_started`); from there a test
 can latch a controller error (:meth:`set_error`, e.g. 31, the protective stop after a
 collision), freeze the motion (:meth:`freeze_motion`, a blocked arm that never
-arrives) or raise. :attr:`SimRobotArm.stops` counts the stop commands received.
+arrives) or raise. :attr:`SimArm.stops` counts the stop commands received.
 """
 
 from __future__ import annotations
@@ -207,7 +207,7 @@ def forward_position(joints: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 @dataclass(frozen=True)
-class SimRobotArmConfig:
+class SimArmConfig:
     """Config of the ``sim`` arm backend (the ``[arm]`` table)."""
 
     reach_m: float = field(default=0.70, metadata={"gt": 0.0, "le": 5.0, "doc": "max flange radius from base axis, m"})
@@ -228,7 +228,7 @@ class SimRobotArmConfig:
             raise ConfigError(f"z_max_m ({self.z_max_m}) must exceed z_min_m ({self.z_min_m})")
 
 
-class SimRobotArm(RobotArm):
+class SimArm(RobotArm):
     """Simulated xArm-5-like arm moving the flange of the shared :class:`SimWorld`.
 
     Thread-safe: the non-blocking API (:meth:`begin_move_linear`, :meth:`is_moving`,
@@ -242,12 +242,12 @@ class SimRobotArm(RobotArm):
     """
 
     backend_name = "sim"
-    Config = SimRobotArmConfig
+    Config = SimArmConfig
 
-    def __init__(self, config: SimRobotArmConfig | None = None, context: BackendContext | None = None, *,
+    def __init__(self, config: SimArmConfig | None = None, context: BackendContext | None = None, *,
                  world: SimWorld | None = None) -> None:
         super().__init__()
-        self.config = config or SimRobotArmConfig()
+        self.config = config or SimArmConfig()
         self.world = world if world is not None else world_from_context(context)
         self._rng = self.world.rng("arm", self.config.seed)
         self._lock = threading.RLock()

@@ -5,7 +5,7 @@ Geometry: 224 x 172 px, 60° x 45° field of view, pinhole + Brown–Conrady dis
 ``fx = (W/2) / tan(fov_x/2)`` (193.99 px) and ``fy = (H/2) / tan(fov_y/2)``
 (207.62 px); the principal point is the image centre ``((W-1)/2, (H-1)/2)`` plus a
 configurable offset. Each pixel's unit ray comes from
-:func:`cellcal.core.camera.pixel_grid_rays` of exactly these intrinsics, and the
+:func:`cellcal.devices.geometry.camera_model.pixel_grid_rays` of exactly these intrinsics, and the
 point is ``XYZ = ray * distance``, so a frame agrees with its intrinsics exactly.
 
 Rendering (vectorised, ~1–3 ms per frame): the rays are rotated into the world by
@@ -30,7 +30,7 @@ Randomness comes from one numpy Generator per camera, seeded from the config's
 Frames are paced by the simulated clock: each capture advances it to the next frame
 period (``1 / frame_rate_hz``) and stamps the frame with the simulated time.
 
-**Fault injection** (tests): :attr:`SimCamera3D.fault_hook`, if set, is called as
+**Fault injection** (tests): :attr:`SimCamera.fault_hook`, if set, is called as
 ``hook("connect", n)`` on the n-th connect and ``hook("capture", n)`` before the n-th
 frame is rendered (on the thread that captures: an emulator's server thread for
 ``o3r-emulated``, where it is the place to inject a wire fault into that very frame).
@@ -47,10 +47,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cellcal.core.camera import pixel_grid_rays
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import ConfigError
+from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
@@ -107,7 +107,7 @@ def o3r222_intrinsics(width: int = 224, height: int = 172, fov_x_deg: float = 60
 
 
 @dataclass(frozen=True)
-class SimCamera3DConfig:
+class SimCameraConfig:
     """Config of the ``sim`` camera backend (the ``[camera]`` table)."""
 
     width: int = field(default=224, metadata={"gt": 0, "le": 4096, "doc": "image width, px"})
@@ -145,7 +145,7 @@ class SimCamera3DConfig:
                                  self.principal_offset_px, **dist)
 
 
-class SimCamera3D(Camera3D):
+class SimCamera(Camera3D):
     """Simulated O3R222-like ToF camera rendering the shared :class:`SimWorld`.
 
     Args:
@@ -155,12 +155,12 @@ class SimCamera3D(Camera3D):
     """
 
     backend_name = "sim"
-    Config = SimCamera3DConfig
+    Config = SimCameraConfig
 
-    def __init__(self, config: SimCamera3DConfig | None = None, context: BackendContext | None = None, *,
+    def __init__(self, config: SimCameraConfig | None = None, context: BackendContext | None = None, *,
                  world: SimWorld | None = None) -> None:
         super().__init__()
-        self.config = config or SimCamera3DConfig()
+        self.config = config or SimCameraConfig()
         self.world = world if world is not None else world_from_context(context)
         self._intr = self.config.intrinsics()
         rays = pixel_grid_rays(self._intr)

@@ -25,7 +25,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from ._runner import Check, CheckResult, ConformanceError, ConformanceReport, run_check
+from cellcal.devices.errors import ConformanceError
+
+from ._runner import Check, CheckResult, ConformanceReport, run_check
 from .arm import ARM_CHECKS, ARM_RULES, ArmOptions, check_arm
 from .camera import CAMERA_CHECKS, CAMERA_RULES, CameraOptions, check_camera
 

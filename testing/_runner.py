@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from cellcal.devices.base import Device
-from cellcal.devices.errors import CellcalError
+from cellcal.devices.errors import CellcalError, ConformanceError
 
 D = TypeVar("D", bound=Device)
 O = TypeVar("O")  # noqa: E741 - options type
@@ -32,21 +32,6 @@ BAD_TIMEOUTS: tuple[Any, ...] = (0, 0.0, -1.0, math.nan, math.inf, -math.inf, Tr
 
 class Violation(Exception):  # noqa: N818 - internal signal, never escapes the runner
     """Raised inside a check when the backend breaks the rule under test."""
-
-
-class ConformanceError(CellcalError, AssertionError):  # type: ignore[misc]
-    """One or more contract rules were violated.
-
-    Derives from ``AssertionError`` so pytest reports it as a test failure, and from
-    :class:`~cellcal.devices.errors.CellcalError` like every error cellcal raises.
-
-    Attributes:
-        failures: The failed :class:`CheckResult` objects.
-    """
-
-    def __init__(self, message: str, failures: list[CheckResult]):
-        self.failures = failures
-        super().__init__(message)
 
 
 @dataclass(frozen=True)

@@ -14,13 +14,13 @@ from typing import Any
 
 from test_xarm_emulated import _open_fds as open_fds  # open descriptors as (number, target)
 
-from cellcal.core.calibrator import Calibrator, build_devices
-from cellcal.core.config import parse_config
-from cellcal.sims.arm import SimRobotArm
-from cellcal.sims.camera import SimCamera3D
+from cellcal.core.calibration.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.config import parse_config
+from cellcal.sims.arm import SimArm
+from cellcal.sims.camera import SimCamera
 from cellcal.sims.o3r.backend import EmulatedO3RCamera
 from cellcal.sims.o3r.emulator import O3REmulator
-from cellcal.sims.xarm.backend import EmulatedXArmRobot
+from cellcal.sims.xarm.backend import EmulatedXArmArm
 from cellcal.sims.xarm.emulator import XArmEmulator
 
 SIM_DOC = tomllib.loads(resources.files("cellcal.configs").joinpath("sim.toml").read_text())
@@ -54,8 +54,8 @@ class Probe:
     """The simulated devices behind a calibrator, and the emulators once they start."""
 
     calibrator: Calibrator
-    sim_arm: SimRobotArm
-    sim_camera: SimCamera3D
+    sim_arm: SimArm
+    sim_camera: SimCamera
     xarm: list[XArmEmulator] = field(default_factory=list)
     o3r: list[O3REmulator] = field(default_factory=list)
 
@@ -65,11 +65,11 @@ def make_probe(doc: dict[str, Any], source: str = "<fault-cell>") -> Probe:
     config = parse_config(doc, source)
     camera, arm = build_devices(config)
     inner = arm.inner
-    sim_arm = inner.sim_arm if isinstance(inner, EmulatedXArmRobot) else inner
+    sim_arm = inner.sim_arm if isinstance(inner, EmulatedXArmArm) else inner
     sim_camera = camera.sim if isinstance(camera, EmulatedO3RCamera) else camera
-    assert isinstance(sim_arm, SimRobotArm) and isinstance(sim_camera, SimCamera3D)
+    assert isinstance(sim_arm, SimArm) and isinstance(sim_camera, SimCamera)
     probe = Probe(Calibrator(config, camera, arm), sim_arm, sim_camera)
-    if isinstance(inner, EmulatedXArmRobot):
+    if isinstance(inner, EmulatedXArmArm):
         inner.on_emulator_started = probe.xarm.append
     if isinstance(camera, EmulatedO3RCamera):
         camera.on_emulator_started = probe.o3r.append

@@ -35,10 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.core.calibrator import build_devices
-from cellcal.core.camera import pixel_grid_rays
-from cellcal.core.config import load_config
+from cellcal.core.calibration.calibrator import build_devices
+from cellcal.core.calibration.config import load_config
 from cellcal.devices.errors import ConfigError, ProtocolError
+from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.types import Frame, Intrinsics
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.pcic import (

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from cellcal.core.journal import JOURNAL_SCHEMA, JournalWriter, read_journal
-from cellcal.core.report import write_bytes_atomic
+from cellcal.core.calibration.journal import JOURNAL_SCHEMA, JournalWriter, read_journal
+from cellcal.core.calibration.report import write_bytes_atomic
 from cellcal.devices.errors import CalibrationError
 
 

@@ -40,9 +40,9 @@ from typing import Any, Literal, get_args, get_origin, get_type_hints
 import pytest
 from fuzz_targets import CONFIG_DIR, dump_toml
 
-from cellcal.core.calibrator import build_devices
+from cellcal.core.calibration.calibrator import build_devices
+from cellcal.core.calibration.config import TOP_LEVEL_TABLES, CellConfig, load_config
 from cellcal.core.cli import build_parser, main
-from cellcal.core.config import TOP_LEVEL_TABLES, CellConfig, load_config
 from cellcal.devices.config import parse_section, schema_of
 from cellcal.devices.registry import default_registry
 from cellcal.sims.world import SimConfig
@@ -512,7 +512,7 @@ REAL_OPTIONS = [o for o in NUMERIC_OPTIONS if _is_real(o[3]) and o[:3:2] not in 
 def test_every_real_option_rejects_non_finite_values(command: str, positionals: list[str], option: str,
                                                      tp: Any, nargs: Any, value: str,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
-    """Checked by the parser itself (argparse ``type=``, e.g. :func:`cellcal.core.argtypes.real`)."""
+    """Checked by the parser itself (argparse ``type=``, e.g. :func:`cellcal.core.cli.argtypes.real`)."""
     with pytest.raises(SystemExit) as info:
         build_parser().parse_args([command, *positionals, option, *_values(value, nargs)])
     _assert_one_line(int(info.value.code or 0), capsys.readouterr().err, option, "finite")

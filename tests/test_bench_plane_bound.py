@@ -16,7 +16,7 @@ from types import ModuleType
 
 import pytest
 
-from cellcal.core.fullframe import fit_full_frame
+from cellcal.core.methods.fullframe import fit_full_frame
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "plane_fit.py"
 

@@ -14,10 +14,10 @@ from typing import Any
 
 import pytest
 
-from cellcal.core.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.config import parse_config
+from cellcal.core.calibration.report import RESULT_SCHEMA
 from cellcal.core.cli import main
-from cellcal.core.config import parse_config
-from cellcal.core.report import RESULT_SCHEMA
 
 SIM_TOML = resources.files("cellcal.configs").joinpath("sim.toml").read_text()
 

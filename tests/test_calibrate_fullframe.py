@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from test_calibrate_e2e import write_toml
 
-from cellcal.core.calibrator import Calibrator, PoseRecord, build_devices
+from cellcal.core.calibration.calibrator import Calibrator, PoseRecord, build_devices
+from cellcal.core.calibration.config import parse_config
+from cellcal.core.calibration.report import RESULT_SCHEMA, format_full_frame, format_table, plane_summary, summarize
 from cellcal.core.cli import main
-from cellcal.core.config import parse_config
-from cellcal.core.measure import expected_geometry
-from cellcal.core.planemap import PlaneMap
-from cellcal.core.report import RESULT_SCHEMA, format_full_frame, format_table, plane_summary, summarize
+from cellcal.core.geometry.planemap import PlaneMap
+from cellcal.core.methods.measure import expected_geometry
 from cellcal.devices.pose import Pose
 
 SIM = tomllib.loads(resources.files("cellcal.configs").joinpath("sim.toml").read_text())

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.camera import (
+from cellcal.devices.errors import CalibrationError
+from cellcal.devices.geometry.camera_model import (
     NominalFovModel,
     normalized_to_pixels,
     pixel_grid_rays,
@@ -19,7 +20,6 @@ from cellcal.core.camera import (
     triangulate,
     undistort_pixels,
 )
-from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Intrinsics
 

@@ -16,7 +16,7 @@ def test_lists_backends_with_their_origin(capsys: pytest.CaptureFixture[str]) ->
         assert f"  {name} " in cams
     for name in ("sim", "xarm", "ur"):
         assert f"  {name} " in arms
-    assert "cellcal.sims.backends:SimCamera3DBackend  [cellcal 0.1.0]" in cams
+    assert "cellcal.sims.camera:SimCamera  [cellcal 0.1.0]" in cams
 
 
 def test_scan_reports_every_backend_without_failing(capsys: pytest.CaptureFixture[str]) -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.core.config import load_config, plan_flange_poses
-from cellcal.core.measure import expected_geometry
+from cellcal.core.calibration.config import load_config, plan_flange_poses
+from cellcal.core.methods.measure import expected_geometry
 from cellcal.devices import ConfigError
 
 
@@ -137,7 +137,7 @@ def test_commented_optional_tables_in_sim_toml_show_the_real_defaults() -> None:
     import tomllib
     from dataclasses import fields
 
-    from cellcal.core.config import CellConfig
+    from cellcal.core.calibration.config import CellConfig
 
     text = (Path(__file__).parents[1] / "configs" / "sim.toml").read_text()
     block = text[text.index("# Optional tables"):text.index("# The simulated world")]

@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from cellcal.core.config import SIM_BACKENDS, parse_config
+from cellcal.core.calibration.config import SIM_BACKENDS, parse_config
 from cellcal.devices.registry import default_registry
 
 SIM_DOC: dict[str, Any] = tomllib.loads(
@@ -31,9 +31,9 @@ def _doc(camera: str, arm: str, *, sim: bool = True) -> dict[str, Any]:
 
 def _warnings(caplog: pytest.LogCaptureFixture, doc: dict[str, Any]) -> list[str]:
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="cellcal.core.config"):
+    with caplog.at_level(logging.WARNING, logger="cellcal.core.calibration.config"):
         parse_config(doc, "cell.toml")
-    return [r.getMessage() for r in caplog.records if r.name == "cellcal.core.config"]
+    return [r.getMessage() for r in caplog.records if r.name == "cellcal.core.calibration.config"]
 
 
 def test_sim_table_with_only_real_backends_is_one_warning(caplog: pytest.LogCaptureFixture) -> None:

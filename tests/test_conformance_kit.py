@@ -33,15 +33,8 @@ from cellcal.devices import (
     RobotArm,
     VendorError,
 )
-from cellcal.testing import (
-    ARM_RULES,
-    CAMERA_RULES,
-    ArmOptions,
-    CameraOptions,
-    ConformanceError,
-    check_arm,
-    check_camera,
-)
+from cellcal.devices.errors import ConformanceError
+from cellcal.testing import ARM_RULES, CAMERA_RULES, ArmOptions, CameraOptions, check_arm, check_camera
 
 _release_leaks = threading.Event()
 #: Fast timing for the timeout mutants: a call may take its timeout + 0.1 s.

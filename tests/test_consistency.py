@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.calibrator import Calibrator, build_devices
-from cellcal.core.config import look_at_pose, parse_config
-from cellcal.core.consistency import PosePlane, plane_consistency, plane_in_base
-from cellcal.core.planes import Plane, fit_plane_tls
+from cellcal.core.calibration.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.config import look_at_pose, parse_config
+from cellcal.core.geometry.consistency import PosePlane, plane_consistency, plane_in_base
+from cellcal.core.geometry.planes import Plane, fit_plane_tls
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 

@@ -86,7 +86,7 @@ def ur_factory(mocker: Any) -> Callable[[], RobotArm]:
     mocker.patch.object(test_ur.dashboard_client, "DashboardClient", side_effect=ctl.make_dashboard)
 
     def make() -> RobotArm:
-        arm = test_ur.URRobot.from_config({"backend": "ur", "host": test_ur.HOST, "stale_after_s": 0.05})
+        arm = test_ur.URArm.from_config({"backend": "ur", "host": test_ur.HOST, "stale_after_s": 0.05})
         clock = test_ur.FakeClock()
         arm._clock, arm._sleep = clock, clock.sleep
         return arm

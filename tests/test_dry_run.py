@@ -13,9 +13,9 @@ import pytest
 from fault_cells import cell_document
 from test_calibrate_e2e import write_toml
 
+from cellcal.core.calibration.config import parse_config, plan_flange_poses
+from cellcal.core.calibration.dryrun import check_moves, dry_run
 from cellcal.core.cli import main
-from cellcal.core.config import parse_config, plan_flange_poses
-from cellcal.core.dryrun import check_moves, dry_run
 
 MOVE = re.compile(r"^move (\d+)/(\d+): xyz=\(([-\d.]+), ([-\d.]+), ([-\d.]+)\) m "
                   r"rpy=\(([-\d.]+), ([-\d.]+), ([-\d.]+)\) deg; path (\S+)")

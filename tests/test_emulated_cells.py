@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 
-from cellcal.core.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.config import load_config, parse_config
 from cellcal.core.cli import main
-from cellcal.core.config import load_config, parse_config
 
 CONFIGS = Path(str(resources.files("cellcal.configs")))
 

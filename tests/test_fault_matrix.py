@@ -30,7 +30,7 @@ injected at the rename of the finished result: ``interrupt``, ``io_error`` (EIO)
 
 Every case checks: the typed error; the time stays within the case's timeout budget
 (a bound against hangs, not a speed target); the arm was told to stop, observed on
-the simulator/emulator side (``SimRobotArm.stops``, ``XArmEmulator.stop_requests``) —
+the simulator/emulator side (``SimArm.stops``, ``XArmEmulator.stop_requests``) —
 when the arm itself failed to connect, that no motion ever reached it instead; the
 arm is not moving; no thread or descriptor (socket, pty) is left open; the earlier
 ``result.json`` is byte-identical; nothing but it and the resume journal is in the
@@ -60,8 +60,8 @@ from fault_cells import (
     open_fds,
 )
 
-from cellcal.core.calibrator import Calibrator, run_to_file
-from cellcal.core.journal import journal_path, plan_fingerprint, read_journal
+from cellcal.core.calibration.calibrator import Calibrator, run_to_file
+from cellcal.core.calibration.journal import journal_path, plan_fingerprint, read_journal
 from cellcal.devices.errors import (
     CalibrationError,
     DeviceConnectionError,

@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
 
-from cellcal.core.config import load_config, parse_config
-from cellcal.core.fullframe import (
+from cellcal.core.calibration.config import load_config, parse_config
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe import (
     FullFrameSettings,
     check_gates,
     fit_full_frame,
     fit_plane_points,
 )
-from cellcal.core.planes import Plane
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError, CellcalError, ConfigError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
-from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig, noise_sigma_m
+from cellcal.sims.camera import SimCamera, SimCameraConfig, noise_sigma_m
 from cellcal.sims.scene import Box, Scene
 from cellcal.sims.world import SimWorld
 
@@ -31,14 +31,14 @@ INCLINATION_DEG = 80.0
 
 
 def _pose() -> Pose:
-    from cellcal.core.config import look_at_pose
+    from cellcal.core.calibration.config import look_at_pose
     return look_at_pose(np.array([0.3, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), HEIGHT_M,
                         math.radians(INCLINATION_DEG), "x")
 
 
-def _camera(boxes: tuple[Box, ...] = (), seed: int = 0, **cfg: object) -> tuple[SimCamera3D, Pose, Plane]:
+def _camera(boxes: tuple[Box, ...] = (), seed: int = 0, **cfg: object) -> tuple[SimCamera, Pose, Plane]:
     scene = Scene(np.zeros(3), np.array([0.0, 0.0, 1.0]), boxes)
-    cam = SimCamera3D(SimCamera3DConfig(seed=seed, **cfg), world=SimWorld(scene, Pose.identity(), seed=seed))
+    cam = SimCamera(SimCameraConfig(seed=seed, **cfg), world=SimWorld(scene, Pose.identity(), seed=seed))
     pose = _pose()
     truth = Plane.from_point_normal(np.zeros(3), [0.0, 0.0, 1.0]).transformed(pose.inv()).oriented_toward_origin()
     return cam, pose, truth
@@ -304,7 +304,7 @@ def test_all_invalid_and_mixed_frames() -> None:
     lying = _replace(frame, frame.xyz.copy(), frame.valid.copy())
     lying.xyz[:10] = np.nan
     assert math.isfinite(fit_full_frame(lying).tilt_x_rad)
-    small = SimCamera3D(SimCamera3DConfig(width=32, height=24), world=SimWorld(Scene(), Pose.identity())).render(pose)
+    small = SimCamera(SimCameraConfig(width=32, height=24), world=SimWorld(Scene(), Pose.identity())).render(pose)
     with pytest.raises(CalibrationError, match="frame 1 has shape"):
         fit_full_frame([frame, small])
 
@@ -377,7 +377,7 @@ def test_to_dict_is_json_in_degrees() -> None:
 
 
 def test_edge_margin_drops_rims_of_patches_not_of_isolated_outliers() -> None:
-    from cellcal.core.fullframe import _edge_keep
+    from cellcal.core.methods.fullframe import _edge_keep
     h, w = 20, 30
     valid = np.ones((h, w), bool)
     inl = np.ones((h, w), bool)

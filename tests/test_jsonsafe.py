@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.core.journal import JournalWriter, plan_fingerprint, read_journal
-from cellcal.core.report import write_json_atomic
+from cellcal.core.calibration.journal import JournalWriter, plan_fingerprint, read_journal
+from cellcal.core.calibration.report import write_json_atomic
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
 

@@ -18,22 +18,21 @@ from typing import Any
 import numpy as np
 import pytest
 
+from cellcal.core.calibration.config import CellConfig, MonitorSection, load_config, parse_config
 from cellcal.core.cli import main
-from cellcal.core.config import CellConfig, MonitorSection, load_config, parse_config
-from cellcal.core.monitor import (
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.monitor.monitor import (
     Baseline,
     DriftDetector,
     DriftEvent,
     Monitor,
     MonitoredCamera,
-    MonitorError,
     MonitorStatus,
     PlaneSample,
 )
-from cellcal.core.planes import Plane
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import CalibrationError, ConfigError
+from cellcal.devices.errors import CalibrationError, ConfigError, MonitorError
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.sims.world import SHARED_KEY, SimWorld
@@ -427,7 +426,7 @@ def test_cli_missing_baseline_exits_2(fast_config: Path, capsys: pytest.CaptureF
 ])
 def test_cli_bad_duration_or_frames_is_a_usage_error(fast_config: Path, argv: list[str], message: str,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
-    """Checked by the parser (cellcal.core.argtypes): status 2, one line, before any device is built."""
+    """Checked by the parser (cellcal.core.cli.argtypes): status 2, one line, before any device is built."""
     with pytest.raises(SystemExit) as info:
         main(["monitor", "--config", str(fast_config), *argv])
     assert info.value.code == 2

@@ -20,7 +20,7 @@ from cellcal.devices.errors import (
     VendorError,
 )
 from cellcal.drivers.o3r.camera import O3RCamera, O3RConfig
-from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig
+from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.o3r.backend import EmulatedO3RCamera, EmulatedO3RConfig
 from cellcal.sims.o3r.emulator import O3REmulator, wait_until
 
@@ -32,21 +32,21 @@ def o3r_threads() -> list[str]:
 
 
 @pytest.fixture
-def sim() -> Iterator[SimCamera3D]:
-    cam = SimCamera3D(SimCamera3DConfig(noise=False), BackendContext(seed=3)).connect()
+def sim() -> Iterator[SimCamera]:
+    cam = SimCamera(SimCameraConfig(noise=False), BackendContext(seed=3)).connect()
     yield cam
     cam.close()
 
 
 @pytest.fixture
-def emu_idle(sim: SimCamera3D) -> Iterator[O3REmulator]:
+def emu_idle(sim: SimCamera) -> Iterator[O3REmulator]:
     emu = O3REmulator(sim, state="IDLE").start()
     yield emu
     emu.close()
 
 
 @pytest.fixture
-def emu_run(sim: SimCamera3D) -> Iterator[O3REmulator]:
+def emu_run(sim: SimCamera) -> Iterator[O3REmulator]:
     emu = O3REmulator(sim, state="RUN", frame_rate_hz=50.0).start()
     yield emu
     emu.close()
@@ -57,7 +57,7 @@ def driver(emu: O3REmulator, **kw: object) -> O3RCamera:
     return O3RCamera(cfg).connect(timeout=3.0)
 
 
-def assert_matches_scene(frame_xyz: np.ndarray, frame_dist: np.ndarray, sim: SimCamera3D) -> None:
+def assert_matches_scene(frame_xyz: np.ndarray, frame_dist: np.ndarray, sim: SimCamera) -> None:
     ref = sim.render(sim.world.camera_pose())
     ok = np.isfinite(frame_dist)
     assert np.array_equal(ok, ref.valid)
@@ -67,7 +67,7 @@ def assert_matches_scene(frame_xyz: np.ndarray, frame_dist: np.ndarray, sim: Sim
 
 
 # ---------------------------------------------------------------------- frames
-def test_software_trigger_one_frame_per_capture(emu_idle: O3REmulator, sim: SimCamera3D) -> None:
+def test_software_trigger_one_frame_per_capture(emu_idle: O3REmulator, sim: SimCamera) -> None:
     cam = driver(emu_idle, trigger="software")
     try:
         frames = [cam.capture(2.0) for _ in range(3)]
@@ -80,7 +80,7 @@ def test_software_trigger_one_frame_per_capture(emu_idle: O3REmulator, sim: SimC
     assert o3r_threads() == [] or all(n.startswith("o3r-emu") for n in o3r_threads())
 
 
-def test_free_run_newest_frames_and_stale_is_error(emu_run: O3REmulator, sim: SimCamera3D) -> None:
+def test_free_run_newest_frames_and_stale_is_error(emu_run: O3REmulator, sim: SimCamera) -> None:
     cam = driver(emu_run, trigger="free_run")
     try:
         seqs = [cam.capture(2.0).sequence for _ in range(4)]
@@ -97,7 +97,7 @@ def test_free_run_newest_frames_and_stale_is_error(emu_run: O3REmulator, sim: Si
         cam.close()
 
 
-def test_intrinsics_round_trip_at_float32(emu_idle: O3REmulator, sim: SimCamera3D) -> None:
+def test_intrinsics_round_trip_at_float32(emu_idle: O3REmulator, sim: SimCamera) -> None:
     cam = driver(emu_idle, trigger="software")
     try:
         got, want = cam.intrinsics, sim.intrinsics
@@ -179,7 +179,7 @@ def test_async_error_is_raised_then_stream_continues(emu_idle: O3REmulator) -> N
 
 
 @pytest.mark.parametrize("trigger", ["software", "free_run"])
-def test_dropped_connection_reconnects(sim: SimCamera3D, trigger: str) -> None:
+def test_dropped_connection_reconnects(sim: SimCamera, trigger: str) -> None:
     with O3REmulator(sim, state="IDLE" if trigger == "software" else "RUN", frame_rate_hz=50.0) as emu:
         cam = driver(emu, trigger=trigger, reconnect_backoff_s=0.05)
         try:
@@ -225,7 +225,7 @@ def test_protocol_faults_raise_then_recover(emu_run: O3REmulator, kind: str, par
         cam.close()
 
 
-def test_no_threads_left_after_close(sim: SimCamera3D) -> None:
+def test_no_threads_left_after_close(sim: SimCamera) -> None:
     before = set(threading.enumerate())
     emu = O3REmulator(sim, state="RUN", frame_rate_hz=50.0).start()
     cam = driver(emu, trigger="free_run")
@@ -241,7 +241,7 @@ def test_no_threads_left_after_close(sim: SimCamera3D) -> None:
 # ---------------------------------------------------------------------- emulated backend + standalone
 def test_emulated_backend_equals_pure_sim_for_same_seed() -> None:
     doc = {"sim": {}, "cell": {"seed": 11}}
-    pure = SimCamera3D(SimCamera3DConfig(), BackendContext(document=doc, seed=11)).connect()
+    pure = SimCamera(SimCameraConfig(), BackendContext(document=doc, seed=11)).connect()
     emu = EmulatedO3RCamera(EmulatedO3RConfig(), BackendContext(document=doc, seed=11)).connect(timeout=5.0)
     try:
         assert emu.intrinsics.fx == float(np.float32(pure.intrinsics.fx))

@@ -7,8 +7,8 @@ import struct
 import numpy as np
 import pytest
 
-from cellcal.core.camera import pixel_grid_rays
 from cellcal.devices.errors import ProtocolError
+from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.types import Frame, Intrinsics
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.pcic import (

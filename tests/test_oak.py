@@ -20,7 +20,6 @@ import pytest
 dai = pytest.importorskip("depthai")
 from _vendor_autospec import strict_autospec  # noqa: E402
 
-from cellcal.core.camera import project  # noqa: E402
 from cellcal.devices.base import BackendContext  # noqa: E402
 from cellcal.devices.errors import (  # noqa: E402
     ConfigError,
@@ -28,10 +27,11 @@ from cellcal.devices.errors import (  # noqa: E402
     DeviceTimeoutError,
     MissingDependencyError,
 )
+from cellcal.devices.geometry.camera_model import project  # noqa: E402
 from cellcal.devices.registry import default_registry  # noqa: E402
 from cellcal.devices.types import Intrinsics  # noqa: E402
-from cellcal.drivers import usb_scan  # noqa: E402
-from cellcal.drivers.oak import OakCamera  # noqa: E402
+from cellcal.drivers.oak import usb_scan  # noqa: E402
+from cellcal.drivers.oak.camera import OakCamera  # noqa: E402
 
 REAL_DEVICE = dai.Device
 REAL_PIPELINE = dai.Pipeline

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cellcal.core.camera import NominalFovModel, project
-from cellcal.core.paper import (
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.paper import (
     GRID_NAMES,
     error_pct,
     grid_phi_theta,
@@ -21,9 +21,9 @@ from cellcal.core.paper import (
     plane_fit_angle,
     spherical_to_cartesian,
 )
-from cellcal.core.paper_data import load_paper_table
-from cellcal.core.planes import Plane
+from cellcal.core.methods.paper_data import load_paper_table
 from cellcal.devices.errors import CalibrationError
+from cellcal.devices.geometry.camera_model import NominalFovModel, project
 from cellcal.devices.types import Intrinsics
 
 DATA = Path(__file__).parent / "data"

@@ -10,14 +10,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.camera import pixel_rays
-from cellcal.core.config import look_at_pose
-from cellcal.core.planemap import PlaneMap
-from cellcal.core.planes import Plane
+from cellcal.core.calibration.config import look_at_pose
+from cellcal.core.geometry.planemap import PlaneMap
+from cellcal.core.geometry.planes import Plane
 from cellcal.devices.errors import CalibrationError
+from cellcal.devices.geometry.camera_model import pixel_rays
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Intrinsics
-from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig, o3r222_intrinsics
+from cellcal.sims.camera import SimCamera, SimCameraConfig, o3r222_intrinsics
 from cellcal.sims.scene import Box, Scene
 from cellcal.sims.world import SimWorld
 
@@ -91,9 +91,9 @@ def test_pixel_to_base_equals_the_sim_ray_cast(lens: str) -> None:
 
 
 def test_pixel_to_camera_matches_a_rendered_noise_free_sim_frame() -> None:
-    cfg = SimCamera3DConfig(noise=False, quantisation_m=0.0)  # the sim's default distorted lens
+    cfg = SimCameraConfig(noise=False, quantisation_m=0.0)  # the sim's default distorted lens
     scene = Scene(np.zeros(3), np.array([0.0, 0.0, 1.0]), (Box((0.5, 0.3), (0.05, 0.05, 0.05)),))
-    cam = SimCamera3D(cfg, world=SimWorld(scene, Pose.identity()))
+    cam = SimCamera(cfg, world=SimWorld(scene, Pose.identity()))
     camera_in_base = look_at_pose(np.array([0.3, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), 0.46,
                                   math.radians(80.0), "x")
     frame = cam.render(camera_in_base)

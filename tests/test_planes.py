@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.planes import (
+from cellcal.core.geometry.planes import (
     Plane,
     PlaneFit,
     fit_plane_ols,

@@ -16,10 +16,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from cellcal.core.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.calibrator import Calibrator, build_devices
+from cellcal.core.calibration.config import parse_config
 from cellcal.core.cli import main
-from cellcal.core.cli_record import exact_part, record, replay_session
-from cellcal.core.config import parse_config
+from cellcal.core.cli.record import exact_part, record, replay_session
 from cellcal.devices import (
     BackendContext,
     ConfigError,
@@ -29,13 +29,10 @@ from cellcal.devices import (
     VendorError,
     default_registry,
 )
+from cellcal.devices.errors import RecordingError, RecordingFileError, ReplayExhaustedError, ReplayMismatchError
 from cellcal.devices.recording import (
     CHANNELS,
     RECORDING_FORMAT,
-    RecordingError,
-    RecordingFileError,
-    ReplayExhaustedError,
-    ReplayMismatchError,
     SessionRecorder,
     decode_error,
     decode_frame,
@@ -45,9 +42,9 @@ from cellcal.devices.recording import (
     encode_pose,
     read_recording,
 )
-from cellcal.drivers.replay import ReplayArm, ReplayCamera
-from cellcal.sims.arm import SimRobotArm
-from cellcal.sims.camera import SimCamera3D
+from cellcal.drivers.replay.backends import ReplayArm, ReplayCamera
+from cellcal.sims.arm import SimArm
+from cellcal.sims.camera import SimCamera
 
 SIM_DOC: dict[str, Any] = tomllib.loads(resources.files("cellcal.configs").joinpath("sim.toml").read_text())
 N_POSES = len(SIM_DOC["plan"]["heights_m"])
@@ -117,7 +114,7 @@ def test_replay_reproduces_the_recorded_calibration_exactly(session: Any, regist
 
 
 def test_frames_poses_and_errors_round_trip_bit_exact() -> None:
-    camera, arm = SimCamera3D(), SimRobotArm()
+    camera, arm = SimCamera(), SimArm()
     with camera, arm:
         frame = camera.capture(2.0)
         pose = arm.get_pose(2.0)
@@ -342,7 +339,7 @@ def test_a_kept_failed_run_replays_to_the_same_error(tmp_path: Path, registry: R
 
 
 def test_recorded_capture_errors_replay_as_the_same_type(tmp_path: Path, registry: Registry) -> None:
-    camera = SimCamera3D()
+    camera = SimCamera()
     calls: list[str] = []
 
     def hook(what: str, n: int) -> None:
@@ -352,7 +349,7 @@ def test_recorded_capture_errors_replay_as_the_same_type(tmp_path: Path, registr
 
     camera.fault_hook = hook
     path = tmp_path / "cam.mcap"
-    with SessionRecorder(path) as rec, rec.camera(camera) as cam, rec.arm(SimRobotArm()) as _arm:
+    with SessionRecorder(path) as rec, rec.camera(camera) as cam, rec.arm(SimArm()) as _arm:
         first = cam.capture(1.0)
         with pytest.raises(DeviceTimeoutError):
             cam.capture(1.0)
@@ -370,7 +367,7 @@ def test_recorded_capture_errors_replay_as_the_same_type(tmp_path: Path, registr
 # ---------------------------------------------------------------------------- device contract
 def _sim(kind: str) -> Any:
     ctx = BackendContext(source="<sim.toml>", section=kind, document=SIM_DOC, shared={}, seed=3)
-    cls = SimCamera3D if kind == "camera" else SimRobotArm
+    cls = SimCamera if kind == "camera" else SimArm
     return cls.from_config({**SIM_DOC[kind], "backend": "sim"}, ctx)
 
 
@@ -441,8 +438,8 @@ def test_replay_entry_points_when_declared() -> None:
     names = {(e.kind, e.name): e.target for e in Registry().entries()}
     if ("camera", "replay") not in names:
         pytest.skip("pyproject.toml does not declare the replay entry points yet")
-    assert names[("camera", "replay")] == "cellcal.drivers.replay:ReplayCamera"
-    assert names[("arm", "replay")] == "cellcal.drivers.replay:ReplayArm"
+    assert names[("camera", "replay")] == "cellcal.drivers.replay.backends:ReplayCamera"
+    assert names[("arm", "replay")] == "cellcal.drivers.replay.backends:ReplayArm"
     assert Registry().get("camera", "replay") is ReplayCamera and Registry().get("arm", "replay") is ReplayArm
 
 

@@ -19,9 +19,9 @@ import pytest
 from fault_cells import SIM_DOC, Probe, cell_document, interrupt, make_probe
 from test_calibrate_e2e import write_toml
 
-from cellcal.core.calibrator import run_to_file
+from cellcal.core.calibration.calibrator import run_to_file
+from cellcal.core.calibration.journal import journal_path, plan_fingerprint, read_journal
 from cellcal.core.cli import main
-from cellcal.core.journal import journal_path, plan_fingerprint, read_journal
 from cellcal.devices.errors import ConfigError, SafetyError
 from cellcal.devices.pose import Pose
 

@@ -33,13 +33,13 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 from test_safety import RecordingArm
 
-from cellcal.core.calibrator import Calibrator
-from cellcal.core.config import CellConfig, parse_config, plan_flange_poses
+from cellcal.core.calibration.calibrator import Calibrator
+from cellcal.core.calibration.config import CellConfig, parse_config, plan_flange_poses
 from cellcal.devices import Pose
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import CellcalError, SafetyError, VendorError
 from cellcal.devices.safety import SafeArm
-from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig
+from cellcal.sims.camera import SimCamera, SimCameraConfig
 
 MARGIN_M = 1e-4
 SAMPLES = 401
@@ -114,7 +114,7 @@ def scenarios(draw: st.DrawFn) -> tuple[dict[str, Any], Pose, int]:
 
 #: No "explain" phase: it re-runs a failure thousands of times (minutes) to annotate it.
 PHASES = (Phase.explicit, Phase.reuse, Phase.generate, Phase.target, Phase.shrink)
-CAMERA_CONFIG = SimCamera3DConfig(noise=False, distortion=False, width=64, height=48)
+CAMERA_CONFIG = SimCameraConfig(noise=False, distortion=False, width=64, height=48)
 
 
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow], phases=PHASES)
@@ -130,7 +130,7 @@ def test_nothing_outside_the_envelope_reaches_the_backend(scenario: tuple[dict[s
     offending = {i + 1 for i, m in enumerate(slack) if m < 0}
 
     inner = RecordingArm(start, error)
-    camera = SimCamera3D(CAMERA_CONFIG, BackendContext(document={"sim": {}}))
+    camera = SimCamera(CAMERA_CONFIG, BackendContext(document={"sim": {}}))
     calibrator = Calibrator(config, camera, SafeArm(inner, config.safety_limits()))
     try:
         calibrator.run()
@@ -166,7 +166,7 @@ def test_every_violating_plan_names_its_pose_in_one_line(scenario: tuple[dict[st
     plan = config.plan
     target_only = [margin(config, None, p, plan.speed_m_s, plan.acceleration_m_s2) for p in poses]
     assume(all(abs(m) > MARGIN_M for m in target_only))
-    calibrator = Calibrator(config, SimCamera3D(CAMERA_CONFIG), SafeArm(RecordingArm(start), config.safety_limits()))
+    calibrator = Calibrator(config, SimCamera(CAMERA_CONFIG), SafeArm(RecordingArm(start), config.safety_limits()))
     bad = [i + 1 for i, m in enumerate(target_only) if m < 0]
     if not bad:
         calibrator.check_plan(None)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cellcal.core.camera import pixel_grid_rays
-from cellcal.core.planes import Plane
-from cellcal.core.sampling import sample_window
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.geometry.sampling import sample_window
 from cellcal.devices import CalibrationError, Frame, Intrinsics
+from cellcal.devices.geometry.camera_model import pixel_grid_rays
 
 INTR = Intrinsics(40, 30, 35.0, 35.0, 19.5, 14.5, k1=-0.05)
 PLANE = Plane(np.array([0.0, -0.17364817766693033, -0.984807753012208]), 0.5)

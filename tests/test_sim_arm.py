@@ -16,24 +16,24 @@ from cellcal.devices.registry import default_registry
 from cellcal.sims.arm import (
     ERROR_MEANINGS,
     ERROR_OUT_OF_REACH,
-    SimRobotArm,
-    SimRobotArmConfig,
+    SimArm,
+    SimArmConfig,
     error_meaning,
     forward_position,
     inverse_kinematics,
     trapezoid_duration,
     trapezoid_position,
 )
-from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig
+from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.scene import Scene
 from cellcal.sims.world import SimWorld
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)
 
 
-def make_arm(**cfg: object) -> SimRobotArm:
+def make_arm(**cfg: object) -> SimArm:
     world = SimWorld(Scene(), mount=Pose.identity(), flange_pose=Pose(DOWN, np.array([0.3, 0.0, 0.5])), seed=1)
-    return SimRobotArm(SimRobotArmConfig(**cfg), world=world)  # type: ignore[arg-type]
+    return SimArm(SimArmConfig(**cfg), world=world)  # type: ignore[arg-type]
 
 
 def test_trapezoid_profile_formulas() -> None:
@@ -178,8 +178,8 @@ def test_joint_positions_reproduce_the_flange_and_are_continuous() -> None:
 def test_camera_follows_the_arm() -> None:
     world = SimWorld(Scene(), mount=Pose(Rotation.identity(), np.array([0.0, 0.0, 0.03])),
                      flange_pose=Pose(DOWN, np.array([0.3, 0.0, 0.5])), seed=2)
-    arm = SimRobotArm(SimRobotArmConfig(time_scale=0.0), world=world)
-    cam = SimCamera3D(SimCamera3DConfig(noise=False, quantisation_m=0.0, distortion=False), world=world)
+    arm = SimArm(SimArmConfig(time_scale=0.0), world=world)
+    cam = SimCamera(SimCameraConfig(noise=False, quantisation_m=0.0, distortion=False), world=world)
     with arm, cam:
         centre = cam.capture(timeout=1.0).distance[85:87, 111:113].mean()
         assert centre == pytest.approx(0.47, abs=1e-5)  # flange 0.5 m minus the 3 cm mount
@@ -194,13 +194,13 @@ def test_camera_follows_the_arm() -> None:
 
 def test_registered_as_sim_backends_sharing_one_world() -> None:
     reg = default_registry()
-    assert reg.get("camera", "sim") is SimCamera3D
-    assert reg.get("arm", "sim") is SimRobotArm
+    assert reg.get("camera", "sim") is SimCamera
+    assert reg.get("arm", "sim") is SimArm
     doc = {"sim": {"seed": 3}, "arm": {"backend": "sim", "time_scale": 0.0}, "camera": {"backend": "sim"}}
     ctx = BackendContext(source="cell.toml", document=doc)
     arm = reg.create_arm(doc["arm"], ctx)
     cam = reg.create_camera(doc["camera"], ctx)
-    assert isinstance(arm, SimRobotArm) and isinstance(cam, SimCamera3D)
+    assert isinstance(arm, SimArm) and isinstance(cam, SimCamera)
     assert arm.world is cam.world and arm.world.seed == 3
     with arm, cam:  # moving the arm is seen by the camera built from the same document
         d0 = float(np.nanmedian(cam.capture(timeout=1.0).distance))
@@ -213,9 +213,9 @@ def test_inconsistent_arm_config_is_a_config_error() -> None:
     from cellcal.devices.errors import ConfigError
 
     with pytest.raises(ConfigError, match="reach_m"):
-        SimRobotArm.from_config({"reach_m": 0.1, "min_radius_m": 0.2}, BackendContext(section="arm"))
+        SimArm.from_config({"reach_m": 0.1, "min_radius_m": 0.2}, BackendContext(section="arm"))
     with pytest.raises(ConfigError, match=r"arm\.time_scale"):
-        SimRobotArm.from_config({"time_scale": -1.0}, BackendContext(section="arm"))
+        SimArm.from_config({"time_scale": -1.0}, BackendContext(section="arm"))
 
 
 def test_sim_error_codes_mean_what_the_xarm_driver_says_they_mean() -> None:

@@ -8,20 +8,20 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.camera import pixel_grid_rays, project
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError, NotConnectedError
+from cellcal.devices.geometry.camera_model import pixel_grid_rays, project
 from cellcal.devices.pose import Pose
-from cellcal.sims.camera import CONF_INVALID, CONF_LOW_AMPLITUDE, CONF_OUT_OF_RANGE, SimCamera3D, SimCamera3DConfig
+from cellcal.sims.camera import CONF_INVALID, CONF_LOW_AMPLITUDE, CONF_OUT_OF_RANGE, SimCamera, SimCameraConfig
 from cellcal.sims.scene import Box, Scene
 from cellcal.sims.world import SimWorld, world_from_context
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)  # camera z along world -z
 
 
-def make_camera(camera_pose: Pose, scene: Scene | None = None, world_seed: int = 7, **cfg: object) -> SimCamera3D:
+def make_camera(camera_pose: Pose, scene: Scene | None = None, world_seed: int = 7, **cfg: object) -> SimCamera:
     world = SimWorld(scene or Scene(), mount=Pose.identity(), flange_pose=camera_pose, seed=world_seed)
-    return SimCamera3D(SimCamera3DConfig(**cfg), world=world)  # type: ignore[arg-type]
+    return SimCamera(SimCameraConfig(**cfg), world=world)  # type: ignore[arg-type]
 
 
 def tilted_pose(height_m: float, tilt_deg: float) -> Pose:
@@ -174,7 +174,7 @@ def test_backends_built_from_one_document_share_the_world() -> None:
         "camera": {"backend": "sim", "noise": False, "quantisation_m": 0.0},
     }
     ctx = BackendContext(source="cell.toml", section="camera", document=doc)
-    cam = SimCamera3D.from_config(doc["camera"], ctx)
+    cam = SimCamera.from_config(doc["camera"], ctx)
     assert world_from_context(ctx) is cam.world
     assert cam.world.seed == 5
     assert cam.world.mount.translation.tolist() == [0.0, 0.0, 0.02]
@@ -183,7 +183,7 @@ def test_backends_built_from_one_document_share_the_world() -> None:
     assert frame.distance[85:87, 111:113].mean() == pytest.approx(0.33, abs=1e-4)
 
     with pytest.raises(ConfigError, match=r"camera\.nosie"):
-        SimCamera3D.from_config({"nosie": True}, ctx)
+        SimCamera.from_config({"nosie": True}, ctx)
     bad = BackendContext(source="cell.toml", section="camera", document={"sim": {"plane_normal": [0, 0, 0]}})
     with pytest.raises(ConfigError, match="plane_normal"):
-        SimCamera3D.from_config({}, bad)
+        SimCamera.from_config({}, bad)

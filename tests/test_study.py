@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cellcal.core import study
 from cellcal.core.cli import main
-from cellcal.core.study import (
+from cellcal.core.study import trials as study
+from cellcal.core.study.trials import (
     COLUMNS,
     FULL_FRAME,
     GRID_METHODS,
@@ -162,7 +162,7 @@ def test_settings_reject_nonsense() -> None:
 
 def test_plots_are_png_files(result: study.StudyResult, tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
-    from cellcal.core.study_plots import PLOT_FILES, write_plots
+    from cellcal.core.study.plots import PLOT_FILES, write_plots
 
     paths = write_plots(result, tmp_path)
     assert set(paths) == {"perimeter", "clutter", "plane"}  # one noise level / inclination: no 4th plot
@@ -175,7 +175,7 @@ def test_plots_are_png_files(result: study.StudyResult, tmp_path: Path) -> None:
 
 
 def test_plots_need_matplotlib(monkeypatch: pytest.MonkeyPatch, result: study.StudyResult, tmp_path: Path) -> None:
-    from cellcal.core import study_plots
+    from cellcal.core.study import plots as study_plots
 
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
     with pytest.raises(MissingDependencyError, match=r"cellcal\[plots\]"):

@@ -10,15 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.transforms import (
-    FrameChain,
-    Pose,
-    pose_from_ur,
-    pose_from_xarm,
-    pose_to_ur,
-    pose_to_xarm,
-)
+from cellcal.core.geometry.frames import FrameChain
 from cellcal.devices.errors import CalibrationError
+from cellcal.devices.geometry.vendor_poses import pose_from_ur, pose_from_xarm, pose_to_ur, pose_to_xarm
+from cellcal.devices.pose import Pose
 
 
 def random_pose(rng: np.random.Generator) -> Pose:

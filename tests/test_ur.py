@@ -25,7 +25,6 @@ import rtde_receive
 from _vendor_autospec import pybind_signatures, strict_autospec
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.transforms import pose_from_xarm, pose_to_ur, pose_to_xarm
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import (
     ConfigError,
@@ -35,9 +34,10 @@ from cellcal.devices.errors import (
     SafetyError,
     VendorError,
 )
+from cellcal.devices.geometry.vendor_poses import pose_from_xarm, pose_to_ur, pose_to_xarm
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
-from cellcal.drivers.ur import URRobot
+from cellcal.drivers.ur.arm import URArm
 
 HOST = "192.168.56.101"
 # The real classes, kept before the fixtures patch the module attributes.
@@ -186,7 +186,7 @@ def vendor(mocker: Any, ctl: FakeController) -> FakeController:
 
 @pytest.fixture
 def robot(vendor: FakeController) -> Any:
-    arm = URRobot.from_config({"backend": "ur", "host": HOST, "stale_after_s": 0.05})
+    arm = URArm.from_config({"backend": "ur", "host": HOST, "stale_after_s": 0.05})
     clock = FakeClock()
     arm._clock, arm._sleep = clock, clock.sleep
     arm.connect(timeout=2.0)
@@ -194,20 +194,20 @@ def robot(vendor: FakeController) -> Any:
     arm.close()
 
 
-def test_connect_sets_tcp_to_flange_and_reads_identity(robot: URRobot, ctl: FakeController) -> None:
+def test_connect_sets_tcp_to_flange_and_reads_identity(robot: URArm, ctl: FakeController) -> None:
     assert ctl.tcp == [0.0] * 6
     info = robot.info()
     assert (info.vendor, info.model, info.serial) == ("Universal Robots", "UR5", "20235500123")
 
 
-def test_pose_and_joints_from_the_receive_interface(robot: URRobot, ctl: FakeController) -> None:
+def test_pose_and_joints_from_the_receive_interface(robot: URArm, ctl: FakeController) -> None:
     pose = robot.get_pose()
     np.testing.assert_allclose(pose.translation, [0.30, -0.10, 0.45])
     assert pose.rotation.magnitude() == pytest.approx(math.pi)
     np.testing.assert_allclose(robot.joint_positions(), ctl.q)
 
 
-def test_ur_and_xarm_conversions_agree_on_one_physical_pose(robot: URRobot, ctl: FakeController) -> None:
+def test_ur_and_xarm_conversions_agree_on_one_physical_pose(robot: URArm, ctl: FakeController) -> None:
     physical = Pose(Rotation.from_euler("xyz", [0.4, -0.7, 2.1]), np.array([0.412, -0.088, 0.305]))
     ctl.pose = [float(v) for v in pose_to_ur(physical)]   # what the UR controller reports
     from_ur = robot.get_pose()
@@ -224,21 +224,21 @@ def test_ur_and_xarm_conversions_agree_on_one_physical_pose(robot: URRobot, ctl:
     assert ctl.moves[-1][1:] == (0.2, 1.0, True)
 
 
-def test_move_linear_arrives(robot: URRobot, ctl: FakeController) -> None:
+def test_move_linear_arrives(robot: URArm, ctl: FakeController) -> None:
     target = Pose.from_xyz_rotvec([0.35, 0.05, 0.40], [math.pi, 0.0, 0.0])
     robot.move_linear(target, speed=0.25, acceleration=1.2, timeout=5.0)
     assert robot.get_pose().is_close(target, atol_m=1e-12, atol_rad=1e-12)
 
 
 @pytest.mark.parametrize(("speed", "acc", "what"), [(3.5, 1.0, "speed 3.5 m/s"), (0.2, 151.0, "acceleration 151")])
-def test_limits_beyond_ur_are_rejected_before_moving(robot: URRobot, ctl: FakeController,
+def test_limits_beyond_ur_are_rejected_before_moving(robot: URArm, ctl: FakeController,
                                                       speed: float, acc: float, what: str) -> None:
     with pytest.raises(SafetyError, match=what):
         robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=speed, acceleration=acc)
     assert ctl.moves == []
 
 
-def test_protective_stop_in_the_middle_of_a_plan(robot: URRobot, ctl: FakeController) -> None:
+def test_protective_stop_in_the_middle_of_a_plan(robot: URArm, ctl: FakeController) -> None:
     plan = [Pose.from_xyz_rotvec([0.30 + 0.02 * i, 0.0, 0.40], [math.pi, 0.0, 0.0]) for i in range(4)]
     robot.move_linear(plan[0], speed=0.2, acceleration=1.0)
     ctl.pstop_at_poll = 2                               # the arm hits something during move 2
@@ -256,20 +256,20 @@ def test_protective_stop_in_the_middle_of_a_plan(robot: URRobot, ctl: FakeContro
     assert robot.get_pose().is_close(plan[3], atol_m=1e-12, atol_rad=1e-12)
 
 
-def test_false_return_explained_when_script_stopped(robot: URRobot, ctl: FakeController) -> None:
+def test_false_return_explained_when_script_stopped(robot: URArm, ctl: FakeController) -> None:
     ctl.program = False                                 # someone pressed stop on the pendant
     with pytest.raises(VendorError, match=r"control script is not running.*STOPPED"):
         robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=0.1, acceleration=1.0)
 
 
-def test_emergency_stop_cannot_be_cleared_remotely(robot: URRobot, ctl: FakeController) -> None:
+def test_emergency_stop_cannot_be_cleared_remotely(robot: URArm, ctl: FakeController) -> None:
     ctl.safety = 7
     with pytest.raises(VendorError, match="emergency stop") as err:
         robot.clear_errors()
     assert err.value.code == 7
 
 
-def test_stale_receive_stream_is_rebuilt(robot: URRobot, ctl: FakeController) -> None:
+def test_stale_receive_stream_is_rebuilt(robot: URArm, ctl: FakeController) -> None:
     first = ctl.receives[-1]
     robot.get_pose()
     ctl.kill_stream(first)                              # values freeze, isConnected() stays True
@@ -281,14 +281,14 @@ def test_stale_receive_stream_is_rebuilt(robot: URRobot, ctl: FakeController) ->
     assert pose.translation[0] == pytest.approx(0.31)
 
 
-def test_fresh_stream_not_rebuilt(robot: URRobot) -> None:
+def test_fresh_stream_not_rebuilt(robot: URArm) -> None:
     for _ in range(5):
         robot._sleep(1.0)
         robot.get_pose()
     assert robot.receive_rebuilds == 0
 
 
-def test_motion_timeout_stops_the_arm(robot: URRobot, ctl: FakeController) -> None:
+def test_motion_timeout_stops_the_arm(robot: URArm, ctl: FakeController) -> None:
     robot._control.getAsyncOperationProgressEx.side_effect = lambda: _running_status(True)
     with pytest.raises(DeviceTimeoutError, match="did not finish"):
         robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=0.1,
@@ -302,7 +302,7 @@ def _running_status(running: bool) -> Any:
     return status
 
 
-def test_controller_that_disappears(robot: URRobot, ctl: FakeController) -> None:
+def test_controller_that_disappears(robot: URArm, ctl: FakeController) -> None:
     robot._control.isConnected.return_value = False
     robot._control.moveL.side_effect = None
     robot._control.moveL.return_value = False
@@ -313,7 +313,7 @@ def test_controller_that_disappears(robot: URRobot, ctl: FakeController) -> None
 def test_remote_control_off_is_reported(vendor: FakeController, mocker: Any) -> None:
     mocker.patch.object(rtde_control, "RTDEControlInterface",
                         side_effect=RuntimeError("ur_rtde: Please enable remote control on the robot!"))
-    arm = URRobot.from_config({"host": HOST})
+    arm = URArm.from_config({"host": HOST})
     with pytest.raises(DeviceConnectionError, match="Remote Control"):
         arm.connect(timeout=2.0)
     assert not arm.connected
@@ -331,7 +331,7 @@ def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeCon
         return c
 
     mocker.patch.object(rtde_control, "RTDEControlInterface", side_effect=slow_control)
-    arm = URRobot.from_config({"host": HOST})
+    arm = URArm.from_config({"host": HOST})
     arm._caller.join = lambda timeout: None               # close() must not wait for the worker here
     with pytest.raises(DeviceTimeoutError, match="did not finish within"):
         arm.connect(timeout=0.2)
@@ -344,26 +344,26 @@ def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeCon
 
 def test_missing_extra_names_it(mocker: Any) -> None:
     mocker.patch.dict(sys.modules, {"rtde_control": None})
-    arm = URRobot.from_config({"host": HOST})            # constructing imports nothing
+    arm = URArm.from_config({"host": HOST})            # constructing imports nothing
     with pytest.raises(MissingDependencyError, match=r"cellcal\[ur\]"):
         arm.connect(timeout=1.0)
 
 
 def test_config_validation() -> None:
     with pytest.raises(ConfigError, match="host"):
-        URRobot.from_config({})
+        URArm.from_config({})
     with pytest.raises(ConfigError, match="max_speed_m_s"):
-        URRobot.from_config({"host": HOST, "max_speed_m_s": 4.0})
+        URArm.from_config({"host": HOST, "max_speed_m_s": 4.0})
     with pytest.raises(ConfigError, match="max_acceleration_m_s2"):
-        URRobot.from_config({"host": HOST, "max_acceleration_m_s2": 200.0})
+        URArm.from_config({"host": HOST, "max_acceleration_m_s2": 200.0})
     with pytest.raises(ConfigError, match="unknown key"):
-        URRobot.from_config({"host": HOST, "speed": 1.0})
+        URArm.from_config({"host": HOST, "speed": 1.0})
 
 
 def test_registry_builds_unconnected_without_vendor_import(mocker: Any) -> None:
     mocker.patch.dict(sys.modules, {"rtde_control": None, "rtde_receive": None, "dashboard_client": None})
     arm = default_registry().create("arm", {"backend": "ur", "host": HOST}, BackendContext(section="arm"))
-    assert isinstance(arm, URRobot) and not arm.connected
+    assert isinstance(arm, URArm) and not arm.connected
 
 
 # ---------------------------------------------------------------- example configs
@@ -372,7 +372,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 @pytest.mark.parametrize("name", ["ur_oak.toml", "ur_o3r.toml"])
 def test_example_configs_validate_without_touching_hardware(name: str, mocker: Any) -> None:
-    from cellcal.core.config import load_config
+    from cellcal.core.calibration.config import load_config
 
     vendor_modules = ("rtde_control", "rtde_receive", "dashboard_client", "depthai", "usb", "usb.core")
     mocker.patch.dict(sys.modules, dict.fromkeys(vendor_modules))   # any vendor import would fail
@@ -388,5 +388,5 @@ def test_example_configs_validate_without_touching_hardware(name: str, mocker: A
     arm = registry.create("arm", cfg.arm_section, BackendContext(source=cfg.source, section="arm"))
     camera = registry.create("camera", cfg.camera_section, BackendContext(
         source=cfg.source, section="camera", document=cfg.document, seed=cfg.cell.seed))
-    assert isinstance(arm, URRobot) and not arm.connected and not camera.connected
+    assert isinstance(arm, URArm) and not arm.connected and not camera.connected
     assert arm.config.max_speed_m_s <= cfg.safety.max_speed_m_s

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from cellcal.devices.pose import Pose
-from cellcal.drivers.xarm.arm import XArmRobot
+from cellcal.drivers.xarm.arm import XArmArm
 
 
 def _first_line(proc: subprocess.Popen[str], timeout: float) -> str:
@@ -35,7 +35,7 @@ def test_module_prints_pty_path_and_serves(axes: int) -> None:
     try:
         path = _first_line(proc, 30.0)
         assert path.startswith("/dev/pts/") or path.startswith("/dev/tty")
-        with XArmRobot(XArmRobot.Config(port=path, axes=axes)) as drv:  # type: ignore[arg-type]
+        with XArmArm(XArmArm.Config(port=path, axes=axes)) as drv:  # type: ignore[arg-type]
             assert drv.info().model == f"xArm {axes}"
             start = drv.get_pose()
             target = Pose(start.rotation, start.translation + np.array([0.02, -0.03, -0.05]))

@@ -1,4 +1,4 @@
-"""XArmRobot <-> XArmEmulator over a real pty, backed by the SimRobotArm."""
+"""XArmArm <-> XArmEmulator over a real pty, backed by the SimArm."""
 
 from __future__ import annotations
 
@@ -23,11 +23,11 @@ from cellcal.devices.errors import (
 )
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
-from cellcal.drivers.xarm.arm import XArmRobot
+from cellcal.drivers.xarm.arm import XArmArm
 from cellcal.drivers.xarm.protocol import encode_request, parse_reply
 from cellcal.drivers.xarm.registers import Reg, encode_move_line
-from cellcal.sims.arm import SimRobotArm, SimRobotArmConfig
-from cellcal.sims.xarm.backend import EmulatedXArmRobot
+from cellcal.sims.arm import SimArm, SimArmConfig
+from cellcal.sims.xarm.backend import EmulatedXArmArm
 from cellcal.sims.xarm.emulator import XArmEmulator
 from cellcal.sims.xarm.wire import Command, RequestReader, modbus_crc, read_line_move, reply_frame
 
@@ -56,17 +56,17 @@ def leak_check() -> Iterator[None]:
 
 
 def _make(time_scale: float = 0.002, repeatability_m: float = 0.0,
-          **driver: object) -> tuple[SimRobotArm, XArmEmulator, XArmRobot]:
-    sim = SimRobotArm(SimRobotArmConfig(time_scale=time_scale, repeatability_m=repeatability_m, seed=3),
+          **driver: object) -> tuple[SimArm, XArmEmulator, XArmArm]:
+    sim = SimArm(SimArmConfig(time_scale=time_scale, repeatability_m=repeatability_m, seed=3),
                       BackendContext()).connect()
     emu = XArmEmulator(sim, axes=5)
     path = emu.start()
-    cfg = XArmRobot.Config(port=path, axes=5, poll_interval_s=0.005, **driver)  # type: ignore[arg-type]
-    return sim, emu, XArmRobot(cfg)
+    cfg = XArmArm.Config(port=path, axes=5, poll_interval_s=0.005, **driver)  # type: ignore[arg-type]
+    return sim, emu, XArmArm(cfg)
 
 
 @pytest.fixture
-def rig(leak_check: None) -> Iterator[tuple[SimRobotArm, XArmEmulator, XArmRobot]]:
+def rig(leak_check: None) -> Iterator[tuple[SimArm, XArmEmulator, XArmArm]]:
     sim, emu, drv = _make()
     drv.connect()
     yield sim, emu, drv
@@ -79,7 +79,7 @@ def _down(x: float, y: float, z: float, yaw: float = 0.0) -> Pose:
     return Pose.from_xyz_rpy([x, y, z], [np.pi, 0.0, yaw])
 
 
-def test_connect_reads_version_and_enables(rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+def test_connect_reads_version_and_enables(rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     _sim, emu, drv = rig
     info = drv.info()
     assert (info.vendor, info.model, info.firmware, info.serial) == ("UFACTORY", "xArm 5", "2.5.0", "XS1305EMU0001")
@@ -89,7 +89,7 @@ def test_connect_reads_version_and_enables(rig: tuple[SimRobotArm, XArmEmulator,
     assert state["enabled"] and state["ready"] and state["mode"] == 0 and state["state"] == 2
 
 
-def test_pose_and_joints_round_trip_exactly(rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+def test_pose_and_joints_round_trip_exactly(rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     sim, emu, drv = rig
     drv.move_linear(_down(0.32, -0.07, 0.41, 0.3), speed=0.2, acceleration=2.0)
     pose = drv.get_pose()
@@ -120,7 +120,7 @@ def test_plan_of_moves_ends_where_commanded_within_repeatability(leak_check: Non
 
 
 def test_out_of_workspace_latches_error_and_recover_clears_it(
-        rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+        rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     sim, _emu, drv = rig
     start = sim.true_flange_pose()
     with pytest.raises(VendorError) as err:
@@ -174,7 +174,7 @@ def test_motion_timeout_stops_the_arm(leak_check: None) -> None:
 
 
 @pytest.mark.parametrize("kind", ["corrupt_crc", "drop", "truncate", "stall"])
-def test_single_fault_is_retried_successfully(kind: str, rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+def test_single_fault_is_retried_successfully(kind: str, rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     sim, emu, drv = rig
     before = dict(drv.transport.stats)
     emu.inject(kind, register=Reg.GET_TCP_POSE, stall_s=0.7)  # stall longer than the 0.5 s reply timeout
@@ -188,14 +188,14 @@ def test_single_fault_is_retried_successfully(kind: str, rig: tuple[SimRobotArm,
     assert drv.transport.stats["retries"] == before["retries"] + 1
 
 
-def test_short_stall_needs_no_retry(rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+def test_short_stall_needs_no_retry(rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     _sim, emu, drv = rig
     emu.inject("stall", register=Reg.GET_STATE, stall_s=0.1)
     assert drv.status().ok
     assert drv.transport.stats["retries"] == 0
 
 
-def test_persistent_faults_give_documented_errors(rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+def test_persistent_faults_give_documented_errors(rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     _sim, emu, drv = rig
     attempts = drv.config.retries + 1
     emu.inject("corrupt_crc", count=attempts, register=Reg.GET_TCP_POSE)
@@ -209,7 +209,7 @@ def test_persistent_faults_give_documented_errors(rig: tuple[SimRobotArm, XArmEm
 
 
 def test_dropped_move_reply_is_retried_and_the_move_completes(
-        rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+        rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     sim, emu, drv = rig
     target = _down(0.36, -0.04, 0.38)
     emu.inject("drop", register=Reg.MOVE_LINE)
@@ -221,9 +221,9 @@ def test_dropped_move_reply_is_retried_and_the_move_completes(
 @pytest.mark.parametrize(("firmware", "layout"), [((1, 10, 0), "legacy"), ((1, 11, 100), "common")])
 def test_move_line_layout_follows_the_firmware_version(firmware: tuple[int, int, int], layout: str,
                                                        leak_check: None) -> None:
-    sim = SimRobotArm(SimRobotArmConfig(time_scale=0.0, repeatability_m=0.0), BackendContext()).connect()
+    sim = SimArm(SimArmConfig(time_scale=0.0, repeatability_m=0.0), BackendContext()).connect()
     with XArmEmulator(sim, axes=5, firmware=firmware, robot_sn="XS1305E1", box_sn="AC1305E1") as emu, \
-            XArmRobot(XArmRobot.Config(port=emu.path, axes=5)) as drv:
+            XArmArm(XArmArm.Config(port=emu.path, axes=5)) as drv:
         assert drv.info().extra["move_line_layout"] == layout
         target = _down(0.28, 0.12, 0.35, -0.6)
         drv.move_linear(target, speed=0.3, acceleration=2.0)
@@ -234,15 +234,15 @@ def test_move_line_layout_follows_the_firmware_version(firmware: tuple[int, int,
 
 def test_driver_limits_and_config() -> None:
     with pytest.raises(ConfigError):
-        XArmRobot.from_config({"axes": 4})
+        XArmArm.from_config({"axes": 4})
     with pytest.raises(ConfigError):
-        XArmRobot.from_config({"default_speed_m_s": 0.9, "max_speed_m_s": 0.5})
-    cfg = XArmRobot.from_config({"port": "loop://", "baudrate": 115200}).config
+        XArmArm.from_config({"default_speed_m_s": 0.9, "max_speed_m_s": 0.5})
+    cfg = XArmArm.from_config({"port": "loop://", "baudrate": 115200}).config
     assert (cfg.port, cfg.baudrate, cfg.axes) == ("loop://", 115200, 6)
-    assert XArmRobot.Config().baudrate == 2_000_000
+    assert XArmArm.Config().baudrate == 2_000_000
 
 
-def test_speed_limit_is_a_safety_error(rig: tuple[SimRobotArm, XArmEmulator, XArmRobot]) -> None:
+def test_speed_limit_is_a_safety_error(rig: tuple[SimArm, XArmEmulator, XArmArm]) -> None:
     sim, emu, drv = rig
     start = sim.true_flange_pose()
     with pytest.raises(SafetyError):
@@ -253,7 +253,7 @@ def test_speed_limit_is_a_safety_error(rig: tuple[SimRobotArm, XArmEmulator, XAr
 
 def test_wrong_axis_count_refuses_to_connect(leak_check: None) -> None:
     sim, emu, _drv = _make()
-    drv = XArmRobot(XArmRobot.Config(port=emu.path, axes=7))
+    drv = XArmArm(XArmArm.Config(port=emu.path, axes=7))
     with pytest.raises(DeviceConnectionError, match="7 axes"):
         drv.connect()
     assert not drv.connected
@@ -262,14 +262,14 @@ def test_wrong_axis_count_refuses_to_connect(leak_check: None) -> None:
 
 
 def test_missing_port_is_a_connection_error() -> None:
-    drv = XArmRobot(XArmRobot.Config(port="/dev/does-not-exist-xarm"))
+    drv = XArmArm(XArmArm.Config(port="/dev/does-not-exist-xarm"))
     with pytest.raises(DeviceConnectionError):
         drv.connect()
 
 
 def test_loop_url_without_an_arm_times_out() -> None:
     # loop:// echoes the request back: the reply parser skips it (wrong header) and no reply comes.
-    drv = XArmRobot(XArmRobot.Config(port="loop://", reply_timeout_s=0.05, retries=1))
+    drv = XArmArm(XArmArm.Config(port="loop://", reply_timeout_s=0.05, retries=1))
     with pytest.raises((DeviceTimeoutError, ProtocolError)):
         drv.connect(timeout=0.5)
     assert not drv.connected
@@ -278,7 +278,7 @@ def test_loop_url_without_an_arm_times_out() -> None:
 def test_emulated_backend_from_registry_shares_the_world(leak_check: None) -> None:
     ctx = BackendContext(section="arm", document={"sim": {}}, seed=7)
     arm = default_registry().create_arm({"backend": "xarm-emulated", "time_scale": 0.001}, ctx)
-    assert isinstance(arm, EmulatedXArmRobot)
+    assert isinstance(arm, EmulatedXArmArm)
     with pytest.raises(ConfigError):
         default_registry().create_arm({"backend": "xarm-emulated", "bogus": 1}, ctx)
     with arm:

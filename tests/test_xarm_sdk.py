@@ -21,9 +21,9 @@ import pytest
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.pose import Pose
-from cellcal.drivers.xarm.arm import XArmRobot
+from cellcal.drivers.xarm.arm import XArmArm
 from cellcal.drivers.xarm.registers import Reg
-from cellcal.sims.arm import SimRobotArm, SimRobotArmConfig
+from cellcal.sims.arm import SimArm, SimArmConfig
 from cellcal.sims.xarm.emulator import XArmEmulator
 
 xarm_wrapper = pytest.importorskip("xarm.wrapper")
@@ -49,10 +49,10 @@ def _bounded(fn: Callable[[], Any], timeout: float) -> Any:
 
 
 @pytest.fixture(params=[(2, 5, 0), (1, 10, 0)], ids=["fw2.5.0-common-move-line", "fw1.10.0-legacy-move-line"])
-def emulator(request: pytest.FixtureRequest) -> Iterator[tuple[SimRobotArm, XArmEmulator]]:
+def emulator(request: pytest.FixtureRequest) -> Iterator[tuple[SimArm, XArmEmulator]]:
     threads = set(threading.enumerate())
     fds = len(os.listdir("/proc/self/fd"))
-    sim = SimRobotArm(SimRobotArmConfig(time_scale=0.05, repeatability_m=0.0), BackendContext()).connect()
+    sim = SimArm(SimArmConfig(time_scale=0.05, repeatability_m=0.0), BackendContext()).connect()
     emu = XArmEmulator(sim, axes=5, firmware=request.param)
     emu.start()
     yield sim, emu
@@ -66,7 +66,7 @@ def emulator(request: pytest.FixtureRequest) -> Iterator[tuple[SimRobotArm, XArm
 
 
 def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
-        emulator: tuple[SimRobotArm, XArmEmulator]) -> None:
+        emulator: tuple[SimArm, XArmEmulator]) -> None:
     sim, emu = emulator
     sdk = _bounded(lambda: xarm_wrapper.XArmAPI(emu.path, is_radian=True), 10.0)
     try:
@@ -104,14 +104,14 @@ def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
     true = sim.true_flange_pose()
     assert true.distance_to(target) < 1e-6 and true.angle_to(target) < 1e-6
     sdk_pose = Pose.from_xyz_rpy(np.asarray(after[:3]) / 1000.0, after[3:])
-    with XArmRobot(XArmRobot.Config(port=emu.path, axes=5)) as drv:
+    with XArmArm(XArmArm.Config(port=emu.path, axes=5)) as drv:
         ours = drv.get_pose()
     assert np.abs(ours.translation - sdk_pose.translation).max() * 1000.0 < 1e-4  # mm
     assert ours.angle_to(sdk_pose) < 1e-6
     assert ours.distance_to(true) * 1000.0 < 1e-4 and ours.angle_to(true) < 1e-6
 
 
-def test_official_sdk_sees_an_out_of_workspace_error(emulator: tuple[SimRobotArm, XArmEmulator]) -> None:
+def test_official_sdk_sees_an_out_of_workspace_error(emulator: tuple[SimArm, XArmEmulator]) -> None:
     sim, emu = emulator
     sdk = _bounded(lambda: xarm_wrapper.XArmAPI(emu.path, is_radian=True), 10.0)
     try:

@@ -1,7 +1,7 @@
 """UFACTORY xArm 5/6/7 as a :class:`RobotArm`, over RS-485/USB serial.
 
 Everything SI on this class's API; millimetres and radians only on the wire (the
-conversion happens here, through :mod:`cellcal.core.transforms`). Poses are of the
+conversion happens here, through :mod:`cellcal.devices.geometry.vendor_poses`). Poses are of the
 tool flange: the controller's TCP offset is assumed to be zero.
 
 A motion is one MOVE_LINE followed by state polling (GET_STATE, GET_CMDNUM,
@@ -20,7 +20,6 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.transforms import pose_from_xarm, pose_to_xarm
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import (
@@ -32,6 +31,7 @@ from cellcal.devices.errors import (
     SafetyError,
     VendorError,
 )
+from cellcal.devices.geometry.vendor_poses import pose_from_xarm, pose_to_xarm
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 
@@ -57,11 +57,11 @@ from .transport import SerialTransport
 _MM = 1000.0
 
 
-class XArmRobot(RobotArm):
+class XArmArm(RobotArm):
     """xArm over a serial line (backend ``"xarm"``).
 
     Args:
-        config: Validated :class:`XArmRobot.Config`.
+        config: Validated :class:`XArmArm.Config`.
         context: Backend context (unused; accepted for the registry).
     """
 
@@ -98,9 +98,9 @@ class XArmRobot(RobotArm):
                 raise ConfigError(f"default_acceleration_m_s2 {self.default_acceleration_m_s2} exceeds "
                                   f"max_acceleration_m_s2 {self.max_acceleration_m_s2}")
 
-    def __init__(self, config: XArmRobot.Config | None = None, context: BackendContext | None = None):
+    def __init__(self, config: XArmArm.Config | None = None, context: BackendContext | None = None):
         super().__init__()
-        self.config = config or XArmRobot.Config()
+        self.config = config or XArmArm.Config()
         self.context = context
         self._transport: SerialTransport | None = None
         self._version: VersionInfo | None = None

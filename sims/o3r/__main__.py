@@ -27,13 +27,13 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from cellcal.devices.base import BackendContext
-    from cellcal.sims.camera import SimCamera3D, SimCamera3DConfig
+    from cellcal.sims.camera import SimCamera, SimCameraConfig
 
     from .emulator import O3REmulator
 
-    cfg = SimCamera3DConfig(noise=not args.no_noise, distortion=not args.no_distortion,
+    cfg = SimCameraConfig(noise=not args.no_noise, distortion=not args.no_distortion,
                             frame_rate_hz=args.frame_rate)
-    cam = SimCamera3D(cfg, BackendContext(seed=args.seed)).connect()
+    cam = SimCamera(cfg, BackendContext(seed=args.seed)).connect()
     emu = O3REmulator(cam, xmlrpc_port=args.xmlrpc_port, pcic_port=args.pcic_port, port_name=args.port_name,
                       state=args.state, frame_rate_hz=args.frame_rate)
     try:

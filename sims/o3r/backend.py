@@ -1,6 +1,6 @@
 """Backend ``o3r-emulated``: the real ``o3r`` driver talking to an in-process O3R emulator.
 
-The emulator serves a :class:`~cellcal.sims.camera.SimCamera3D` of the shared
+The emulator serves a :class:`~cellcal.sims.camera.SimCamera` of the shared
 simulated world on 127.0.0.1 ephemeral ports; every capture goes through XML-RPC,
 PCIC framing, the O3R chunk layout and the driver's decoder. Its config is the
 ``sim`` camera's table plus the keys below, so ``configs/o3r_emulated.toml`` is
@@ -28,7 +28,7 @@ from cellcal.devices.errors import NotConnectedError
 from cellcal.devices.registry import default_registry
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
-from ..camera import SimCamera3D, SimCamera3DConfig
+from ..camera import SimCamera, SimCameraConfig
 from .emulator import O3REmulator
 from .wire import O3RModels
 
@@ -55,7 +55,7 @@ def intrinsics_from_inverse_model(models: O3RModels, width: int, height: int) ->
 
 
 @dataclass(frozen=True)
-class EmulatedO3RConfig(SimCamera3DConfig):
+class EmulatedO3RConfig(SimCameraConfig):
     """The ``sim`` camera keys plus the emulator / driver keys."""
 
     trigger: Literal["software", "free_run"] = field(
@@ -68,7 +68,7 @@ class EmulatedO3RConfig(SimCamera3DConfig):
 
 
 class EmulatedO3RCamera(Camera3D):
-    """``O3RCamera`` connected to an in-process O3R emulator around ``SimCamera3D``.
+    """``O3RCamera`` connected to an in-process O3R emulator around ``SimCamera``.
 
     The driver is the camera registered as :data:`DRIVER_BACKEND` (``"o3r"``), built
     by the registry from a config section, as a cell config would build it.
@@ -89,9 +89,9 @@ class EmulatedO3RCamera(Camera3D):
     def __init__(self, config: EmulatedO3RConfig | None = None, context: BackendContext | None = None) -> None:
         super().__init__()
         self.config = config or EmulatedO3RConfig()
-        sim_keys = {f.name for f in dataclasses.fields(SimCamera3DConfig)}
-        sim_cfg = SimCamera3DConfig(**{k: getattr(self.config, k) for k in sim_keys})
-        self.sim = SimCamera3D(sim_cfg, context)
+        sim_keys = {f.name for f in dataclasses.fields(SimCameraConfig)}
+        sim_cfg = SimCameraConfig(**{k: getattr(self.config, k) for k in sim_keys})
+        self.sim = SimCamera(sim_cfg, context)
         self.default_timeout_s: float = max(2.0, self.config.io_timeout_s)
         self.emulator: O3REmulator | None = None
         self.driver: Camera3D | None = None

@@ -11,7 +11,7 @@ Serves on 127.0.0.1 only:
   and sent to the connection that triggered; CONF sends nothing.
 
 Frames come from a *frame source*: anything with ``intrinsics`` and
-``capture(timeout) -> Frame`` (any :class:`Camera3D`, e.g. ``SimCamera3D``). Exactly
+``capture(timeout) -> Frame`` (any :class:`Camera3D`, e.g. ``SimCamera``). Exactly
 one ``capture`` is made per frame sent, so a simulated camera's random stream and
 clock advance exactly as if it were captured directly.
 
@@ -42,7 +42,7 @@ from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.camera import pixel_grid_rays
+from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.types import Frame, Intrinsics
 
 from .config_tree import FIRMWARE, ConfigTree, ConfigTreeError, default_tree

@@ -13,7 +13,7 @@ import sys
 import threading
 from types import FrameType
 
-from cellcal.sims.arm import SimRobotArm, SimRobotArmConfig
+from cellcal.sims.arm import SimArm, SimArmConfig
 
 from .emulator import XArmEmulator
 
@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
-    arm = SimRobotArm(SimRobotArmConfig(time_scale=args.time_scale)).connect()
+    arm = SimArm(SimArmConfig(time_scale=args.time_scale)).connect()
     emulator = XArmEmulator(arm, axes=args.axes, start_ready=args.ready)
     try:
         path = emulator.start()

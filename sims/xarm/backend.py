@@ -1,7 +1,7 @@
 """``xarm-emulated``: the real xArm driver talking to the xArm emulator on a pty.
 
-:class:`EmulatedXArmRobot` builds the simulated arm of the shared sim world
-(:class:`~cellcal.sims.arm.SimRobotArm`), serves it with an
+:class:`EmulatedXArmArm` builds the simulated arm of the shared sim world
+(:class:`~cellcal.sims.arm.SimArm`), serves it with an
 :class:`~cellcal.sims.xarm.emulator.XArmEmulator` on a pseudo-terminal, and delegates
 every call to the real xArm driver (the arm registered as ``"xarm"``, built by the
 registry from a config section as a cell config would build it) connected to that
@@ -29,7 +29,7 @@ from cellcal.devices.errors import ConfigError, NotConnectedError
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.devices.types import ArmStatus, DeviceInfo
-from cellcal.sims.arm import SimRobotArm, SimRobotArmConfig
+from cellcal.sims.arm import SimArm, SimArmConfig
 
 from .emulator import XArmEmulator
 
@@ -47,7 +47,7 @@ _OWN_FIELDS: list[tuple[str, Any, Any]] = [
     ("poll_interval_s", float, dataclasses.field(default=0.005, metadata={"gt": 0, "le": 1,
                                                                            "doc": "driver state polling period, s"})),
 ]
-_SIM_NAMES = tuple(f.name for f in dataclasses.fields(SimRobotArmConfig))
+_SIM_NAMES = tuple(f.name for f in dataclasses.fields(SimArmConfig))
 
 
 def _parse_firmware(text: str) -> tuple[int, int, int]:
@@ -58,14 +58,14 @@ def _parse_firmware(text: str) -> tuple[int, int, int]:
 
 
 def _post_init(self: Any) -> None:
-    SimRobotArmConfig(**{name: getattr(self, name) for name in _SIM_NAMES})  # validates the sim part
+    SimArmConfig(**{name: getattr(self, name) for name in _SIM_NAMES})  # validates the sim part
     _parse_firmware(self.firmware)
 
 
 def _make_config() -> type[Any]:
-    hints = get_type_hints(SimRobotArmConfig)
+    hints = get_type_hints(SimArmConfig)
     sim_fields = [(f.name, hints[f.name], dataclasses.field(default=f.default, metadata=f.metadata))
-                  for f in dataclasses.fields(SimRobotArmConfig)]
+                  for f in dataclasses.fields(SimArmConfig)]
     own_names = {name for name, _, _ in _OWN_FIELDS}
     clash = own_names.intersection(_SIM_NAMES)
     if clash:  # pragma: no cover - guards a future change of the sim arm's config
@@ -75,11 +75,11 @@ def _make_config() -> type[Any]:
                                                 "__doc__": "The ``[arm]`` section for ``backend = \"xarm-emulated\"``: "
                                                            "the sim arm's keys plus the emulator's."})
     cls.__module__ = __name__
-    cls.__qualname__ = "EmulatedXArmRobot.Config"
+    cls.__qualname__ = "EmulatedXArmArm.Config"
     return cls
 
 
-class EmulatedXArmRobot(RobotArm):
+class EmulatedXArmArm(RobotArm):
     """The xArm driver over a pty to the xArm emulator of the shared simulated arm.
 
     Args:
@@ -97,10 +97,10 @@ class EmulatedXArmRobot(RobotArm):
 
     def __init__(self, config: Any = None, context: BackendContext | None = None):
         super().__init__()
-        self.config = config if config is not None else EmulatedXArmRobot.Config()
+        self.config = config if config is not None else EmulatedXArmArm.Config()
         self.context = context
-        sim_cfg = SimRobotArmConfig(**{name: getattr(self.config, name) for name in _SIM_NAMES})
-        self.sim_arm = SimRobotArm(sim_cfg, context)
+        sim_cfg = SimArmConfig(**{name: getattr(self.config, name) for name in _SIM_NAMES})
+        self.sim_arm = SimArm(sim_cfg, context)
         self.emulator: XArmEmulator | None = None
         self.driver: RobotArm | None = None
         #: Fault injection (tests): called with the started emulator before the driver connects.

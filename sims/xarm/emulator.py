@@ -2,10 +2,10 @@
 
 :class:`XArmEmulator` opens a pty pair (``os.openpty``) and answers UFACTORY's serial
 register protocol on the master side, so anything that opens the slave path as a
-serial port — cellcal's :class:`~cellcal.drivers.xarm.arm.XArmRobot` or UFACTORY's
+serial port — cellcal's :class:`~cellcal.drivers.xarm.arm.XArmArm` or UFACTORY's
 own ``xarm-python-sdk`` — talks to it as to a real controller. Motion, workspace and
 errors come from the simulated arm (:class:`ArmModel`, satisfied by
-``cellcal.sims.arm.SimRobotArm``); the emulator adds the controller's state machine
+``cellcal.sims.arm.SimArm``); the emulator adds the controller's state machine
 (motion enable, mode, state, error/warning latching, command counter). Its framing,
 CRC and register layouts are its own (:mod:`cellcal.sims.xarm.wire`), not the driver's,
 so a wire bug in the driver shows up as a disagreement with the emulator.
@@ -32,8 +32,8 @@ from typing import Literal, Protocol
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cellcal.core.transforms import pose_from_xarm, pose_to_xarm
 from cellcal.devices.errors import CellcalError
+from cellcal.devices.geometry.vendor_poses import pose_from_xarm, pose_to_xarm
 from cellcal.devices.pose import Pose
 from cellcal.sims.arm import ERROR_OUT_OF_REACH
 
@@ -62,7 +62,7 @@ FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall"]
 
 
 class ArmModel(Protocol):
-    """What the emulator needs from the simulated arm (``SimRobotArm`` provides it).
+    """What the emulator needs from the simulated arm (``SimArm`` provides it).
 
     ``true_flange_pose`` is the noise-free pose the emulator plans with; ``get_pose``
     (with the arm's read-back noise) is what GET_TCP_POSE reports.

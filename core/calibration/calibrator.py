@@ -1,0 +1,401 @@
+"""The calibrator: drive the arm through the plan, capture, measure, report.
+
+For every plan pose: move (through the safety wrapper), settle, capture
+``frames_per_pose`` frames, read the arm's pose back, sample the P1-P9 grids and run
+each configured method (:mod:`cellcal.core.methods.measure`). When the reference plane and
+the hand-eye transform are known, the expected angle, tilts and height follow from
+the arm's reported pose, so every estimate gets an error, as in the paper's
+Tables 3 and 4.
+
+Devices come from the registry; this module never names a driver or a simulator.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cellcal.core.calibration.config import CellConfig, plan_flange_poses
+from cellcal.core.calibration.journal import (
+    JournalEntry,
+    JournalWriter,
+    journal_path,
+    plan_fingerprint,
+    read_journal,
+    remove_journal,
+)
+from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.measure import (
+    FULL_FRAME,
+    ExpectedGeometry,
+    Measurement,
+    expected_geometry,
+    full_frame_document,
+    measure_frames,
+    measure_full_frame,
+)
+from cellcal.devices.arm import RobotArm
+from cellcal.devices.base import BackendContext
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import (
+    CalibrationError,
+    CalibrationQualityError,
+    CellcalError,
+    VendorError,
+)
+from cellcal.devices.pose import Pose
+from cellcal.devices.registry import Registry, default_registry
+from cellcal.devices.safety import SafeArm
+from cellcal.devices.types import Intrinsics
+
+ProgressFactory = Callable[[int], Any]
+
+
+@dataclass
+class PoseRecord:
+    """Everything measured at one plan pose.
+
+    Attributes:
+        index: 0-based index in the plan.
+        commanded: Commanded flange pose, base frame.
+        reported: Flange pose read back from the arm after the move, base frame.
+        camera: Camera pose in the base frame (``reported @ mount``).
+        expected: Geometry expected from the reference plane, or None without one.
+        measurements: One per perimeter x grid method, plus one ``full_frame`` row.
+        timings_s: Wall time of the move, settle, capture and compute steps, seconds
+            (``compute_full_frame``: the part of ``compute`` spent on the full-frame fit).
+        intrinsics: The lens model the frames were taken with.
+        full_frame: The ``full_frame`` section (:func:`full_frame_document`), or None when
+            the method is not run.
+    """
+
+    index: int
+    commanded: Pose
+    reported: Pose
+    camera: Pose
+    expected: ExpectedGeometry | None
+    measurements: list[Measurement]
+    timings_s: dict[str, float] = field(default_factory=dict)
+    intrinsics: Intrinsics | None = None
+    full_frame: dict[str, Any] | None = None
+
+    def rows(self) -> list[dict[str, Any]]:
+        """Flat rows (one per measurement) for the summary and the table."""
+        out = []
+        for m in self.measurements:
+            row = {"pose_index": self.index, **m.to_dict()}
+            if self.expected is not None:
+                row["expected_angle_deg"] = float(np.degrees(self.expected.angle_rad))
+            out.append(row)
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form."""
+        return {
+            "index": self.index,
+            "commanded_flange_pose": self.commanded.to_dict(),
+            "reported_flange_pose": self.reported.to_dict(),
+            "camera_pose": self.camera.to_dict(),
+            "expected": None if self.expected is None else self.expected.to_dict(),
+            "measurements": self.rows(),
+            "timings_s": dict(self.timings_s),
+            "camera_intrinsics": None if self.intrinsics is None else self.intrinsics.to_dict(),
+            "full_frame": self.full_frame,
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> PoseRecord:
+        """Rebuild a record from :meth:`to_dict`'s output (a result document or the resume journal).
+
+        Angles come back through degrees, so values may differ from the original in the
+        last bit; keys this version does not know are ignored.
+
+        Raises:
+            CalibrationError: If a required field is missing or malformed.
+        """
+        try:
+            exp = data.get("expected")
+            expected = None
+            if exp is not None:
+                pc = exp["plane_cam"]
+                expected = ExpectedGeometry(Plane.from_dict(pc),
+                                            math.radians(exp["angle_deg"]), math.radians(exp["tilt_x_deg"]),
+                                            math.radians(exp["tilt_y_deg"]), float(exp["height_m"]),
+                                            float(exp["distance_normal_m"]))
+            measurements = []
+            for m in data["measurements"]:
+                sigma = m.get("angle_sigma_deg")
+                pc = m.get("plane_cam")
+                measurements.append(Measurement(
+                    method=str(m["method"]),
+                    perimeter_px=None if m["perimeter_px"] is None else int(m["perimeter_px"]),
+                    angle_rad=math.radians(m["angle_deg"]),
+                    angle_sigma_rad=None if sigma is None else math.radians(sigma),
+                    tilt_x_rad=math.radians(m["tilt_x_deg"]), tilt_y_rad=math.radians(m["tilt_y_deg"]),
+                    height_m=float(m["height_m"]), residual_rms_m=m.get("residual_rms_m"),
+                    error_pct=m.get("error_pct"),
+                    plane=None if pc is None else Plane.from_dict(pc)))
+            intr = data.get("camera_intrinsics")
+            ff = data.get("full_frame")
+            return cls(int(data["index"]), Pose.from_dict(data["commanded_flange_pose"]),
+                       Pose.from_dict(data["reported_flange_pose"]), Pose.from_dict(data["camera_pose"]),
+                       expected, measurements, {k: float(v) for k, v in dict(data.get("timings_s") or {}).items()},
+                       None if intr is None else Intrinsics(**intr), None if ff is None else dict(ff))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationError(f"malformed pose record: {type(exc).__name__}: {exc}") from None
+
+
+def build_devices(config: CellConfig, registry: Registry | None = None) -> tuple[Camera3D, SafeArm]:
+    """Create the (unconnected) camera and the safety-wrapped arm of a configuration.
+
+    Raises:
+        ConfigError: If a backend is unknown or rejects its section.
+    """
+    registry = registry or default_registry()
+    shared: dict[str, Any] = {}
+
+    def ctx(section: str) -> BackendContext:
+        return BackendContext(source=config.source, section=section, document=config.document,
+                              shared=shared, seed=config.cell.seed)
+
+    camera = registry.create_camera(config.camera_section, ctx("camera"))
+    arm: RobotArm = registry.create_arm(config.arm_section, ctx("arm"))
+    return camera, SafeArm(arm, config.safety_limits())
+
+
+#: Seconds the calibrator allows the arm's stop command when a run fails.
+STOP_TIMEOUT_S = 1.0
+
+
+def _package_version() -> str:
+    try:
+        return version("cellcal")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "unknown"
+
+
+class Calibrator:
+    """Runs a configuration's plan on a camera and an arm.
+
+    Args:
+        config: The validated configuration.
+        camera: A camera (connected or not; the calibrator connects it).
+        arm: The arm, already wrapped in :class:`SafeArm`.
+        progress: Optional factory ``total -> tqdm-like`` for a progress bar.
+    """
+
+    def __init__(self, config: CellConfig, camera: Camera3D, arm: SafeArm,
+                 progress: ProgressFactory | None = None):
+        self.config = config
+        self.camera = camera
+        self.arm = arm
+        self.progress = progress
+        self.poses: Sequence[Pose] = plan_flange_poses(config)
+        #: The journal writer of the last :meth:`run` (None without a journal).
+        self.journal_writer: JournalWriter | None = None
+
+    def check_plan(self, start: Pose | None = None) -> None:
+        """Check every move of the plan against the safety envelope (nothing moves).
+
+        Raises:
+            SafetyError: Naming the first offending pose.
+        """
+        plan = self.config.plan
+        self.arm.limits.check_plan(start, self.poses, plan.speed_m_s, plan.acceleration_m_s2)
+
+    def run(self, *, journal: str | Path | None = None, resume: bool = False) -> dict[str, Any]:
+        """Run the plan and return the result document (not yet written).
+
+        Args:
+            journal: Resume journal to append each measured pose to (see
+                :mod:`cellcal.core.calibration.journal`); None keeps no journal.
+            resume: Continue the run recorded in ``journal``: its poses are taken from
+                it (no move, no capture), the rest are measured.
+
+        Raises:
+            ConfigError: When resuming, if the journal was written for another
+                configuration or plan.
+            SafetyError: If a move of the plan leaves the envelope (before any move).
+            VendorError: If the arm reports an error before the first move or after a pose.
+            CellcalError: Any other device or calibration failure. Once the arm is
+                connected, any failure (and KeyboardInterrupt) tells it to stop first.
+        """
+        self.check_plan(None)
+        fingerprint = plan_fingerprint(self.config.document, self.poses)
+        done: list[JournalEntry] = []
+        if resume:
+            if journal is None:
+                raise CalibrationError("resuming needs the journal of the interrupted run")
+            done = [e for e in read_journal(journal, fingerprint) if 0 <= e.index < len(self.poses)]
+        writer = None if journal is None else JournalWriter(journal, fingerprint, len(self.poses), append=resume)
+        self.journal_writer = writer
+        started = time.perf_counter()
+        created = datetime.now(UTC).isoformat(timespec="seconds")
+        by_index: dict[int, tuple[PoseRecord, dict[str, Any]]] = {
+            e.index: (PoseRecord.from_dict(e.pose), e.pose) for e in done}
+        todo = [i for i in range(len(self.poses)) if i not in by_index]
+        t_connect = 0.0
+        if todo:
+            with contextlib.ExitStack() as stack:
+                try:
+                    stack.enter_context(self.arm)
+                    stack.enter_context(self.camera)
+                    t_connect = time.perf_counter() - started
+                    self._check_arm_ready("before the first move")
+                    self._check_moves(self.arm.get_pose(), todo)
+                    if done:
+                        self._restore_device_state(done[-1].device_state)
+                    bar = self.progress(len(todo)) if self.progress else None
+                    if bar is not None:
+                        stack.callback(bar.close)
+                    for i in todo:
+                        record = self._measure_pose(i, self.poses[i])
+                        self._check_arm_ready(f"after plan pose {i + 1}")
+                        data = record.to_dict()
+                        if writer is not None:
+                            writer.append(i, data, self._device_state())
+                        by_index[i] = (record, data)
+                        if bar is not None:
+                            bar.update(1)
+                except BaseException:
+                    if self.arm.connected:
+                        with contextlib.suppress(Exception):
+                            self.arm.stop(min(STOP_TIMEOUT_S, self.arm.default_timeout_s))
+                    raise
+        total = time.perf_counter() - started
+        records = [by_index[i][0] for i in sorted(by_index)]
+        poses = [by_index[i][1] for i in sorted(by_index)]
+        return {
+            "schema": RESULT_SCHEMA,
+            "cellcal_version": _package_version(),
+            "created_utc": created,
+            "config_source": self.config.source,
+            "config": dict(self.config.document),
+            "mount": self.config.mount.pose().to_dict(),
+            "poses": poses,
+            "summary": summarize_poses(poses, self._reference_plane()),
+            "timings_s": {
+                "total": total,
+                "connect": t_connect,
+                "per_pose": [rec.timings_s for rec in records],
+            },
+            **({"resumed_poses": sorted(e.index for e in done)} if resume else {}),
+        }
+
+    def _check_arm_ready(self, when: str) -> None:
+        """Raise VendorError if the arm reports an error (e.g. a protective stop)."""
+        status = self.arm.status()
+        if status.error_code:
+            raise VendorError(self.arm.backend_name, status.error_code,
+                              f"{status.message or 'controller error'} ({when}; clear the arm's error first)")
+
+    def _check_moves(self, start: Pose, indices: Sequence[int]) -> None:
+        """Check the moves still to make, from ``start`` through ``indices`` (0-based, ascending) in order."""
+        plan = self.config.plan
+        previous = start
+        for _, run in itertools.groupby(enumerate(indices), key=lambda pair: pair[1] - pair[0]):
+            block = [i for _, i in run]  # consecutive plan indices, so the messages number them right
+            targets = [self.poses[i] for i in block]
+            self.arm.limits.check_plan(previous, targets, plan.speed_m_s, plan.acceleration_m_s2,
+                                       first_index=block[0] + 1)
+            previous = targets[-1]
+
+    def _devices_for_state(self) -> dict[str, Any]:
+        return {"camera": self.camera, "arm": self.arm.inner}
+
+    def _device_state(self) -> dict[str, Any]:
+        """What the devices save for a resume (simulated devices: their noise streams)."""
+        out: dict[str, Any] = {}
+        for name, device in self._devices_for_state().items():
+            get = getattr(device, "resume_state", None)
+            if callable(get):
+                out[name] = get()
+        return out
+
+    def _restore_device_state(self, state: Mapping[str, Any]) -> None:
+        for name, device in self._devices_for_state().items():
+            restore = getattr(device, "restore_resume_state", None)
+            if callable(restore) and state.get(name) is not None:
+                restore(state[name])
+
+    def _reference_plane(self) -> Plane | None:
+        ref = self.config.reference
+        return None if ref is None else Plane.from_point_normal(ref.plane_point_m, ref.plane_normal)
+
+    def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
+        plan = self.config.plan
+        t0 = time.perf_counter()
+        self.arm.move_linear(target, speed=plan.speed_m_s, acceleration=plan.acceleration_m_s2,
+                             timeout=plan.move_timeout_s)
+        t1 = time.perf_counter()
+        if plan.settle_s > 0:
+            time.sleep(plan.settle_s)
+        t2 = time.perf_counter()
+        frames = [self.camera.capture(plan.capture_timeout_s) for _ in range(plan.frames_per_pose)]
+        reported = self.arm.get_pose()
+        t3 = time.perf_counter()
+        camera_pose = reported @ self.config.mount.pose()
+        expected = None
+        if self.config.reference is not None:
+            expected = expected_geometry(camera_pose, self.config.reference.plane_point_m,
+                                         self.config.reference.plane_normal)
+        fov = plan.nominal_fov_deg
+        fov_rad = None if fov is None else (math.radians(fov[0]), math.radians(fov[1]))
+        measurements = measure_frames(frames, perimeters_px=plan.perimeters_px, methods=plan.methods,
+                                      window_px=plan.window_px, expected=expected, nominal_fov_rad=fov_rad)
+        t_ff = time.perf_counter()
+        full_frame = None
+        if FULL_FRAME in plan.methods:
+            try:
+                row, result = measure_full_frame(frames, self.config.full_frame, expected=expected)
+            except CalibrationQualityError as exc:
+                extra = str(exc).partition("; ")[2]
+                raise CalibrationQualityError(exc.gate, exc.value, exc.threshold,
+                                              f"plan pose {index + 1}" + (f": {extra}" if extra else "")) from None
+            measurements.append(row)
+            full_frame = full_frame_document(result, camera_pose, expected)
+        t4 = time.perf_counter()
+        return PoseRecord(index, target, reported, camera_pose, expected, measurements,
+                          {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,
+                           "compute_full_frame": t4 - t_ff},
+                          frames[0].intrinsics, full_frame)
+
+
+def run_to_file(calibrator: Calibrator, out: str | Path, *, resume: bool = False) -> dict[str, Any]:
+    """Run with a resume journal beside ``out``, write the result atomically, drop the journal.
+
+    On failure an earlier ``out`` is untouched; the journal stays (if any pose was
+    measured) so ``resume=True`` can continue the run.
+
+    Raises:
+        CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`; CalibrationError if
+            the result cannot be written.
+    """
+    out = Path(out)
+    journal = journal_path(out)
+    document = calibrator.run(journal=journal, resume=resume)
+    write_json_atomic(out, document)
+    remove_journal(journal)
+    return document
+
+
+def poses_saved(calibrator: Calibrator) -> int:
+    """Poses of the current run's journal on disk (after a failure: what --resume would skip)."""
+    writer = calibrator.journal_writer
+    if writer is None or not writer.path.exists():
+        return 0
+    try:
+        return len(read_journal(writer.path, writer.fingerprint))
+    except CellcalError:
+        return 0

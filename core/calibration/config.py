@@ -1,0 +1,330 @@
+"""Cell configuration: a TOML document validated into typed objects.
+
+The document has these tables (see ``configs/sim.toml`` for a commented example):
+``[cell]``, ``[camera]`` and ``[arm]`` (each with ``backend = "name"``; the rest is
+validated by that backend), ``[mount]`` (hand-eye: camera in the flange frame),
+``[reference]`` (optional: the measuring plane as the cell believes it, base frame),
+``[safety]``, ``[plan]``, ``[monitor]`` (the live drift monitor) and ``[sim]`` (read only by
+simulated backends). Keys carry their unit in their name (``_m``, ``_s``, ``_deg``, ``_px``); degrees appear only in
+the file and are converted to radians on loading (ADR 0004).
+
+Any problem raises :class:`~cellcal.devices.errors.ConfigError` naming the file, the
+dotted key and what was expected.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cellcal.core.methods.fullframe import FullFrameSettings
+from cellcal.devices.config import parse_section
+from cellcal.devices.errors import ConfigError
+from cellcal.devices.pose import Pose
+from cellcal.devices.safety import SafetyLimits
+
+Vec3 = tuple[float, float, float]
+MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame"]
+ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame")
+TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor",
+                    "full_frame")
+#: Backends built on the simulated world, the only readers of ``[sim]`` (tests/test_config.py
+#: checks this against the registered backends that live in ``cellcal.sims``).
+SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated"})
+
+log = logging.getLogger(__name__)
+DEFAULT_CONFIG_NAME = "sim.toml"
+
+
+@dataclass(frozen=True)
+class CellSection:
+    """``[cell]``: identity of the cell and the seed of all simulated randomness."""
+
+    name: str = "cell"
+    seed: int = field(default=0, metadata={"ge": 0})
+
+
+@dataclass(frozen=True)
+class MountSection:
+    """``[mount]``: the camera frame in the flange frame (hand-eye transform)."""
+
+    translation_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -2.0, "le": 2.0})
+    rpy_deg: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
+
+    def pose(self) -> Pose:
+        """The flange -> camera transform (``T_flange_camera``)."""
+        return Pose.from_xyz_rpy(self.translation_m, np.radians(self.rpy_deg))
+
+
+@dataclass(frozen=True)
+class ReferenceSection:
+    """``[reference]``: the measuring plane as the cell believes it, base frame."""
+
+    plane_point_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -100.0, "le": 100.0})
+    plane_normal: Vec3 = field(default=(0.0, 0.0, 1.0), metadata={"ge": -1e6, "le": 1e6})  # norm cannot overflow
+
+    def __post_init__(self) -> None:
+        if not np.linalg.norm(self.plane_normal) > 0:
+            raise ValueError("reference.plane_normal must be non-zero")
+
+
+@dataclass(frozen=True)
+class SafetySection:
+    """``[safety]``: the motion envelope every arm command is checked against."""
+
+    workspace_min_m: Vec3 = (-0.7, -0.7, 0.0)
+    workspace_max_m: Vec3 = (0.7, 0.7, 1.0)
+    max_speed_m_s: float = field(default=0.25, metadata={"gt": 0, "le": 3.0})
+    max_acceleration_m_s2: float = field(default=2.0, metadata={"gt": 0, "le": 150.0})
+    min_standoff_m: float = field(default=0.15, metadata={"ge": 0})
+
+    def __post_init__(self) -> None:
+        for axis, lo, hi in zip("xyz", self.workspace_min_m, self.workspace_max_m, strict=True):
+            if not lo < hi:
+                raise ValueError(f"safety.workspace_min_m must be < workspace_max_m on {axis} ({lo} >= {hi})")
+
+
+@dataclass(frozen=True)
+class PlanPose:
+    """One explicit flange pose of ``[[plan.poses]]``, base frame."""
+
+    xyz_m: Vec3
+    rpy_deg: Vec3 = field(default=(180.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
+
+    def pose(self) -> Pose:
+        """The flange pose."""
+        return Pose.from_xyz_rpy(self.xyz_m, np.radians(self.rpy_deg))
+
+
+@dataclass(frozen=True)
+class PlanSection:
+    """``[plan]``: where to measure and how.
+
+    ``nominal_fov_deg`` is the datasheet field of view (x, y) used by the paper's
+    ``plane_fit_nominal`` method; by default the pinhole field of view of the intrinsics.
+
+    Unless explicit ``poses`` are given, one camera pose is generated per height: the
+    optical axis hits ``target_m`` on the reference plane at ``height`` metres, tilted
+    so it makes ``inclination_deg`` with the plane, by a rotation about the camera's
+    ``tilt_axis`` (the paper's experiment: 0.46/0.59/0.61 m at 80 deg). Each height is
+    repeated at every ``azimuths_deg`` (the pose turned about the plane normal through
+    the target): views from several sides are what makes the cross-pose consistency of
+    the plane a real check on the hand-eye transform; the default, one azimuth, is the
+    paper's plan.
+    """
+
+    heights_m: tuple[float, ...] = field(default=(0.46, 0.59, 0.61), metadata={"gt": 0, "min_items": 1})
+    inclination_deg: float = field(default=80.0, metadata={"gt": 0, "le": 90})
+    tilt_axis: Literal["x", "y"] = "x"
+    azimuths_deg: tuple[float, ...] = field(default=(0.0,), metadata={"ge": -360, "le": 360, "min_items": 1})
+    target_m: Vec3 = (0.3, 0.0, 0.0)
+    poses: tuple[PlanPose, ...] = ()
+    perimeters_px: tuple[int, ...] = field(default=(20, 30, 40, 50), metadata={"gt": 0, "min_items": 1})
+    methods: tuple[MethodName, ...] = field(default=ALL_METHODS, metadata={"min_items": 1})
+    frames_per_pose: int = field(default=1, metadata={"ge": 1, "le": 100})
+    window_px: int = field(default=3, metadata={"ge": 1, "le": 15})
+    settle_s: float = field(default=0.0, metadata={"ge": 0, "le": 60})
+    speed_m_s: float = field(default=0.2, metadata={"gt": 0})
+    acceleration_m_s2: float = field(default=1.0, metadata={"gt": 0})
+    move_timeout_s: float = field(default=60.0, metadata={"gt": 0})
+    capture_timeout_s: float = field(default=2.0, metadata={"gt": 0})
+    nominal_fov_deg: tuple[float, float] | None = field(default=None, metadata={"gt": 0, "lt": 180})
+
+    def __post_init__(self) -> None:
+        if self.window_px % 2 != 1:
+            raise ValueError(f"plan.window_px must be odd, got {self.window_px}")
+        if len(set(self.methods)) != len(self.methods):
+            raise ValueError("plan.methods lists a method twice")
+
+
+@dataclass(frozen=True)
+class MonitorSection:
+    """``[monitor]``: the live drift monitor (``cellcal monitor``, :mod:`cellcal.core.monitor.monitor`).
+
+    Per frame the plane's tilt and height (along the optical axis) are compared with a
+    baseline; drift is flagged when the median deviation over the last
+    ``window_frames`` frames exceeds its threshold, and cleared only once both medians
+    stay below ``hysteresis_ratio`` times their thresholds for ``clear_s`` seconds of
+    frame time. Each effective threshold is at least ``noise_sigmas`` times the
+    frame-to-frame noise measured over the ``baseline_frames`` first frames, so plain
+    noise cannot flag whatever the configured value.
+    """
+
+    period_s: float = field(default=0.1, metadata={"ge": 0, "le": 3600, "doc": "min. wall time between captures, s"})
+    capture_timeout_s: float = field(default=2.0, metadata={"gt": 0, "le": 600, "doc": "per-capture timeout, s"})
+    connect_timeout_s: float = field(default=10.0, metadata={"gt": 0, "le": 600, "doc": "per-camera connect, s"})
+    baseline_frames: int = field(default=20, metadata={"ge": 2, "le": 100000, "doc": "frames for baseline/noise"})
+    tilt_threshold_deg: float = field(default=0.2, metadata={"gt": 0, "le": 90, "doc": "tilt drift threshold, deg"})
+    height_threshold_m: float = field(default=0.002, metadata={"gt": 0, "le": 10, "doc": "height drift threshold, m"})
+    noise_sigmas: float = field(default=6.0, metadata={"ge": 0, "le": 1000,
+                                                       "doc": "thresholds >= this many measured noise sigmas"})
+    window_frames: int = field(default=5, metadata={"ge": 1, "le": 10000, "doc": "median window, frames"})
+    hysteresis_ratio: float = field(default=0.5, metadata={"gt": 0, "le": 1, "doc": "clear level / threshold"})
+    clear_s: float = field(default=1.0, metadata={"ge": 0, "le": 86400, "doc": "time below the clear level, s"})
+    status_every_s: float = field(default=1.0, metadata={"gt": 0, "le": 86400, "doc": "CLI status line period, s"})
+
+    @property
+    def tilt_threshold_rad(self) -> float:
+        """``tilt_threshold_deg`` in radians."""
+        return math.radians(self.tilt_threshold_deg)
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """A validated cell configuration.
+
+    Attributes:
+        source: Where it was read from (file path or ``"<packaged sim.toml>"``).
+        document: The raw TOML document (backends validate their own sections).
+    """
+
+    source: str
+    document: Mapping[str, Any]
+    cell: CellSection
+    mount: MountSection
+    reference: ReferenceSection | None
+    safety: SafetySection
+    plan: PlanSection
+    monitor: MonitorSection = field(default_factory=MonitorSection)
+    full_frame: FullFrameSettings = field(default_factory=FullFrameSettings)
+
+    @property
+    def camera_section(self) -> Mapping[str, Any]:
+        """The ``[camera]`` table (with ``backend``)."""
+        return self.document["camera"]  # type: ignore[no-any-return]
+
+    @property
+    def arm_section(self) -> Mapping[str, Any]:
+        """The ``[arm]`` table (with ``backend``)."""
+        return self.document["arm"]  # type: ignore[no-any-return]
+
+    def safety_limits(self) -> SafetyLimits:
+        """The envelope, with the reference plane for the standoff check when known."""
+        ref = self.reference
+        return SafetyLimits(
+            workspace_min_m=self.safety.workspace_min_m,
+            workspace_max_m=self.safety.workspace_max_m,
+            max_speed_m_s=self.safety.max_speed_m_s,
+            max_acceleration_m_s2=self.safety.max_acceleration_m_s2,
+            min_standoff_m=self.safety.min_standoff_m,
+            plane_point_m=ref.plane_point_m if ref else None,
+            plane_normal=ref.plane_normal if ref else None,
+            mount=self.mount.pose(),
+        )
+
+
+def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
+    """Validate a parsed TOML document.
+
+    A ``[sim]`` table next to backends that are all real is logged as a one-line warning
+    (logger ``cellcal.core.calibration.config``): it is valid but has no effect.
+
+    Raises:
+        ConfigError: Naming ``source``, the key and the expectation.
+    """
+    for key, value in document.items():
+        if key not in TOP_LEVEL_TABLES:
+            raise ConfigError(f"unknown table; expected one of: {', '.join(TOP_LEVEL_TABLES)}", source=source, key=key)
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"expected a table, got {type(value).__name__}", source=source, key=key)
+    for required in ("camera", "arm"):
+        if required not in document:
+            raise ConfigError("missing table (it needs at least backend = \"...\")", source=source, key=required)
+        if not isinstance(document[required].get("backend"), str):
+            raise ConfigError("missing or non-string 'backend'", source=source, key=f"{required}.backend")
+    if "sim" in document and not {document["camera"]["backend"], document["arm"]["backend"]} & SIM_BACKENDS:
+        log.warning("%s: [sim] has no effect: camera backend '%s' and arm backend '%s' are not simulated "
+                    "(only %s read it)", source, document["camera"]["backend"], document["arm"]["backend"],
+                    ", ".join(sorted(SIM_BACKENDS)))
+    ref = document.get("reference")
+    plan = parse_section(PlanSection, document.get("plan"), where="plan", source=source)
+    if plan.inclination_deg < 90 and not plan.poses and ref is None:
+        raise ConfigError("generated plan poses need a [reference] plane (or give explicit [[plan.poses]])",
+                          source=source, key="reference")
+    return CellConfig(
+        source=source,
+        document=document,
+        cell=parse_section(CellSection, document.get("cell"), where="cell", source=source),
+        mount=parse_section(MountSection, document.get("mount"), where="mount", source=source),
+        reference=None if ref is None else parse_section(ReferenceSection, ref, where="reference", source=source),
+        safety=parse_section(SafetySection, document.get("safety"), where="safety", source=source),
+        plan=plan,
+        monitor=parse_section(MonitorSection, document.get("monitor"), where="monitor", source=source),
+        full_frame=parse_section(FullFrameSettings, document.get("full_frame"), where="full_frame", source=source),
+    )
+
+
+def load_config(path: str | Path | None = None) -> CellConfig:
+    """Read and validate a configuration file; None loads the packaged ``sim.toml``.
+
+    Raises:
+        ConfigError: If the file is missing, not valid TOML, or fails validation.
+    """
+    if path is None:
+        text = resources.files("cellcal.configs").joinpath(DEFAULT_CONFIG_NAME).read_text(encoding="utf-8")
+        source = f"<packaged {DEFAULT_CONFIG_NAME}>"
+    else:
+        p = Path(path)
+        source = str(p)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise ConfigError("file not found", source=source) from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"cannot read: {exc}", source=source) from None
+    try:
+        document = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"invalid TOML: {exc}", source=source) from None
+    return parse_config(document, source)
+
+
+def look_at_pose(target_m: np.ndarray, normal: np.ndarray, height_m: float, inclination_rad: float,
+                 tilt_axis: str) -> Pose:
+    """Camera pose (base frame) whose optical axis hits ``target_m`` at ``height_m``.
+
+    The untilted camera looks straight down the plane normal with its x axis along the
+    base x axis as far as possible; it is then rotated about its own ``tilt_axis`` by
+    ``pi/2 - inclination_rad`` about the target point.
+    """
+    n = normal / np.linalg.norm(normal)
+    z = -n
+    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = ref - (ref @ z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    r_down = Rotation.from_matrix(np.column_stack([x, y, z]))
+    tilt = math.pi / 2 - inclination_rad
+    r = r_down * Rotation.from_rotvec((tilt if tilt_axis == "x" else 0.0, tilt if tilt_axis == "y" else 0.0, 0.0))
+    optical_axis = r.apply([0.0, 0.0, 1.0])
+    return Pose(r, target_m - height_m * optical_axis)
+
+
+def plan_flange_poses(config: CellConfig) -> list[Pose]:
+    """The flange poses (base frame) of the plan, in order."""
+    plan = config.plan
+    if plan.poses:
+        return [p.pose() for p in plan.poses]
+    assert config.reference is not None  # checked in parse_config
+    mount_inv = config.mount.pose().inv()
+    target = np.asarray(plan.target_m, float)
+    normal = np.asarray(config.reference.plane_normal, float)
+    normal /= np.linalg.norm(normal)
+    incl = math.radians(plan.inclination_deg)
+    poses = []
+    for h in plan.heights_m:
+        camera = look_at_pose(target, normal, h, incl, plan.tilt_axis)
+        for az in plan.azimuths_deg:
+            turn = Rotation.from_rotvec(math.radians(az) * normal)
+            about_target = Pose(turn, target - turn.apply(target))
+            poses.append(about_target @ camera @ mount_inv)
+    return poses

@@ -1,0 +1,110 @@
+"""``cellcal calibrate --dry-run``: every move the plan would make, with its safety checks.
+
+Nothing is connected, so nothing moves (not even a read-only connection to learn the
+arm's current pose: a dry run must be safe to run next to a cell in operation, and
+must work with no device reachable). Consequently the first move is checked at its
+target only; its path from wherever the arm stands is checked when the real run
+starts, before the first move. Every later move is checked along its whole straight
+path, exactly as :class:`~cellcal.devices.safety.SafeArm` checks it at run time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cellcal.core.calibration.config import CellConfig, plan_flange_poses
+from cellcal.devices.errors import SafetyError
+from cellcal.devices.pose import Pose
+from cellcal.devices.safety import SafetyLimits, format_pose
+
+
+@dataclass(frozen=True)
+class MoveCheck:
+    """The safety checks of one planned move.
+
+    Attributes:
+        index: 0-based plan index.
+        target: Target flange pose, base frame.
+        path_length_m: Straight-line flange travel from the previous pose, metres (None
+            for the first move: the start pose is not known without the arm).
+        min_standoff_m: Smallest camera distance to the reference plane along the
+            checked path, metres (None without a reference plane).
+        problems: Violated rules (empty when the move is safe).
+    """
+
+    index: int
+    target: Pose
+    path_length_m: float | None
+    min_standoff_m: float | None
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """Whether every check passed."""
+        return not self.problems
+
+
+def check_moves(limits: SafetyLimits, poses: Sequence[Pose], speed_m_s: float, acceleration_m_s2: float,
+                start: Pose | None = None) -> list[MoveCheck]:
+    """Check every move of a plan (all of them, not stopping at the first violation)."""
+    out = []
+    previous = start
+    for i, target in enumerate(poses):
+        _flange, camera = limits.path(previous, target)
+        standoff = None
+        if limits.plane_point_m is not None and limits.plane_normal is not None:
+            n = np.asarray(limits.plane_normal, float)
+            standoff = float(np.min((camera - np.asarray(limits.plane_point_m, float)) @ (n / np.linalg.norm(n))))
+        length = None if previous is None else float(np.linalg.norm(target.translation - previous.translation))
+        out.append(MoveCheck(i, target, length, standoff,
+                             limits.violations(previous, target, speed_m_s, acceleration_m_s2)))
+        previous = target
+    return out
+
+
+def describe(check: MoveCheck, n_moves: int, limits: SafetyLimits, speed_m_s: float,
+             acceleration_m_s2: float) -> str:
+    """One line: pose index, target (m, deg), path length and the checks passed."""
+    path = "n/a (from the arm's current pose, checked when the run starts)" if check.path_length_m is None \
+        else f"{check.path_length_m:.4f} m"
+    head = f"move {check.index + 1}/{n_moves}: {format_pose(check.target)}; path {path}"
+    if not check.ok:
+        return f"{head}; REJECTED: " + "; ".join(check.problems)
+    checks = ["workspace ok"]
+    if check.min_standoff_m is not None:
+        checks.append(f"standoff ok ({check.min_standoff_m:.4f} m >= {limits.min_standoff_m:.4f} m)")
+    else:
+        checks.append("standoff not checked (no [reference] plane)")
+    checks.append(f"speed ok ({speed_m_s:.4g} <= {limits.max_speed_m_s:.4g} m/s)")
+    checks.append(f"acceleration ok ({acceleration_m_s2:.4g} <= {limits.max_acceleration_m_s2:.4g} m/s^2)")
+    return f"{head}; checks: " + ", ".join(checks)
+
+
+def dry_run(config: CellConfig, emit: Callable[[str], None] = print) -> list[MoveCheck]:
+    """Print every move of the plan with its checks; touch no device.
+
+    Returns:
+        The checks of every move (all passed).
+
+    Raises:
+        SafetyError: After printing the moves up to the first offending one, naming it.
+    """
+    plan = config.plan
+    limits = config.safety_limits()
+    poses = plan_flange_poses(config)
+    emit(f"dry run of {config.source} (cell '{config.cell.name}'): {len(poses)} moves at "
+         f"{plan.speed_m_s:g} m/s, {plan.acceleration_m_s2:g} m/s^2; no device is connected, nothing moves")
+    checks = check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2)
+    for check in checks:
+        emit(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2))
+        if not check.ok:
+            raise SafetyError(f"plan pose {check.index + 1} ({format_pose(check.target)}) rejected: "
+                              + "; ".join(check.problems))
+    emit(f"dry run OK: all {len(poses)} moves inside the safety envelope")
+    return checks
+
+
+__all__ = ["MoveCheck", "check_moves", "describe", "dry_run"]

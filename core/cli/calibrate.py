@@ -1,0 +1,142 @@
+"""``cellcal calibrate``: run the configured plan and write ``DIR/result.json``."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Any
+
+from cellcal.core.calibration.calibrator import Calibrator, build_devices, poses_saved, run_to_file
+from cellcal.core.calibration.config import CellConfig, load_config
+from cellcal.core.calibration.journal import journal_path
+from cellcal.core.calibration.report import RESULT_FILENAME, format_full_frame, format_table
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import CellcalError, ConfigError
+from cellcal.devices.safety import SafeArm
+
+
+def register(sub: Any) -> None:
+    """Add the ``calibrate`` subcommand."""
+    p = sub.add_parser("calibrate", help="run the calibration plan and write DIR/result.json",
+                       description="Drive the arm through the plan, capture the 3D camera at each pose, "
+                       "compute the measuring plane and report the camera's pose relative to it. "
+                       "With no --config, runs the built-in simulated cell (the paper's experiment).")
+    p.add_argument("--config", metavar="PATH", help="cell configuration (TOML); default: packaged sim.toml")
+    p.add_argument("--out", metavar="DIR", default="cellcal-out", help="output directory (default: %(default)s)")
+    p.add_argument("--check", action="store_true",
+                   help="validate the configuration and show what would connect to what; touch no device")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or table; only the result path")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from DIR/result.json.journal.jsonl: recorded poses are not "
+                   "moved to or captured again (the configuration must be unchanged)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print every move of the plan with its safety checks; connect and move nothing")
+    p.add_argument("--replay", metavar="FILE.mcap",
+                   help="re-run a session recorded with 'cellcal record' from the file alone (its recorded "
+                   "configuration, replay camera and arm); reports whether the result is identical")
+    p.set_defaults(func=run)
+
+
+def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
+    """The configuration and devices: from ``--config``, or from a recording with ``--replay``."""
+    if getattr(args, "replay", None):
+        if args.config:
+            raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
+        from cellcal.core.cli.record import replay_session
+
+        return replay_session(args.replay)
+    config = load_config(args.config)
+    return (config, *build_devices(config))
+
+
+#: Config keys that say where a device is, shown by ``--check``.
+ADDRESS_KEYS = ("host", "xmlrpc_port", "port", "pcic_port", "device_id", "baudrate", "axes", "file")
+
+
+def _where(device: Any) -> str:
+    config = getattr(device, "config", None)
+    if config is None or not dataclasses.is_dataclass(config):
+        return ""
+    parts = [f"{k}={getattr(config, k)!r}" for k in ADDRESS_KEYS if hasattr(config, k)]
+    return f" at {', '.join(parts)}" if parts else ""
+
+
+def _check(args: argparse.Namespace) -> int:
+    config, camera, arm = _session(args)
+    calibrator = Calibrator(config, camera, arm)
+    calibrator.check_plan(None)
+    poses = calibrator.poses
+    plan = config.plan
+    print(f"config:  {config.source} (cell '{config.cell.name}')")
+    print(f"camera:  backend '{camera.backend_name}'{_where(camera)} "
+          f"({type(camera).__module__}.{type(camera).__qualname__})")
+    print(f"arm:     backend '{arm.inner.backend_name}'{_where(arm.inner)} "
+          f"({type(arm.inner).__module__}.{type(arm.inner).__qualname__}), behind the safety envelope")
+    print(f"plan:    {len(poses)} poses x {len(plan.perimeters_px)} perimeters x {len(plan.methods)} methods "
+          f"({', '.join(plan.methods)}); every target pose inside the safety envelope")
+    print("config OK (no device was touched)")
+    return 0
+
+
+#: Exit status of an interrupted run (as ``cellcal.core.cli.EXIT_INTERRUPTED``).
+EXIT_INTERRUPTED = 130
+
+
+def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
+    config = f" --config {args.config}" if args.config else ""
+    return (f"{saved} of {total} poses are saved in {journal_path(Path(args.out) / RESULT_FILENAME)}; "
+            f"'cellcal calibrate{config} --out {args.out} --resume' continues the run")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``cellcal calibrate``; returns the exit status."""
+    if args.check:
+        return _check(args)
+    if getattr(args, "dry_run", False):
+        from cellcal.core.calibration.dryrun import dry_run
+
+        dry_run(load_config(args.config))
+        return 0
+    config, camera, arm = _session(args)
+    out = Path(args.out) / RESULT_FILENAME
+    progress = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        def progress(total: int) -> Any:
+            return tqdm(total=total, desc="poses", unit="pose", file=sys.stderr, leave=False)
+
+    calibrator = Calibrator(config, camera, arm, progress=progress)
+    try:
+        document = run_to_file(calibrator, out, resume=getattr(args, "resume", False))
+    except KeyboardInterrupt:
+        saved = poses_saved(calibrator)
+        hint = f"; {_resume_hint(args, saved, len(calibrator.poses))}" if saved else ""
+        print(f"cellcal: interrupted{hint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except CellcalError as exc:
+        saved = poses_saved(calibrator)
+        if saved:  # keep the type (it sets the exit status) and the one-line message
+            exc.args = (f"{exc}; {_resume_hint(args, saved, len(calibrator.poses))}",)
+        raise
+    if not args.quiet:
+        rows = [row for pose in document["poses"] for row in pose["measurements"]]
+        print(format_table(rows))
+        print()
+        for method, groups in document["summary"]["methods"].items():
+            err = groups["all"]["mean_error_pct"]
+            text = f"{err:.3f} %" if err is not None else "n/a (no reference)"
+            print(f"{method:<18} mean |error| {text} over {groups['all']['n']} estimates")
+        full_frame = format_full_frame(document)
+        if full_frame:
+            print()
+            print(full_frame)
+        print(f"total {document['timings_s']['total']:.2f} s")
+    print(f"result written to {out}")
+    if getattr(args, "replay", None):
+        from cellcal.core.cli.record import compare_with_recording
+
+        print(compare_with_recording(args.replay, document))
+    return 0

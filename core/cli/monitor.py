@@ -1,0 +1,272 @@
+"""``cellcal monitor``: watch one or more cameras for drift of the measuring plane.
+
+Exit status (see :mod:`cellcal.core.cli`): 0 the run ended (``--duration`` /
+``--frames``) without any drift flagged; 1 drift was flagged at some time during the
+run, or a device failed; 2 bad input (configuration, baseline file, usage);
+130 stopped with Ctrl-C (the summary is printed first, whatever was seen).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from cellcal.core.calibration.calibrator import build_devices
+from cellcal.core.calibration.config import CellConfig, load_config
+from cellcal.core.calibration.report import write_json_atomic
+from cellcal.core.cli import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.argtypes import integer, real
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.monitor.monitor import (
+    BASELINE_SCHEMA,
+    Baseline,
+    CameraSummary,
+    DriftEvent,
+    Monitor,
+    MonitoredCamera,
+    MonitorStatus,
+    MonitorSummary,
+)
+from cellcal.devices.arm import RobotArm
+from cellcal.devices.errors import CalibrationError, ConfigError
+
+#: Schema tags of ``cellcal calibrate`` results start with this.
+CALIBRATION_SCHEMA_PREFIX = "cellcal.calibration/"
+
+EPILOG = ("exit status: 0 no drift flagged during the run; 1 drift flagged (or a device failed); "
+          "2 bad configuration, baseline file or usage; 130 stopped with Ctrl-C (after the summary).")
+
+
+def register(sub: Any) -> None:
+    """Add the ``monitor`` subcommand."""
+    p = sub.add_parser("monitor", help="watch cameras for drift of the measuring plane (tilt, height)",
+                       description="Capture continuously from one camera per configuration, fit the measuring "
+                       "plane in every frame and report drift of its tilt or height beyond the [monitor] "
+                       "thresholds, with hysteresis. The arm is never moved. With no --config, watches the "
+                       "built-in simulated cell. Stop with Ctrl-C.", epilog=EPILOG)
+    p.add_argument("--config", metavar="PATH", action="append",
+                   help="cell configuration (TOML), one camera each; repeat for several cameras "
+                   "(default: packaged sim.toml)")
+    p.add_argument("--duration", metavar="S", type=real(gt=0), help="stop after S seconds (scripted runs)")
+    p.add_argument("--frames", metavar="N", type=integer(ge=1), help="stop after N frames per camera (scripted runs)")
+    p.add_argument("--baseline", metavar="FILE",
+                   help="expected plane: a --save-baseline file, or a calibrate result.json (its plane in the "
+                   "base frame, seen from the arm's current pose; the arm is connected only to read that pose). "
+                   "Default: the mean of the first frames")
+    p.add_argument("--save-baseline", metavar="FILE", help="write the baselines in use at the end of the run")
+    p.add_argument("--quiet", action="store_true", help="print only drift events and the summary")
+    p.set_defaults(func=run)
+
+
+# ---------------------------------------------------------------------- formatting
+def _deg(rad: float | None) -> str:
+    return "n/a" if rad is None else f"{math.degrees(rad):.3f} deg"
+
+
+def _mm(m: float | None, digits: int = 2) -> str:
+    return "n/a" if m is None else f"{m * 1000:.{digits}f} mm"
+
+
+def format_event(event: DriftEvent, t0: float) -> str:
+    """One line for a drift event (times relative to the camera's first frame)."""
+    what = "DRIFT STARTED" if event.kind == "drift_started" else "drift cleared"
+    causes = f" ({' and '.join(event.causes)})" if event.causes else ""
+    return (f"[{event.label}] t=+{event.timestamp - t0:.2f} s {what}{causes}: "
+            f"tilt {_deg(event.tilt_deviation_rad)} (threshold {_deg(event.tilt_threshold_rad)}), "
+            f"height {_mm(event.height_deviation_m)} (threshold {_mm(event.height_threshold_m)})")
+
+
+def format_baseline(label: str, b: Baseline, tilt_thr: float | None, height_thr: float | None) -> str:
+    """One line describing an established baseline and the effective thresholds."""
+    return (f"[{label}] baseline tilt_x {_deg(b.tilt_x_rad)}, tilt_y {_deg(b.tilt_y_rad)}, "
+            f"height {_mm(b.height_m)}; noise {_deg(b.tilt_noise_rad)}, {_mm(b.height_noise_m, 4)} (1 sigma); "
+            f"thresholds {_deg(tilt_thr)}, {_mm(height_thr)}")
+
+
+def format_summary(summary: MonitorSummary) -> list[str]:
+    """The closing lines: one per camera."""
+    how = "interrupted" if summary.interrupted else "finished"
+    lines = [f"monitor {how} after {summary.elapsed_s:.1f} s"]
+    for c in summary.cameras:
+        starts = sum(e.kind == "drift_started" for e in c.events)
+        state = "DRIFTING" if c.drifting else ("ok" if c.baseline is not None else "no baseline yet")
+        lines.append(f"  {c.label}: {c.frames} frames, {c.errors} failed, {starts} drift event(s), "
+                     f"now {state}; largest deviation tilt {_deg(c.max_tilt_deviation_rad)}, "
+                     f"height {_mm(c.max_height_deviation_m)}")
+    return lines
+
+
+class _Printer:
+    """The per-frame callback: event lines, baseline lines, a periodic status line."""
+
+    def __init__(self, monitor_period_s: dict[str, float], quiet: bool) -> None:
+        self.quiet = quiet
+        self.every = monitor_period_s
+        self.t0: dict[str, float] = {}
+        self.last_line: dict[str, float] = {}
+        self.announced: set[str] = set()
+        self.monitor: Monitor | None = None
+
+    def __call__(self, status: MonitorStatus) -> None:
+        label = status.label
+        d = status.detector
+        if d is not None:
+            self.t0.setdefault(label, d.sample.timestamp)
+        if d is not None and d.event is not None:
+            print(format_event(d.event, self.t0[label]), flush=True)
+        if self.quiet:
+            return
+        if d is not None and d.phase != "baseline" and label not in self.announced and self.monitor is not None:
+            self.announced.add(label)
+            cam = next(c for c in self.monitor.summary().cameras if c.label == label)
+            if cam.baseline is not None:
+                print(format_baseline(label, cam.baseline, cam.tilt_threshold_rad, cam.height_threshold_m),
+                      flush=True)
+        now = time.monotonic()
+        if now - self.last_line.get(label, -math.inf) < self.every[label]:
+            return
+        self.last_line[label] = now
+        if d is None:
+            print(f"[{label}] frame {status.index}: failed: {status.error}", flush=True)
+        elif d.phase == "baseline":
+            print(f"[{label}] frame {status.index}: measuring the baseline", flush=True)
+        else:
+            print(f"[{label}] frame {status.index}: {d.phase:<5} tilt {_deg(d.tilt_deviation_rad)}, "
+                  f"height {_mm(d.height_deviation_m)} from baseline", flush=True)
+
+
+# ---------------------------------------------------------------------- baselines
+def _label(path: str | None, taken: set[str]) -> str:
+    base = "sim" if path is None else Path(path).stem
+    label, n = base, 2
+    while label in taken:
+        label, n = f"{base}-{n}", n + 1
+    taken.add(label)
+    return label
+
+
+def read_json(path: str) -> Any:
+    """A JSON document from a file.
+
+    Raises:
+        ConfigError: Missing or unreadable file, invalid JSON.
+    """
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError("baseline file not found", source=path) from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"cannot read baseline file: {exc}", source=path) from None
+
+
+def is_calibration_result(doc: Any) -> bool:
+    """Whether a JSON document is a ``cellcal calibrate`` result."""
+    return isinstance(doc, dict) and str(doc.get("schema", "")).startswith(CALIBRATION_SCHEMA_PREFIX)
+
+
+def consensus_plane(doc: Mapping[str, Any], path: str) -> Plane:
+    """The calibrated plane in the base frame of a calibration result.
+
+    Raises:
+        ConfigError: If the result has no usable ``summary.plane_consistency.consensus_plane_base``.
+    """
+    key = "summary.plane_consistency.consensus_plane_base"
+    try:
+        table = doc["summary"]["plane_consistency"]["consensus_plane_base"]
+        return Plane.from_dict(table)
+    except (KeyError, TypeError, ValueError, CalibrationError):
+        raise ConfigError("calibration result has no plane in the base frame (needs a [reference] plane "
+                          "and a cellcal version that writes it)", source=path, key=key) from None
+
+
+def baseline_from_result(doc: Mapping[str, Any], path: str, config: CellConfig, arm: RobotArm) -> Baseline:
+    """The expected plane at the arm's current pose, from a calibration result.
+
+    The arm is connected only to read its flange pose (nothing moves); the camera pose is
+    that pose @ the configuration's ``[mount]``.
+
+    Raises:
+        ConfigError: If the result holds no plane in the base frame.
+        DeviceError: If the arm cannot be reached.
+    """
+    plane = consensus_plane(doc, path)
+    timeout = config.monitor.connect_timeout_s
+    with arm.connect(timeout):
+        flange = arm.get_pose(timeout)
+    return Baseline.from_plane_in_base(plane, flange @ config.mount.pose())
+
+
+def read_baselines(path: str, labels: list[str], doc: Any = None) -> dict[str, Baseline]:
+    """Baselines per label from a ``--save-baseline`` file.
+
+    A file with a single camera applies to a single monitored camera whatever its label.
+
+    Raises:
+        ConfigError: Unreadable file, wrong schema, or no entry for a monitored camera.
+    """
+    doc = read_json(path) if doc is None else doc
+    if not isinstance(doc, dict) or doc.get("schema") != BASELINE_SCHEMA:
+        raise ConfigError(f"not a monitor baseline file or calibration result (expected schema "
+                          f"{BASELINE_SCHEMA!r} or {CALIBRATION_SCHEMA_PREFIX}N)", source=path)
+    cams = doc.get("cameras")
+    if not isinstance(cams, dict) or not cams:
+        raise ConfigError("expected a non-empty table", source=path, key="cameras")
+    if len(cams) == 1 and len(labels) == 1:
+        ((key, only),) = cams.items()
+        return {labels[0]: Baseline.from_dict(only, source=f"{path} (cameras.{key})")}
+    out = {}
+    for label in labels:
+        if label not in cams:
+            raise ConfigError(f"no baseline for camera {label!r} (has: {', '.join(sorted(cams))})", source=path)
+        out[label] = Baseline.from_dict(cams[label], source=f"{path} (cameras.{label})")
+    return out
+
+
+def write_baselines(path: str, cameras: list[CameraSummary]) -> Path:
+    """Write the established baselines (cameras without one are left out)."""
+    doc = {"schema": BASELINE_SCHEMA,
+           "cameras": {c.label: c.baseline.to_dict() for c in cameras if c.baseline is not None}}
+    return write_json_atomic(path, doc)
+
+
+# ---------------------------------------------------------------------- run
+def run(args: argparse.Namespace) -> int:
+    """Run ``cellcal monitor``; returns the exit status."""
+    paths: list[str | None] = list(args.config) if args.config else [None]
+    taken: set[str] = set()
+    configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]
+    labels = [label for label, _ in configs]
+    doc = read_json(args.baseline) if args.baseline else None
+    from_result = is_calibration_result(doc)
+    if from_result and len(configs) > 1:
+        raise ConfigError("a calibration result is the baseline of one camera: give one --config, or use a "
+                          "--save-baseline file for several", source=args.baseline)
+    baselines = read_baselines(args.baseline, labels, doc) if args.baseline and not from_result else {}
+    specs = []
+    for label, config in configs:
+        camera, arm = build_devices(config)  # the arm is at most connected to read its pose
+        if from_result and isinstance(doc, dict):
+            baselines[label] = baseline_from_result(doc, args.baseline, config, arm)
+        specs.append(MonitoredCamera(label, camera, config.monitor, config.full_frame,
+                                     baselines.get(label)))
+    printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)
+    monitor = Monitor(specs, printer)
+    printer.monitor = monitor
+    if not args.quiet:
+        where = ", ".join(f"{label} ({c.camera_section['backend']}, {c.source})" for label, c in configs)
+        print(f"monitoring {where}; Ctrl-C to stop", flush=True)
+    summary = monitor.run(args.duration, args.frames)
+    for line in format_summary(summary):
+        print(line)
+    if args.save_baseline:
+        print(f"baselines written to {write_baselines(args.save_baseline, summary.cameras)}")
+    sys.stdout.flush()
+    if summary.interrupted:
+        return EXIT_INTERRUPTED
+    return EXIT_FAILURE if summary.drift_detected else EXIT_OK

@@ -1,0 +1,150 @@
+"""``cellcal study``: Monte Carlo accuracy study on the simulated cell.
+
+Writes ``DIR/study.csv`` (one row per trial x method x perimeter), ``DIR/headline.json``
+(the issue's figures at the paper's settings) and the PNG plots, and prints a summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from cellcal.core.calibration.report import write_json_atomic
+from cellcal.core.cli.argtypes import integer
+from cellcal.core.study.trials import (
+    TARGET_CLUTTER,
+    TARGET_COVERAGE,
+    TARGET_ERROR_CLUTTER_DEG,
+    TARGET_ERROR_DEG,
+    Headline,
+    StudySettings,
+    headline,
+    quick_settings,
+    run_study,
+    summary_table,
+    write_csv,
+)
+
+CSV_NAME = "study.csv"
+HEADLINE_NAME = "headline.json"
+DEFAULT_TRIALS = 20
+DEFAULT_QUICK_TRIALS = 8
+
+
+def register(sub: Any) -> None:
+    """Add the ``study`` subcommand."""
+    p = sub.add_parser("study", help="Monte Carlo accuracy study of every method on the simulated cell",
+                       description="Run the calibration methods (law of cosines, nine-point fit with the paper's "
+                       "nominal field of view and with the real intrinsics, full frame) on simulated frames over "
+                       "heights, inclinations, noise levels and clutter (boxes on the plane); write study.csv, "
+                       "headline.json and PNG plots, and print the headline figures at the paper's settings.")
+    p.add_argument("--trials", type=integer(ge=1), default=None, metavar="N",
+                   help=f"trials per condition (default {DEFAULT_TRIALS}, with --quick {DEFAULT_QUICK_TRIALS}); "
+                   "the headline conditions run 4x as many")
+    p.add_argument("--out", metavar="DIR", default="cellcal-study", help="output directory (default: %(default)s)")
+    p.add_argument("--seed", type=integer(ge=0), default=0, metavar="S", help="root seed (default: %(default)s)")
+    p.add_argument("--quick", action="store_true",
+                   help="small design: the paper's heights and inclination, no clutter and 30 %% clutter")
+    p.add_argument("--no-plots", action="store_true", help="write the CSV and headline only")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or table; only the output paths")
+    p.set_defaults(func=run)
+
+
+def _fmt(value: float | None, spec: str = ".4f", unit: str = "") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    return f"{value:{spec}}{unit}"
+
+
+def _scaled(value: float | None, factor: float, spec: str, unit: str) -> str:
+    return _fmt(None if value is None else value * factor, spec, unit)
+
+
+def _verdict(ok: bool | None) -> str:
+    return "n/a" if ok is None else ("met" if ok else "MISSED")
+
+
+def format_headline(h: Headline) -> str:
+    """The headline figures and the issue's targets, as text."""
+    cov = h.full_frame_coverage
+    cov_c = h.full_frame_coverage_clutter
+    lines = [
+        f"Paper settings (heights 0.46/0.59/0.61 m, 80 deg, default noise): {h.n_trials} frames clean, "
+        f"{h.n_trials_clutter} with {TARGET_CLUTTER * 100:.0f} % clutter "
+        f"(achieved {_fmt(None if h.clutter_achieved_mean is None else h.clutter_achieved_mean * 100, '.1f', ' %')})",
+        f"  full frame, mean |tilt error|        {_fmt(h.full_frame_error_deg)} deg   "
+        f"(target <= {TARGET_ERROR_DEG} deg: {_verdict(h.meets_error)})",
+        f"  full frame, 30 % clutter             {_fmt(h.full_frame_error_clutter_deg)} deg   "
+        f"(target <= {TARGET_ERROR_CLUTTER_DEG} deg: {_verdict(h.meets_error_clutter)})",
+        f"  full frame, 95 % interval coverage   {_fmt(None if cov is None else cov * 100, '.1f', ' %')}    "
+        f"(target {TARGET_COVERAGE[0] * 100:.0f}-{TARGET_COVERAGE[1] * 100:.0f} %: {_verdict(h.meets_coverage)}); "
+        f"with clutter {_fmt(None if cov_c is None else cov_c * 100, '.1f', ' %')}",
+        f"  full frame, height                   mean |error| "
+        f"{_scaled(h.full_frame_height_error_m, 1000, '.3f', ' mm')}, "
+        f"95 % interval coverage {_scaled(h.full_frame_height_coverage, 100, '.1f', ' %')}",
+        f"  full-frame fits that raised: {h.full_frame_failures} clean, {h.full_frame_failures_clutter} cluttered",
+        f"  nine-point, nominal FOV (paper)      {_fmt(h.nominal_error_deg)} deg   "
+        f"(30 % clutter: {_fmt(h.nominal_error_clutter_deg)} deg)",
+        f"  nine-point, real intrinsics          {_fmt(h.plane_fit_error_deg)} deg",
+        f"  law of cosines                       {_fmt(h.law_of_cosines_error_deg)} deg",
+    ]
+    return "\n".join(lines)
+
+
+def format_summary(rows: list[dict[str, Any]]) -> str:
+    """Per method and clutter level: n, failures, mean/median/p95 |tilt error| (deg), coverage, gates passed."""
+    head = (f"{'method':<18} {'clutter':>7} {'n':>5} {'fail':>5} {'mean':>9} {'median':>9} {'p95':>9} {'cover':>6} "
+            f"{'gates':>6}")
+    out = [head, "-" * len(head)]
+    for r in summary_table(rows):
+        cov = "" if r["coverage"] is None else f"{r['coverage'] * 100:.1f}%"
+        gates = "" if r["gates_passed"] is None else f"{r['gates_passed'] * 100:.0f}%"
+        out.append(f"{r['method']:<18} {r['clutter'] * 100:>6.0f}% {r['n']:>5} {r['failed']:>5} "
+                   f"{r['mean_deg']:>9.4f} {r['median_deg']:>9.4f} {r['p95_deg']:>9.4f} {cov:>6} {gates:>6}")
+    return "\n".join(out)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``cellcal study``; returns the exit status."""
+    if args.quick:
+        settings = quick_settings(trials=args.trials or DEFAULT_QUICK_TRIALS, seed=args.seed)
+    else:
+        settings = StudySettings(trials=args.trials or DEFAULT_TRIALS, seed=args.seed)
+    out = Path(args.out)
+    progress = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        def progress(total: int) -> Any:
+            return tqdm(total=total, desc="trials", unit="trial", file=sys.stderr, leave=False)
+
+    started = time.perf_counter()
+    result = run_study(settings, progress=progress)
+    elapsed = time.perf_counter() - started
+    csv_path = write_csv(out / CSV_NAME, result.rows)
+    head = headline(result.rows)
+    n_trials = len({(r["height_m"], r["inclination_deg"], r["noise_scale"], r["clutter_target"], r["trial"])
+                    for r in result.rows})
+    write_json_atomic(out / HEADLINE_NAME, {**head.to_dict(), "trials_total": n_trials,
+                                            "trials_per_condition": settings.trials, "seed": settings.seed,
+                                            "quick": bool(args.quick), "elapsed_s": elapsed,
+                                            "full_frame_available": result.full_frame_available})
+    paths: dict[str, Path] = {}
+    if not args.no_plots:
+        from cellcal.core.study.plots import write_plots
+
+        paths = write_plots(result, out)
+    if not args.quiet:
+        print(format_summary(result.rows))
+        print()
+        print(format_headline(head))
+        if not result.full_frame_available:
+            print("  (cellcal.core.methods.fullframe not found: full frame not run)")
+        print(f"{n_trials} trials in {elapsed:.1f} s")
+    print(f"study written to {csv_path}" + (f" (+ {HEADLINE_NAME}, {len(paths)} plots)" if paths else
+                                            f" (+ {HEADLINE_NAME})"))
+    return 0

@@ -1,0 +1,47 @@
+"""Geometry of the measuring plane: plane fits, frame chains, sampling, consistency, PlaneMap."""
+
+from cellcal.core.geometry.consistency import (
+    PlaneConsistency,
+    PosePlane,
+    plane_consistency,
+    plane_in_base,
+)
+from cellcal.core.geometry.frames import (
+    FrameChain,
+)
+from cellcal.core.geometry.planemap import (
+    PlaneMap,
+)
+from cellcal.core.geometry.planes import (
+    CameraPlaneAngles,
+    Plane,
+    PlaneFit,
+    fit_plane_ols,
+    fit_plane_robust,
+    fit_plane_tls,
+    validate_points,
+)
+from cellcal.core.geometry.sampling import (
+    Sample,
+    sample_points,
+    sample_window,
+)
+
+__all__ = [
+    "CameraPlaneAngles",
+    "FrameChain",
+    "Plane",
+    "PlaneConsistency",
+    "PlaneFit",
+    "PlaneMap",
+    "PosePlane",
+    "Sample",
+    "fit_plane_ols",
+    "fit_plane_robust",
+    "fit_plane_tls",
+    "plane_consistency",
+    "plane_in_base",
+    "sample_points",
+    "sample_window",
+    "validate_points",
+]

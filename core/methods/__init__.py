@@ -1,0 +1,73 @@
+"""Measurement methods: the paper's grid methods and the full-frame fit."""
+
+from cellcal.core.methods.fullframe import (
+    GATE_NAMES,
+    FullFrameResult,
+    FullFrameSettings,
+    check_gates,
+    fit_full_frame,
+    fit_plane_points,
+)
+from cellcal.core.methods.measure import (
+    ExpectedGeometry,
+    Measurement,
+    expected_geometry,
+    full_frame_document,
+    measure_frames,
+    measure_full_frame,
+    nominal_model,
+)
+from cellcal.core.methods.paper import (
+    GRID_NAMES,
+    GridPoint,
+    PaperResult,
+    error_pct,
+    grid_phi_theta,
+    grid_pixels,
+    grid_points,
+    law_of_cosines_angle,
+    max_perimeter_px,
+    paper_methods,
+    plane_fit,
+    plane_fit_angle,
+    spherical_to_cartesian,
+)
+from cellcal.core.methods.paper_data import (
+    REQUIRED_COLUMNS,
+    PaperDataSet,
+    load_paper_table,
+    parse_paper_rows,
+)
+
+__all__ = [
+    "GATE_NAMES",
+    "GRID_NAMES",
+    "REQUIRED_COLUMNS",
+    "ExpectedGeometry",
+    "FullFrameResult",
+    "FullFrameSettings",
+    "GridPoint",
+    "Measurement",
+    "PaperDataSet",
+    "PaperResult",
+    "check_gates",
+    "error_pct",
+    "expected_geometry",
+    "fit_full_frame",
+    "fit_plane_points",
+    "full_frame_document",
+    "grid_phi_theta",
+    "grid_pixels",
+    "grid_points",
+    "law_of_cosines_angle",
+    "load_paper_table",
+    "max_perimeter_px",
+    "measure_frames",
+    "measure_full_frame",
+    "nominal_model",
+    "paper_methods",
+    "parse_paper_rows",
+    "plane_fit",
+    "plane_fit_angle",
+    "spherical_to_cartesian",
+]

@@ -1,0 +1,307 @@
+"""Luxonis OAK depth camera over ``depthai`` v3 (registered as ``oak``).
+
+Pipeline (built in :meth:`OakCamera._connect`; ``depthai`` is imported only there):
+
+* ``depth_source = "stereo"``: two ``dai.node.Camera`` on CAM_B / CAM_C feed a
+  ``dai.node.StereoDepth`` (``build(left, right, presetMode)``). The depth is
+  aligned to ``align_socket`` at ``width`` x ``height``: for a mono socket through
+  ``setDepthAlign(socket)`` + ``setOutputSize``; for a colour socket by linking that
+  camera's ``requestOutput((width, height))`` to ``stereo.inputAlignTo`` (RVC2) or
+  through a ``dai.node.ImageAlign`` (RVC4).
+* ``depth_source = "tof"``: a ``dai.node.ToF`` built on ``align_socket``.
+
+Depth arrives as uint16 millimetres along the optical axis (Z-depth, not radial),
+0 = invalid. Each pixel's XYZ is the unit ray through the pixel centre from
+:func:`cellcal.devices.geometry.camera_model.pixel_grid_rays` (lens distortion inverted), scaled so
+its z equals the depth: ``xyz = ray / ray_z * depth_z``; ``Frame.distance`` is
+``|xyz|`` (radial). Intrinsics come from the device's own calibration for the
+aligned socket at the output size: ``readCalibration().getCameraIntrinsics(socket,
+w, h)`` and ``getDistortionCoefficients(socket)`` (14 OpenCV rational terms).
+With ``distortion = "none"`` the outputs are requested undistorted (colour camera
+``enableUndistortion``, ToF ``setOutputUndistortion``) and the coefficients are
+dropped. Fisheye-calibrated sockets need ``distortion = "none"``.
+
+Timeouts: ``dai.Device(...)`` searches and boots with no timeout parameter, and
+``Pipeline.start()`` uploads the pipeline; both run in a worker joined with the
+connect timeout (:class:`~cellcal.drivers._blocking.BoundedCaller`). Every queue
+read is ``MessageQueue.get(timedelta)`` (returns None on timeout). A closed queue
+or a closed device means the device is gone: :class:`DeviceConnectionError`.
+
+Discovery (:meth:`OakCamera.discover`): ``dai.Device.getAllAvailableDevices()``;
+where depthai is absent or finds nothing, USB vendor 0x03E7 through ``pyusb``
+(:mod:`cellcal.drivers.oak.usb_scan`), the boot state named from the product id.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.devices.base import BackendContext
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import (
+    DeviceConnectionError,
+    DeviceError,
+    DeviceTimeoutError,
+    MissingDependencyError,
+    ProtocolError,
+    UsbBackendMissingError,
+)
+from cellcal.devices.geometry.camera_model import pixel_grid_rays
+from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
+from cellcal.drivers._blocking import BoundedCaller
+from cellcal.drivers.oak.usb_scan import find_usb_devices
+
+log = logging.getLogger(__name__)
+
+Socket = Literal["CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F"]
+MONO_STEREO_SOCKETS = ("CAM_B", "CAM_C")
+
+
+@dataclass(frozen=True)
+class OakConfig:
+    """``[camera]`` section for ``backend = "oak"``.
+
+    Attributes:
+        device_id: DeviceId (MxId), IP address or USB port name; "" = first device found.
+        depth_source: ``"stereo"`` (StereoDepth node) or ``"tof"`` (ToF node).
+        align_socket: Socket whose viewpoint and intrinsics the depth is given in.
+        width: Depth output width, pixels.
+        height: Depth output height, pixels.
+        fps: Frame rate, Hz.
+        stereo_preset: ``StereoDepth.PresetMode`` name.
+        distortion: ``"device"`` (the socket's calibrated distortion) or ``"none"``.
+        timeout_s: Default I/O timeout, s (booting an OAK over USB takes a few seconds).
+        queue_size: Host queue length, frames (oldest dropped when full).
+    """
+
+    device_id: str = ""
+    depth_source: Literal["stereo", "tof"] = "stereo"
+    align_socket: Socket = "CAM_A"
+    width: int = field(default=640, metadata={"gt": 0, "le": 4096})
+    height: int = field(default=400, metadata={"gt": 0, "le": 4096})
+    fps: float = field(default=15.0, metadata={"gt": 0, "le": 120})
+    stereo_preset: Literal["DEFAULT", "ROBOTICS", "HIGH_DETAIL", "FAST_ACCURACY", "FAST_DENSITY",
+                           "DENSITY", "ACCURACY", "FACE"] = "DEFAULT"
+    distortion: Literal["device", "none"] = "device"
+    timeout_s: float = field(default=10.0, metadata={"gt": 0})
+    queue_size: int = field(default=4, metadata={"ge": 1, "le": 64})
+
+    def __post_init__(self) -> None:
+        if self.depth_source == "stereo" and self.align_socket not in ("CAM_A", *MONO_STEREO_SOCKETS):
+            raise ValueError(f"stereo depth aligns to CAM_A, CAM_B or CAM_C, not {self.align_socket}")
+
+
+def depth_to_xyz(depth_mm: NDArray[Any], rays_over_z: NDArray[np.float64]
+                 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+    """Turn a Z-depth image into camera-frame points.
+
+    Args:
+        depth_mm: uint16 depth along the optical axis, millimetres, 0 = invalid, (H, W).
+        rays_over_z: Pixel rays scaled to z = 1, (H, W, 3); NaN where undefined.
+
+    Returns:
+        ``(xyz_m, distance_m, valid)``: float32 (H, W, 3) and (H, W) with NaN where
+        invalid, and the validity mask.
+    """
+    z = depth_mm.astype(np.float64) * 1e-3
+    valid = (depth_mm > 0) & np.all(np.isfinite(rays_over_z), axis=2)
+    xyz = rays_over_z * z[..., None]
+    xyz[~valid] = np.nan
+    distance = np.linalg.norm(xyz, axis=2)
+    return xyz.astype(np.float32), distance.astype(np.float32), valid
+
+
+class OakCamera(Camera3D):
+    """A Luxonis OAK stereo or ToF camera over depthai v3."""
+
+    backend_name: ClassVar[str] = "oak"
+    Config: ClassVar[type[OakConfig]] = OakConfig
+
+    def __init__(self, config: OakConfig, context: BackendContext | None = None):
+        super().__init__()
+        self.config = config
+        self.context = context or BackendContext()
+        self.default_timeout_s = config.timeout_s
+        self._caller = BoundedCaller(f"oak {config.device_id or '(first)'}")
+        self._dai: Any = None
+        self._device: Any = None
+        self._pipeline: Any = None
+        self._queue: Any = None
+        self._intr: Intrinsics | None = None
+        self._rays_over_z: NDArray[np.float64] | None = None
+        self._clock_offset_s = 0.0
+        self._identity: dict[str, str] = {}
+
+    # ------------------------------------------------------------ discovery
+    @classmethod
+    def discover(cls, timeout: float = 2.0) -> list[DeviceInfo] | None:
+        """OAK devices reachable now: from depthai, else from USB enumeration (pyusb).
+
+        Raises:
+            MissingDependencyError: If neither depthai nor pyusb with libusb is available.
+        """
+        found: list[DeviceInfo] = []
+        depthai_missing = False
+        try:
+            import depthai as dai
+        except ImportError:
+            depthai_missing = True
+        else:
+            caller = BoundedCaller("oak discovery")
+            try:
+                infos = caller.call(dai.Device.getAllAvailableDevices, timeout, "list devices")
+            except DeviceTimeoutError:
+                log.warning("oak: depthai device search did not finish within %g s", timeout)
+                infos = []
+            for info in infos:
+                found.append(DeviceInfo(
+                    backend="oak", vendor="Luxonis", model=str(info.platform.name), serial=str(info.deviceId),
+                    extra={"name": str(info.name), "state": str(info.state.name),
+                           "protocol": str(info.protocol.name), "source": "depthai"}))
+        if found:
+            return found
+        try:
+            usb_devices = find_usb_devices()
+        except (MissingDependencyError, UsbBackendMissingError) as exc:
+            if depthai_missing:
+                raise MissingDependencyError(f"depthai (and USB scanning is unavailable: {exc})", "oak") from None
+            return found
+        return [DeviceInfo(backend="oak", vendor="Intel Movidius / Luxonis", model=f"USB {d.vendor_id:04x}:"
+                           f"{d.product_id:04x}", serial=f"usb {d.bus}-{d.port_path or d.address}",
+                           extra={"state": d.state, "bus": d.bus, "address": d.address, "source": "pyusb"})
+                for d in usb_devices]
+
+    # ------------------------------------------------------------ life cycle
+    def _connect(self, timeout: float) -> None:
+        try:
+            import depthai as dai
+        except ImportError:
+            raise MissingDependencyError("depthai", "oak") from None
+        self._dai = dai
+        cfg = self.config
+        deadline = time.monotonic() + timeout
+        who = cfg.device_id or "the first OAK device"
+
+        def open_device() -> Any:
+            return dai.Device(dai.DeviceInfo(cfg.device_id)) if cfg.device_id else dai.Device()
+
+        try:
+            self._device = self._caller.call(open_device, timeout, f"open {who}", on_late=lambda d: d.close())
+        except RuntimeError as exc:
+            hint = " (on Linux, check the udev rules for vendor 03e7)" if "NOT_FOUND" in str(exc).upper() else ""
+            raise DeviceConnectionError(f"oak: cannot open {who}: {exc}{hint}") from None
+        device = self._device
+        self._identity = {"id": str(device.getDeviceId()), "platform": str(device.getPlatformAsString()),
+                          "product": str(device.getProductName() or "")}
+        socket = getattr(dai.CameraBoardSocket, cfg.align_socket)
+        self._intr = self._read_intrinsics(device.readCalibration(), socket)
+        rays = pixel_grid_rays(self._intr)
+        self._rays_over_z = rays / rays[..., 2:3]
+        self._pipeline = dai.Pipeline(device)
+        depth_out = self._build_graph(self._pipeline, socket)
+        self._queue = depth_out.createOutputQueue(maxSize=cfg.queue_size, blocking=False)
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise DeviceTimeoutError(f"oak: no time left to start the pipeline on {who}")
+        try:
+            self._caller.call(self._pipeline.start, remaining, "start the pipeline")
+        except RuntimeError as exc:
+            raise DeviceConnectionError(f"oak {self._identity['id']}: pipeline failed to start: {exc}") from None
+        self._clock_offset_s = time.time() - dai.Clock.now().total_seconds()
+
+    def _build_graph(self, pipeline: Any, socket: Any) -> Any:
+        dai, cfg = self._dai, self.config
+        undistort = cfg.distortion == "none"
+        if cfg.depth_source == "tof":
+            tof = pipeline.create(dai.node.ToF).build(socket, fps=cfg.fps)
+            tof.setOutputUndistortion(undistort)
+            return tof.depth
+        left = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
+        right = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
+        preset = getattr(dai.node.StereoDepth.PresetMode, cfg.stereo_preset)
+        stereo = pipeline.create(dai.node.StereoDepth).build(
+            left.requestFullResolutionOutput(fps=cfg.fps), right.requestFullResolutionOutput(fps=cfg.fps),
+            presetMode=preset)
+        if cfg.align_socket in MONO_STEREO_SOCKETS:
+            stereo.setDepthAlign(socket)
+            stereo.setOutputSize(cfg.width, cfg.height)
+            return stereo.depth
+        color = pipeline.create(dai.node.Camera).build(socket)
+        color_out = color.requestOutput((cfg.width, cfg.height), fps=cfg.fps, enableUndistortion=undistort)
+        if self._device.getPlatform() == dai.Platform.RVC4:
+            align = pipeline.create(dai.node.ImageAlign)
+            stereo.depth.link(align.input)
+            color_out.link(align.inputAlignTo)
+            return align.outputAligned
+        color_out.link(stereo.inputAlignTo)
+        return stereo.depth
+
+    def _read_intrinsics(self, calib: Any, socket: Any) -> Intrinsics:
+        dai, cfg = self._dai, self.config
+        try:
+            k = calib.getCameraIntrinsics(socket, cfg.width, cfg.height)
+            coeffs: list[float] = []
+            if cfg.distortion == "device":
+                model = calib.getDistortionModel(socket)
+                if model != dai.CameraModel.Perspective:
+                    raise DeviceError(f"oak: {cfg.align_socket} is calibrated with the {model.name} model; "
+                                      "set distortion = \"none\" (undistorted output)")
+                coeffs = list(calib.getDistortionCoefficients(socket))
+        except RuntimeError as exc:
+            raise DeviceError(f"oak: no calibration for {cfg.align_socket}: {exc}") from None
+        return Intrinsics.from_opencv(cfg.width, cfg.height, k, coeffs)
+
+    def _close(self) -> None:
+        for action in (lambda: self._pipeline.stop(), lambda: self._queue.close(), lambda: self._device.close()):
+            with contextlib.suppress(Exception):
+                action()
+        self._pipeline = self._queue = self._device = None
+        self._caller.join(2.0)
+
+    def _info(self) -> DeviceInfo:
+        return DeviceInfo(backend="oak", vendor="Luxonis", model=self._identity.get("product") or
+                          self._identity.get("platform", "OAK"), serial=self._identity.get("id", ""),
+                          extra={"platform": self._identity.get("platform", ""),
+                                 "depth_source": self.config.depth_source, "socket": self.config.align_socket})
+
+    def _intrinsics(self) -> Intrinsics:
+        assert self._intr is not None
+        return self._intr
+
+    # ------------------------------------------------------------ capture
+    def _capture(self, timeout: float) -> Frame:
+        dai = self._dai
+        gone = (RuntimeError, dai.MessageQueue.QueueException)
+        try:
+            if self._device.isClosed():
+                raise DeviceConnectionError(f"oak {self._identity.get('id', '')}: device disconnected")
+            now = dai.Clock.now().total_seconds()
+            # Frames queued earlier are used only if younger than the timeout.
+            queued = [m for m in self._queue.tryGetAll() if m is not None]
+            msg = queued[-1] if queued and now - queued[-1].getTimestamp().total_seconds() <= timeout else None
+            if msg is None:
+                msg = self._queue.get(datetime.timedelta(seconds=timeout))
+        except gone as exc:
+            raise DeviceConnectionError(f"oak {self._identity.get('id', '')}: device disconnected ({exc})") from None
+        if msg is None:
+            raise DeviceTimeoutError(f"oak: no depth frame within {timeout:g} s")
+        return self._to_frame(msg)
+
+    def _to_frame(self, msg: Any) -> Frame:
+        intr = self._intrinsics()
+        assert self._rays_over_z is not None
+        depth = np.asarray(msg.getFrame())
+        if depth.dtype != np.uint16 or depth.shape != intr.shape:
+            raise ProtocolError(f"oak: depth frame is {depth.dtype} {depth.shape}, expected uint16 {intr.shape}")
+        xyz, distance, valid = depth_to_xyz(depth, self._rays_over_z)
+        return Frame(distance=distance, xyz=xyz, amplitude=np.zeros(intr.shape, dtype=np.float32), valid=valid,
+                     intrinsics=intr, timestamp=self._clock_offset_s + msg.getTimestamp().total_seconds(),
+                     sequence=int(msg.getSequenceNum()))

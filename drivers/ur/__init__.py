@@ -1,0 +1,5 @@
+"""Universal Robots over ur_rtde: backend class :class:`URArm`, entry point ``arms: ur`` (extra ``ur``)."""
+
+from cellcal.drivers.ur.arm import URArm, URConfig
+
+__all__ = ["URArm", "URConfig"]
