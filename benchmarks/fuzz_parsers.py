@@ -1,6 +1,6 @@
 """Long seeded fuzz run of the PCIC, xArm and TOML-config parsers, outside pytest.
 
-The same targets and mutators as ``tests/test_fuzz_parsers.py`` (``tests/fuzz_targets.py``):
+The same targets and mutators as ``tests/integration/faults/test_fuzz_parsers.py`` (``tests/support/fuzz_targets.py``):
 every input must parse or raise the parser's documented error (``ProtocolError``,
 ``ConfigError``). Prints, per parser, how many inputs it got, how many parsed, how many
 were rejected with the documented error, how many raised anything else (the first
@@ -23,7 +23,7 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "support"))
 
 from fuzz_targets import Target, config_target, pcic_target, xarm_target
 

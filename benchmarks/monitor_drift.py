@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.core.calibration.config import CellConfig, load_config
-from cellcal.core.monitor.monitor import Monitor, MonitoredCamera, MonitorStatus
+from cellcal.core.monitor import Monitor, MonitoredCamera, MonitorStatus
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.pose import Pose

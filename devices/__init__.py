@@ -1,4 +1,4 @@
-"""cellcal.devices: the Camera3D and RobotArm interfaces, data types, errors, registry, safety.
+"""cellcal.devices: the Camera3D and RobotArm interfaces, data types, errors, registry, wrappers, safety.
 
 Depends on numpy/scipy only; never on a vendor SDK, a driver or a simulator.
 """
@@ -21,8 +21,10 @@ from .errors import (
     SafetyError,
     VendorError,
 )
+from .forwarding import ForwardingArm, ForwardingCamera
 from .pose import Pose
 from .registry import BackendEntry, Registry, default_registry
+from .safety import SafeArm, SafetyLimits
 from .types import ArmStatus, DeviceInfo, Frame, Intrinsics
 
 __all__ = [
@@ -39,6 +41,8 @@ __all__ = [
     "DeviceError",
     "DeviceInfo",
     "DeviceTimeoutError",
+    "ForwardingArm",
+    "ForwardingCamera",
     "Frame",
     "Intrinsics",
     "MissingDependencyError",
@@ -48,7 +52,9 @@ __all__ = [
     "Registry",
     "RegistryError",
     "RobotArm",
+    "SafeArm",
     "SafetyError",
+    "SafetyLimits",
     "VendorError",
     "default_registry",
 ]

@@ -1,19 +1,8 @@
-"""Typed validation of configuration sections (TOML tables) into dataclasses.
+"""Typed validation of configuration sections (TOML tables) into frozen dataclasses.
 
-A backend declares its section as a frozen dataclass; :func:`parse_section` checks a
-mapping against it and reports the first problem as a one-line
-:class:`~cellcal.devices.errors.ConfigError` naming the file, the dotted key and what
-was expected. Range limits live in field metadata, so the schema is introspectable
-(tests enumerate it to prove every key is validated)::
-
-    @dataclass(frozen=True)
-    class Config:
-        host: str = "192.168.0.69"
-        timeout_s: float = field(default=2.0, metadata={"gt": 0, "doc": "I/O timeout, s"})
-
-Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal[...]``,
-``tuple[float, ...]`` / ``tuple[float, float, float]`` (and int/str tuples),
-``list[...]`` of those, ``dict[str, Any]``, nested config dataclasses, and ``X | None``.
+:func:`parse_section` checks a mapping against a backend's config dataclass and reports
+the first problem as a one-line :class:`~cellcal.devices.errors.ConfigError` naming the
+file, the dotted key and what was expected (ADR 0004).
 """
 
 from __future__ import annotations
@@ -76,76 +65,89 @@ def _describe(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+def _fail(value: Any, tp: Any, key: str, source: str | None) -> ConfigError:
+    """The error for ``value`` not being of type ``tp``: what was expected and what came."""
+    return ConfigError(f"expected {_describe(tp)}, got {type(value).__name__} {value!r}", source=source, key=key)
+
+
 def _convert(value: Any, tp: Any, key: str, source: str | None) -> Any:
-    """Check ``value`` against type ``tp`` and return it converted (e.g. int -> float)."""
+    """Check ``value`` against type ``tp`` and return it converted (e.g. int -> float).
 
-    def fail() -> ConfigError:
-        got = type(value).__name__
-        return ConfigError(f"expected {_describe(tp)}, got {got} {value!r}", source=source, key=key)
-
+    Raises:
+        ConfigError: Naming ``key`` (``[i]`` appended for list items) and what was expected.
+    """
     origin = get_origin(tp)
     if tp is Any:
         return value
     if origin in (typing.Union, types.UnionType):
-        args = get_args(tp)
-        if value is None and type(None) in args:
-            return None
-        alternatives = [a for a in args if a is not type(None)]
-        if len(alternatives) == 1:  # X | None: X's own message names the inner key
-            return _convert(value, alternatives[0], key, source)
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(value, arg, key, source)
-            except ConfigError:
-                continue
-        raise fail()
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise fail()
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise fail()
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise fail()
-        if not math.isfinite(value):
-            raise ConfigError(f"expected a finite number, got {value!r}", source=source, key=key)
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise fail()
-        return value
+        return _convert_union(value, tp, key, source)
+    if tp in _TYPE_NAMES:
+        return _convert_scalar(value, tp, key, source)
     if origin is Literal:
         if value not in get_args(tp) or isinstance(value, bool):
-            raise fail()
+            raise _fail(value, tp, key, source)
         return value
     if origin is tuple or origin is list:
-        if not isinstance(value, (list, tuple)):
-            raise fail()
-        args = get_args(tp)
-        if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
-            if len(value) != len(args):
-                raise ConfigError(
-                    f"expected {_describe(tp)}, got {len(value)} items", source=source, key=key
-                )
-            items = [_convert(v, a, f"{key}[{i}]", source) for i, (v, a) in enumerate(zip(value, args, strict=True))]
-        else:
-            item_tp = args[0]
-            items = [_convert(v, item_tp, f"{key}[{i}]", source) for i, v in enumerate(value)]
-        return tuple(items) if origin is tuple else items
+        return _convert_sequence(value, tp, key, source)
     if origin is dict or tp is dict:
         if not isinstance(value, Mapping):
-            raise fail()
+            raise _fail(value, tp, key, source)
         return dict(value)
     if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         if not isinstance(value, Mapping):
-            raise fail()
+            raise _fail(value, tp, key, source)
         return parse_section(tp, value, where=key, source=source)
     raise ConfigError(f"unsupported schema type {tp!r}", source=source, key=key)  # pragma: no cover
+
+
+def _convert_union(value: Any, tp: Any, key: str, source: str | None) -> Any:
+    """``X | None`` (None, or X with X's own message) or ``X | Y``: the first alternative that accepts it."""
+    args = get_args(tp)
+    if value is None and type(None) in args:
+        return None
+    alternatives = [a for a in args if a is not type(None)]
+    if len(alternatives) == 1:  # X | None: X's own message names the inner key
+        return _convert(value, alternatives[0], key, source)
+    for arg in alternatives:
+        try:
+            return _convert(value, arg, key, source)
+        except ConfigError:
+            continue
+    raise _fail(value, tp, key, source)
+
+
+def _convert_scalar(value: Any, tp: type, key: str, source: str | None) -> Any:
+    """``bool``, ``int``, ``float`` (ints accepted, must be finite) or ``str``; a bool is never a number."""
+    if tp is bool:
+        ok = isinstance(value, bool)
+    elif tp is str:
+        ok = isinstance(value, str)
+    elif tp is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:  # float
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok:
+        raise _fail(value, tp, key, source)
+    if tp is float:
+        if not math.isfinite(value):
+            raise ConfigError(f"expected a finite number, got {value!r}", source=source, key=key)
+        return float(value)
+    return value
+
+
+def _convert_sequence(value: Any, tp: Any, key: str, source: str | None) -> Any:
+    """``list[X]``, ``tuple[X, ...]`` or a fixed ``tuple[X, Y, ...]`` from a TOML array, item by item."""
+    origin = get_origin(tp)
+    if not isinstance(value, (list, tuple)):
+        raise _fail(value, tp, key, source)
+    args = get_args(tp)
+    if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):  # fixed length, one type per item
+        if len(value) != len(args):
+            raise ConfigError(f"expected {_describe(tp)}, got {len(value)} items", source=source, key=key)
+        items = [_convert(v, a, f"{key}[{i}]", source) for i, (v, a) in enumerate(zip(value, args, strict=True))]
+    else:
+        items = [_convert(v, args[0], f"{key}[{i}]", source) for i, v in enumerate(value)]
+    return tuple(items) if origin is tuple else items
 
 
 def _check_range(value: Any, meta: Mapping[str, Any], key: str, source: str | None) -> None:
@@ -170,6 +172,11 @@ def _check_range(value: Any, meta: Mapping[str, Any], key: str, source: str | No
 def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str = "",
                   source: str | None = None, ignore: tuple[str, ...] = ()) -> T:
     """Validate a mapping against a config dataclass and build an instance.
+
+    Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal[...]``,
+    ``tuple[float, ...]`` / ``tuple[float, float, float]`` (and int/str tuples),
+    ``list[...]`` of those, ``dict[str, Any]``, nested config dataclasses, and ``X | None``.
+    Range limits come from field metadata (``gt``, ``ge``, ``lt``, ``le``, ``min_items``).
 
     Args:
         cls: The config dataclass.

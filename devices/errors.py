@@ -1,8 +1,4 @@
-"""The one exception tree of cellcal.
-
-Every error cellcal raises on purpose derives from :class:`CellcalError`, so a
-cell application can catch the library's failures with one ``except`` clause and
-still tell them apart::
+"""The one exception tree of cellcal: one ``except CellcalError`` catches every error it raises on purpose::
 
     CellcalError
     ├── ConfigError                 bad configuration file / section / key
@@ -25,8 +21,7 @@ still tell them apart::
     │   └── ReplayExhaustedError    (also a DeviceError) replay ran out of data
     └── ConformanceError            (also an AssertionError) a backend broke a contract rule
 
-Messages are one line and name what was wrong, so the CLI can print ``str(err)``
-as-is.
+Messages are one line and name what was wrong, so the CLI prints ``str(err)`` as-is.
 """
 
 from __future__ import annotations

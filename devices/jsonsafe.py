@@ -1,15 +1,4 @@
-"""Strict-JSON copies of documents: the one cleaner for results, journals and recordings.
-
-:func:`json_safe` turns what cellcal's documents hold into values ``json.dumps(...,
-allow_nan=False)`` accepts: NaN/inf become None (JSON has no such numbers), numpy
-arrays and scalars Python lists and numbers, tuples and sets lists, mapping keys
-strings, and TOML dates/times ISO 8601 strings.
-
-Anything else is a programming error — a document that holds, say, a
-:class:`~cellcal.devices.pose.Pose` instead of its ``to_dict()`` form — and raises
-:class:`TypeError` naming the type and where in the document it sits, rather than
-being written as its ``str()`` (which no reader could turn back into the object).
-"""
+"""Strict-JSON copies of documents (:func:`json_safe`): the one cleaner for results, journals and recordings."""
 
 from __future__ import annotations
 
@@ -24,7 +13,14 @@ __all__ = ["json_safe"]
 
 
 def json_safe(value: Any) -> Any:
-    """Strict-JSON copy of ``value`` (see the module docstring for the conversions).
+    """Strict-JSON copy of ``value``: what ``json.dumps(..., allow_nan=False)`` accepts.
+
+    NaN/inf become None (JSON has no such numbers), numpy arrays and scalars Python
+    lists and numbers, tuples and sets lists, mapping keys strings, and TOML
+    dates/times ISO 8601 strings. Anything else is a programming error (a document
+    that holds, say, a :class:`~cellcal.devices.pose.Pose` instead of its ``to_dict()``
+    form) and raises rather than being written as its ``str()``, which no reader could
+    turn back into the object.
 
     Args:
         value: A document: mappings, sequences, sets, numbers (Python or numpy),

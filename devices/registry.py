@@ -1,15 +1,10 @@
 """Backend registry: names -> device classes, from entry points or explicit registration.
 
-Built-in and third-party backends are found the same way: through the entry-point
-groups ``cellcal.cameras`` and ``cellcal.arms`` (see ADR 0005). A vendor package
-declares, in its ``pyproject.toml``::
+Backends are found through the entry-point groups ``cellcal.cameras`` and
+``cellcal.arms`` (ADR 0005), e.g. in a vendor's ``pyproject.toml``::
 
     [project.entry-points."cellcal.cameras"]
     acme = "acme_cellcal.camera:AcmeCamera"
-
-Entry points are only *listed* at start-up; a backend's module (and through it the
-vendor SDK) is imported when the backend is first used, so ``import cellcal.core``
-stays light. Two distributions claiming one name is an error, never a silent pick.
 """
 
 from __future__ import annotations
@@ -48,7 +43,12 @@ class BackendEntry:
 
 
 class Registry:
-    """Maps backend names to device classes for cameras and arms."""
+    """Maps backend names to device classes for cameras and arms.
+
+    Entry points are only *listed* at start-up; a backend's module (and through it the
+    vendor SDK) is imported when the backend is first used. Two distributions claiming
+    one name is a :class:`RegistryError`, never a silent pick.
+    """
 
     def __init__(self, *, discover: bool = True):
         self._entries: dict[tuple[Kind, str], BackendEntry] = {}

@@ -1,12 +1,8 @@
 """The safety envelope every arm command goes through.
 
 :class:`SafeArm` wraps any :class:`RobotArm` and checks each ``move_linear`` against
-:class:`SafetyLimits` *before* anything is sent to the backend: the whole straight-
-line path of the flange and of the camera (sampled, with the orientation
-interpolated as controllers do) must stay inside the workspace box, speed and
-acceleration within their maxima, and the camera no closer to the measuring plane
-than the minimum standoff. A violation raises :class:`SafetyError` naming the
-offending pose; the arm is not moved.
+:class:`SafetyLimits` before anything is sent to the backend; a violation raises
+:class:`SafetyError` naming the offending pose, and the arm is not moved.
 """
 
 from __future__ import annotations
@@ -21,8 +17,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .arm import RobotArm
 from .errors import SafetyError
+from .forwarding import ForwardingArm
 from .pose import Pose
-from .types import ArmStatus, DeviceInfo
 
 #: Points per metre (and at least this many per move) at which a path is checked.
 PATH_SAMPLES_PER_M = 200
@@ -165,47 +161,24 @@ class SafetyLimits:
             previous = target
 
 
-class SafeArm(RobotArm):
+class SafeArm(ForwardingArm):
     """A :class:`RobotArm` that forwards to another one after checking every move.
+
+    The whole straight-line path of the flange and of the camera (sampled, with the
+    orientation interpolated as controllers do) must stay inside the workspace box,
+    speed and acceleration within their maxima, and the camera no closer to the
+    measuring plane than the minimum standoff.
 
     Args:
         inner: The arm to protect. Its life cycle is driven through this wrapper.
         limits: The envelope.
     """
 
-    def __init__(self, inner: RobotArm, limits: SafetyLimits):
-        super().__init__()
-        self.inner = inner
+    def __init__(self, inner: RobotArm, limits: SafetyLimits) -> None:
+        super().__init__(inner)
         self.limits = limits
-        self.backend_name = inner.backend_name  # type: ignore[misc]
-        self.default_timeout_s = inner.default_timeout_s
-        self.default_motion_timeout_s = inner.default_motion_timeout_s
-
-    def _connect(self, timeout: float) -> None:
-        self.inner.connect(timeout)
-
-    def _close(self) -> None:
-        self.inner.close()
-
-    def _info(self) -> DeviceInfo:
-        return self.inner.info()
-
-    def _get_pose(self, timeout: float) -> Pose:
-        return self.inner.get_pose(timeout)
 
     def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
         start = self.inner.get_pose(min(timeout, self.default_timeout_s))
         self.limits.check(start, pose, speed, acceleration)
-        self.inner.move_linear(pose, speed=speed, acceleration=acceleration, timeout=timeout)
-
-    def _stop(self, timeout: float) -> None:
-        self.inner.stop(timeout)
-
-    def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
-        return self.inner.joint_positions(timeout)
-
-    def _status(self, timeout: float) -> ArmStatus:
-        return self.inner.status(timeout)
-
-    def _clear_errors(self, timeout: float) -> None:
-        self.inner.clear_errors(timeout)
+        super()._move_linear(pose, speed, acceleration, timeout)

@@ -1,13 +1,7 @@
-"""Bounded waits around vendor calls that block without a timeout parameter.
+"""Bounded waits around vendor calls that block without a timeout parameter (:class:`BoundedCaller`).
 
-Some vendor constructors (``rtde_control.RTDEControlInterface(host)``,
-``depthai.Device(info)``) connect inside the constructor and offer no timeout.
-:class:`BoundedCaller` runs such a call in a worker thread and waits at most the
-caller's timeout. A call that overruns cannot be cancelled (it is native code), so
-the worker is *abandoned*: it keeps running until the library's own internal
-timeout ends it, and whatever it produces late is released with ``on_late``
-(e.g. ``disconnect()``), so no connection leaks. :meth:`BoundedCaller.join` waits
-(bounded) for abandoned workers; backends call it from ``_close()``.
+Used for ``rtde_control.RTDEControlInterface(host)``, ``depthai.Device(info)`` and the
+like; why a late call is abandoned rather than cancelled: docs/adr/0015-vendor-drivers.md.
 """
 
 from __future__ import annotations
@@ -51,6 +45,13 @@ class _Call(Generic[T]):
 
 class BoundedCaller:
     """Runs blocking vendor calls with a deadline; tracks abandoned workers.
+
+    Each call runs in a worker thread joined with the caller's timeout. A call that
+    overruns cannot be cancelled (it is native code), so its worker is *abandoned*: it
+    keeps running until the library's own internal timeout ends it, and whatever it
+    produces late is released with ``on_late`` (e.g. ``disconnect()``), so no
+    connection leaks. :meth:`join` waits (bounded) for abandoned workers; backends
+    call it from ``_close()``.
 
     Args:
         name: Prefix of worker thread names (shows up in thread dumps).

@@ -1,7 +1,5 @@
-"""cellcal.sims: the simulated cell (scene, O3R222-like camera, xArm-5-like arm) and emulators.
+"""cellcal.sims: the simulated cell (scene, O3R222-like camera, xArm-5-like arm) and wire-level emulators.
 
-Import the submodules you need (``cellcal.sims.camera``, ``cellcal.sims.arm``,
-``cellcal.sims.world``, ``cellcal.sims.scene``); this package module imports nothing
-heavy itself. The ``sim`` backends are :class:`cellcal.sims.camera.SimCamera` and
-:class:`cellcal.sims.arm.SimArm` (entry points ``cameras: sim`` and ``arms: sim``).
+Imports nothing itself: the ``sim`` backends are ``cellcal.sims.camera.SimCamera`` and ``cellcal.sims.arm.SimArm``
+(entry points ``cameras: sim``, ``arms: sim``); the emulators are ``cellcal.sims.o3r`` and ``cellcal.sims.xarm``.
 """

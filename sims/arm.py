@@ -1,44 +1,9 @@
-"""A simulated 5-DoF robot arm modelled on the UFACTORY xArm 5.
+"""The ``sim`` arm: a simulated 5-DoF robot arm modelled on the UFACTORY xArm 5 (:class:`SimArm`).
 
-**Workspace** (flange position in the base frame, configurable): horizontal distance
-from the base axis ``min_radius_m <= r <= reach_m`` (defaults 0.10 m and 0.70 m, the
-xArm 5's quoted reach) and ``z_min_m <= z <= z_max_m`` (defaults -0.10 m and 0.90 m).
-A target outside it is refused: the arm does not move and enters error state
-**21** ("Kinematic error", as the xArm controller reports an unsolvable target);
-:meth:`SimArm.move_linear` raises ``VendorError("sim", 21, ...)``. Orientation is
-not restricted (a real 5-DoF arm cannot reach every orientation; see the IK below).
-
-**Motion**: straight line in position, slerp in orientation, both following one
-trapezoidal speed profile over the path length
-``L = max(|Δp|, angle · 0.1 m)`` (so pure rotations take time too):
-``T = L/v + v/a`` when ``L >= v²/a``, else ``T = 2·sqrt(L/a)``. Speed and acceleration
-are clamped to the xArm 5's limits (1.0 m/s, 50 m/s²). Simulated time advances by
-``T``; the wall clock waits ``T · time_scale`` (0 = instantaneous, 1 = real time; the
-default 0.01 keeps the default run fast). A new target replaces a motion under way,
-starting from where the flange is; :meth:`SimArm.stop` halts where it is.
-
-**Read-back**: :meth:`get_pose` returns the true flange pose plus Gaussian noise on
-each translation axis with ``sigma = repeatability_m / 4`` (xArm 5: ±0.1 mm), so
-readings stay within ± ``repeatability_m`` of the truth; the orientation is exact.
-The arm arrives exactly at the commanded target (the truth the camera sees).
-
-**Joints** (radians, 5 values): an analytic IK of a simplified xArm-5-like chain —
-base yaw J1 about z; shoulder J2 at height 0.267 m, upper arm 0.2895 m, forearm
-0.3512 m (J3), wrist pitch J4, and a rigid wrist-to-flange link of 0.1232 m along the
-tool axis, flange roll J5 about the tool axis. ``J1 = atan2(y, x)``; the tool axis is
-projected into the arm's vertical plane (the 5-DoF constraint) to give the wrist
-point and the tool pitch; J2/J3 solve the planar two-link problem (elbow up, the
-reach clamped to the links' range), J4 makes up the tool pitch, J5 is the residual
-roll. J1 and J5 are unwrapped towards the previous reading, so the joints are
-continuous along a motion. Angles: J2 from vertical (forward positive), J3 and J4
-relative to the previous link.
-
-**Fault injection** (tests): :attr:`SimArm.fault_hook`, if set, is called as
-``hook("connect", n)`` on the n-th connect and ``hook("move", n)`` right after the
-n-th motion has started (``n`` = :attr:`SimArm.moves_started`); from there a test
-can latch a controller error (:meth:`set_error`, e.g. 31, the protective stop after a
-collision), freeze the motion (:meth:`freeze_motion`, a blocked arm that never
-arrives) or raise. :attr:`SimArm.stops` counts the stop commands received.
+It moves the flange of the shared simulated world (poses in the base frame, metres,
+radians) along trapezoidal straight-line motions, refuses targets outside its
+workspace with the xArm controller's error 21, and reads back with the xArm 5's
+repeatability. Design: docs/adr/0014-simulated-cell.md.
 """
 
 from __future__ import annotations
@@ -77,7 +42,7 @@ MAX_ACCELERATION_M_S2 = 50.0
 #: arm speaks the xArm controller's codes by design; the full table is the xArm driver's
 #: (``cellcal.drivers.xarm.codes.ERRORS``), which this generic sim may not import (sims
 #: depend on devices only), so the codes it needs are repeated here, worded as there
-#: (capitalised); tests/test_sim_arm.py checks that every one agrees with the driver's.
+#: (capitalised); tests/unit/sims/test_sim_arm.py checks that every one agrees with the driver's.
 ERROR_MEANINGS: dict[int, str] = {
     1: "Emergency stop button on the controller pressed",
     2: "Emergency IO of the control box triggered",
@@ -126,7 +91,12 @@ def trapezoid_position(t: float, distance: float, speed: float, acceleration: fl
 
 
 class LinearMotion:
-    """A straight-line flange motion with a trapezoidal profile (see the module docstring).
+    """A straight-line flange motion with a trapezoidal profile.
+
+    Straight line in position, slerp in orientation, both following one trapezoidal
+    speed profile over the path length ``L = max(|Δp|, angle · 0.1 m)`` (so pure
+    rotations take time too): ``T = L/v + v/a`` when ``L >= v²/a``, else
+    ``T = 2·sqrt(L/a)``.
 
     Args:
         start, target: Flange poses in the base frame.
@@ -163,6 +133,15 @@ def _wrap_near(angle: float, reference: float) -> float:
 
 def inverse_kinematics(pose: Pose, previous: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Joint angles (rad, 5) of the simplified xArm-5-like chain for a flange pose.
+
+    The chain: base yaw J1 about z; shoulder J2 at height 0.267 m, upper arm 0.2895 m,
+    forearm 0.3512 m (J3), wrist pitch J4, and a rigid wrist-to-flange link of 0.1232 m
+    along the tool axis, flange roll J5 about the tool axis. ``J1 = atan2(y, x)``; the
+    tool axis is projected into the arm's vertical plane (the 5-DoF constraint) to give
+    the wrist point and the tool pitch; J2/J3 solve the planar two-link problem (elbow
+    up, the reach clamped to the links' range), J4 makes up the tool pitch, J5 is the
+    residual roll. Angles: J2 from vertical (forward positive), J3 and J4 relative to
+    the previous link.
 
     Args:
         pose: Flange pose in the base frame.
@@ -231,6 +210,34 @@ class SimArmConfig:
 class SimArm(RobotArm):
     """Simulated xArm-5-like arm moving the flange of the shared :class:`SimWorld`.
 
+    **Workspace** (flange position in the base frame, configurable): horizontal
+    distance from the base axis ``min_radius_m <= r <= reach_m`` (defaults 0.10 m and
+    0.70 m, the xArm 5's quoted reach) and ``z_min_m <= z <= z_max_m`` (defaults
+    -0.10 m and 0.90 m). A target outside it is refused: the arm does not move and
+    enters error state **21** ("Kinematic error", as the xArm controller reports an
+    unsolvable target); :meth:`move_linear` raises ``VendorError("sim", 21, ...)``.
+    Orientation is not restricted (a real 5-DoF arm cannot reach every orientation).
+
+    **Motion** (:class:`LinearMotion`): speed and acceleration are clamped to the
+    xArm 5's limits (1.0 m/s, 50 m/s²). Simulated time advances by the motion's
+    duration ``T``; the wall clock waits ``T · time_scale`` (0 = instantaneous, 1 = real
+    time; the default 0.01 keeps the default run fast). A new target replaces a motion
+    under way, starting from where the flange is; :meth:`stop` halts where it is.
+
+    **Read-back**: :meth:`get_pose` returns the true flange pose plus Gaussian noise on
+    each translation axis with ``sigma = repeatability_m / 4`` (xArm 5: ±0.1 mm), so
+    readings stay within ± ``repeatability_m`` of the truth; the orientation is exact.
+    The arm arrives exactly at the commanded target (the truth the camera sees).
+    **Joints** (radians, 5 values) come from :func:`inverse_kinematics`; J1 and J5 are
+    unwrapped towards the previous reading, so they are continuous along a motion.
+
+    **Fault injection** (tests): :attr:`fault_hook`, if set, is called as
+    ``hook("connect", n)`` on the n-th connect and ``hook("move", n)`` right after the
+    n-th motion has started (``n`` = :attr:`moves_started`); from there a test can
+    latch a controller error (:meth:`set_error`, e.g. 31, the protective stop after a
+    collision), freeze the motion (:meth:`freeze_motion`, a blocked arm that never
+    arrives) or raise. :attr:`stops` counts the stop commands received.
+
     Thread-safe: the non-blocking API (:meth:`begin_move_linear`, :meth:`is_moving`,
     :meth:`motion_progress`, :meth:`current_error`, :meth:`set_error`) may be driven
     from an emulator's server thread while others read the pose.
@@ -256,7 +263,7 @@ class SimArm(RobotArm):
         self._joints: NDArray[np.float64] | None = None
         self._motion: LinearMotion | None = None
         self.last_motion_duration_s = 0.0
-        #: Fault-injection hook ``hook(event, n)``, see the module docstring. It runs on the
+        #: Fault-injection hook ``hook(event, n)``, see the class docstring. It runs on the
         #: thread that drives the arm (an emulator's server thread for ``xarm-emulated``).
         self.fault_hook: Callable[[str, int], None] | None = None
         #: Motions started, connects made and stop commands received (observable by tests).

@@ -1,39 +1,9 @@
-"""A simulated 3D time-of-flight camera modelled on the ifm O3R222.
+"""The ``sim`` camera: a simulated ifm O3R222-like 3D time-of-flight camera (:class:`SimCamera`).
 
-Geometry: 224 x 172 px, 60° x 45° field of view, pinhole + Brown–Conrady distortion
-(OpenCV conventions). The focal lengths come from the field of view,
-``fx = (W/2) / tan(fov_x/2)`` (193.99 px) and ``fy = (H/2) / tan(fov_y/2)``
-(207.62 px); the principal point is the image centre ``((W-1)/2, (H-1)/2)`` plus a
-configurable offset. Each pixel's unit ray comes from
-:func:`cellcal.devices.geometry.camera_model.pixel_grid_rays` of exactly these intrinsics, and the
-point is ``XYZ = ray * distance``, so a frame agrees with its intrinsics exactly.
-
-Rendering (vectorised, ~1–3 ms per frame): the rays are rotated into the world by
-the camera's true pose, cast against the scene, and
-
-* **noise** — the measured radial distance is the true one plus Gaussian noise with
-  ``sigma(d, θ) = noise_scale · 3.2 mm · (d / 1 m)^1.5 / sqrt(cos θ)`` (θ the angle
-  between the ray and the surface normal; see :func:`noise_sigma_m`). Reading the
-  quoted repeatability as **2 sigma** at normal incidence this gives 2.3 mm at 0.6 m,
-  6.4 mm at 1 m (quoted < 7 mm under 1 m), 11.8 mm at 1.5 m and 18.1 mm at 2 m
-  (quoted ~15 mm at 1–2 m) and 51 mm at 4 m (quoted up to 51 mm beyond 4 m);
-* **quantisation** — the noisy distance is rounded to ``quantisation_m`` (1 mm);
-* **invalid pixels** (distance and XYZ NaN, ``valid`` False) — no surface hit, angle
-  between ray and surface normal above ``grazing_limit_deg``, measured distance
-  outside ``[min_range_m, max_range_m]``;
-* **amplitude** — ``amplitude_at_1m · cos θ / d²`` (0 where nothing was hit);
-* **confidence** — an O3R-like uint16 image: bit 0 invalid, 8 low amplitude
-  (grazing), 64 outside range.
-
-Randomness comes from one numpy Generator per camera, seeded from the config's
-``seed`` or the world's seed, so equal seeds give identical frame sequences.
-Frames are paced by the simulated clock: each capture advances it to the next frame
-period (``1 / frame_rate_hz``) and stamps the frame with the simulated time.
-
-**Fault injection** (tests): :attr:`SimCamera.fault_hook`, if set, is called as
-``hook("connect", n)`` on the n-th connect and ``hook("capture", n)`` before the n-th
-frame is rendered (on the thread that captures: an emulator's server thread for
-``o3r-emulated``, where it is the place to inject a wire fault into that very frame).
+224 x 172 px, 60° x 45° field of view, pinhole + Brown–Conrady distortion (OpenCV
+conventions); it renders the shared simulated world from the arm's true camera pose.
+The noise, validity and confidence model is documented on :meth:`SimCamera.render`;
+why the sim is built this way: docs/adr/0014-simulated-cell.md.
 """
 
 from __future__ import annotations
@@ -73,7 +43,11 @@ def noise_sigma_m(distance_m: ArrayLike, cos_incidence: ArrayLike = 1.0, noise_s
                   ) -> NDArray[np.float64]:
     """Standard deviation (m) of the simulated radial-distance noise.
 
-    ``sigma = noise_scale * 3.2 mm * (d / 1 m)**1.5 / sqrt(cos θ)``.
+    ``sigma = noise_scale * 3.2 mm * (d / 1 m)**1.5 / sqrt(cos θ)``, θ the angle between
+    the ray and the surface normal. Reading ifm's quoted repeatability as **2 sigma** at
+    normal incidence, this gives 2.3 mm at 0.6 m, 6.4 mm at 1 m (quoted < 7 mm under
+    1 m), 11.8 mm at 1.5 m and 18.1 mm at 2 m (quoted ~15 mm at 1–2 m) and 51 mm at 4 m
+    (quoted up to 51 mm beyond 4 m).
 
     Args:
         distance_m: True radial distance, metres.
@@ -92,6 +66,10 @@ def noise_sigma_m(distance_m: ArrayLike, cos_incidence: ArrayLike = 1.0, noise_s
 def o3r222_intrinsics(width: int = 224, height: int = 172, fov_x_deg: float = 60.0, fov_y_deg: float = 45.0,
                       principal_offset_px: tuple[float, float] = (0.0, 0.0), **distortion: float) -> Intrinsics:
     """Pinhole intrinsics whose focal lengths reproduce a field of view.
+
+    ``fx = (W/2) / tan(fov_x/2)`` (193.99 px for the defaults) and
+    ``fy = (H/2) / tan(fov_y/2)`` (207.62 px); the principal point is the image centre
+    ``((W-1)/2, (H-1)/2)`` plus ``principal_offset_px``.
 
     Args:
         width, height: Image size, px.
@@ -148,6 +126,21 @@ class SimCameraConfig:
 class SimCamera(Camera3D):
     """Simulated O3R222-like ToF camera rendering the shared :class:`SimWorld`.
 
+    Each pixel's unit ray comes from
+    :func:`cellcal.devices.geometry.camera_model.pixel_grid_rays` of exactly the
+    camera's intrinsics and the point is ``XYZ = ray * distance``, so a frame agrees
+    with its intrinsics exactly. Randomness comes from one numpy Generator per camera,
+    seeded from the config's ``seed`` or the world's seed, so equal seeds give
+    identical frame sequences. Frames are paced by the simulated clock: each capture
+    advances it to the next frame period (``1 / frame_rate_hz``) and stamps the frame
+    with the simulated time.
+
+    Fault injection (tests): :attr:`fault_hook`, if set, is called as
+    ``hook("connect", n)`` on the n-th connect and ``hook("capture", n)`` before the
+    n-th frame is rendered, on the thread that captures (an emulator's server thread
+    for ``o3r-emulated``, where it is the place to inject a wire fault into that very
+    frame).
+
     Args:
         config: Backend config; None uses the defaults.
         context: Backend context (gives the shared world); None makes a private one.
@@ -172,7 +165,7 @@ class SimCamera(Camera3D):
         self._sequence = 0
         self._last_frame_elapsed: float | None = None
         self._cos_grazing = math.cos(math.radians(self.config.grazing_limit_deg))
-        #: Fault-injection hook ``hook(event, n)``, see the module docstring.
+        #: Fault-injection hook ``hook(event, n)``, see the class docstring.
         self.fault_hook: Callable[[str, int], None] | None = None
         self.connects = 0
 
@@ -181,43 +174,32 @@ class SimCamera(Camera3D):
         """Render one frame from a camera pose (``T_base_camera``), without touching the arm.
 
         Draws noise from this camera's generator (so successive calls differ unless
-        the noise is off). Usable before :meth:`connect`.
+        the noise is off). Usable before :meth:`connect`. The rays are rotated into the
+        world by ``camera_pose``, cast against the scene, and then:
+
+        * **noise**: the measured radial distance is the true one plus Gaussian noise
+          of :func:`noise_sigma_m` (scaled by ``noise_scale``);
+        * **quantisation**: the noisy distance is rounded to ``quantisation_m`` (1 mm);
+        * **invalid pixels** (distance and XYZ NaN, ``valid`` False): no surface hit,
+          angle between ray and surface normal above ``grazing_limit_deg``, measured
+          distance outside ``[min_range_m, max_range_m]``;
+        * **amplitude**: ``amplitude_at_1m · cos θ / d²`` (0 where nothing was hit);
+        * **confidence**: an O3R-like uint16 image: bit 0 invalid, 8 low amplitude
+          (grazing), 64 outside range.
 
         Args:
             camera_pose: Camera pose in the world/base frame.
             timestamp: Frame time, seconds since the epoch; None uses the simulated clock.
             sequence: Sequence number to stamp.
         """
-        cfg = self.config
         h, w = self._intr.height, self._intr.width
-        r_wc = camera_pose.rotation.as_matrix()
-        dirs = self._rays_safe @ r_wc.T
-        t, normal, hit = self.world.scene.raycast(camera_pose.translation, dirs)
-        hit &= self._ray_ok
-        cos_inc = np.where(hit, -np.einsum("ij,ij->i", normal, dirs), 0.0)
-        t_true = np.where(hit, t, np.nan)
-
-        noise_draw = self._rng.standard_normal(h * w)  # drawn every frame: the stream stays aligned
-        if cfg.noise and cfg.noise_scale > 0:
-            sigma = noise_sigma_m(np.where(hit, t_true, 1.0), np.where(hit, cos_inc, 1.0), cfg.noise_scale)
-            d = t_true + sigma * noise_draw
-        else:
-            d = t_true
-        if cfg.quantisation_m > 0:
-            d = np.round(d / cfg.quantisation_m) * cfg.quantisation_m
-
-        grazing = hit & (cos_inc < self._cos_grazing)
-        with np.errstate(invalid="ignore"):
-            out_of_range = ~hit | (d < cfg.min_range_m) | (d > cfg.max_range_m)
-        valid = hit & ~grazing & ~out_of_range
-
+        t_true, cos_inc, hit = self._cast(camera_pose)
+        d = self._measure(t_true, cos_inc, hit)
+        valid, conf = self._validity(d, cos_inc, hit)
+        # Amplitude falls off as cos θ / d²; 0 where nothing was hit.
         with np.errstate(divide="ignore", invalid="ignore"):
-            amp = np.where(hit, cfg.amplitude_at_1m * cos_inc / np.square(t_true), 0.0)
-        conf = np.zeros(h * w, dtype=np.uint16)
-        conf[grazing] |= CONF_LOW_AMPLITUDE
-        conf[out_of_range] |= CONF_OUT_OF_RANGE
-        conf[~valid] |= CONF_INVALID
-
+            amp = np.where(hit, self.config.amplitude_at_1m * cos_inc / np.square(t_true), 0.0)
+        # Invalid pixels read NaN; XYZ is the exact pixel ray times the measured distance.
         dist = np.where(valid, d, np.nan)
         xyz = self._rays_cam * dist[:, None]
         return Frame(
@@ -230,6 +212,50 @@ class SimCamera(Camera3D):
             sequence=int(sequence),
             confidence=conf.reshape(h, w),
         )
+
+    def _cast(self, camera_pose: Pose) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+        """True radial distance (m, NaN where no hit), cos θ (0 where no hit) and hit mask per pixel, (H*W,)."""
+        # Pixel rays, camera frame -> world frame.
+        r_wc = camera_pose.rotation.as_matrix()
+        dirs = self._rays_safe @ r_wc.T
+        t, normal, hit = self.world.scene.raycast(camera_pose.translation, dirs)
+        # Pixels without a defined ray never hit.
+        hit &= self._ray_ok
+        # cos θ between the ray and the surface normal (normals face the ray, rays are unit).
+        cos_inc = np.where(hit, -np.einsum("ij,ij->i", normal, dirs), 0.0)
+        t_true = np.where(hit, t, np.nan)
+        return t_true, cos_inc, hit
+
+    def _measure(self, t_true: NDArray[np.float64], cos_inc: NDArray[np.float64], hit: NDArray[np.bool_]
+                 ) -> NDArray[np.float64]:
+        """Measured radial distance, metres: truth + noise, quantised."""
+        cfg = self.config
+        noise_draw = self._rng.standard_normal(t_true.shape[0])  # drawn every frame: the stream stays aligned
+        if cfg.noise and cfg.noise_scale > 0:
+            # sigma from the true distance and incidence (1 m, normal where nothing was hit: unused)
+            sigma = noise_sigma_m(np.where(hit, t_true, 1.0), np.where(hit, cos_inc, 1.0), cfg.noise_scale)
+            d = t_true + sigma * noise_draw
+        else:
+            d = t_true
+        if cfg.quantisation_m > 0:
+            # round to the distance step
+            d = np.round(d / cfg.quantisation_m) * cfg.quantisation_m
+        return d
+
+    def _validity(self, d: NDArray[np.float64], cos_inc: NDArray[np.float64], hit: NDArray[np.bool_]
+                  ) -> tuple[NDArray[np.bool_], NDArray[np.uint16]]:
+        """Validity mask and O3R-like confidence bits per pixel from the measured distance ``d`` (m)."""
+        cfg = self.config
+        # Grazing: angle between ray and normal above the limit (cos below its cosine).
+        grazing = hit & (cos_inc < self._cos_grazing)
+        with np.errstate(invalid="ignore"):
+            out_of_range = ~hit | (d < cfg.min_range_m) | (d > cfg.max_range_m)
+        valid = hit & ~grazing & ~out_of_range
+        conf = np.zeros(d.shape[0], dtype=np.uint16)
+        conf[grazing] |= CONF_LOW_AMPLITUDE
+        conf[out_of_range] |= CONF_OUT_OF_RANGE
+        conf[~valid] |= CONF_INVALID
+        return valid, conf
 
     # ------------------------------------------------------------------ backend hooks
     def _connect(self, timeout: float) -> None:

@@ -1,12 +1,7 @@
 """The simulated scene: the measuring plane and box-shaped work objects lying on it.
 
-Everything here is in the *world* frame, which in the simulated cell is the robot
-base frame, metres. Ray casting is vectorised over rays (numpy, no per-ray Python
-loop): one call handles a whole 224x172 depth image.
-
-Plane frame: origin at :attr:`Scene.plane_point_m`, z along the plane's unit normal,
-x along the world x axis projected into the plane (world y if x is nearly parallel
-to the normal), y = z × x. Boxes are placed in this frame.
+Everything here is in the *world* frame (the robot base frame), metres. Ray casting
+is vectorised over rays: one call handles a whole 224x172 depth image.
 """
 
 from __future__ import annotations
@@ -66,6 +61,10 @@ class Box:
 @dataclass(frozen=True, eq=False)
 class Scene:
     """The measuring plane (world frame, metres) and boxes lying on it.
+
+    Plane frame: origin at :attr:`plane_point_m`, z along the plane's unit normal, x
+    along the world x axis projected into the plane (world y if x is nearly parallel
+    to the normal), y = z × x. Boxes are placed in this frame.
 
     Attributes:
         plane_point_m: A point on the plane, world frame, metres, shape (3,).
@@ -146,53 +145,105 @@ class Scene:
         Raises:
             CalibrationError: On malformed shapes or non-finite values.
         """
-        o = _vec3(origin, "ray origin")
-        d = np.asarray(dirs, dtype=np.float64)
-        if d.ndim != 2 or d.shape[1] != 3:
-            raise CalibrationError(f"ray directions must have shape (N, 3), got {d.shape}")
-        if not np.all(np.isfinite(d)):
-            raise CalibrationError("ray directions must be finite")
-        n_rays = d.shape[0]
-        n = self.plane_normal
-
-        # --- the plane: t = (p0 - o).n / (d.n)
-        denom = d @ n
-        num = float((self.plane_point_m - o) @ n)
-        parallel = np.abs(denom) < _PARALLEL_EPS
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t_best = np.where(parallel, np.inf, num / np.where(parallel, 1.0, denom))
-        t_best = np.where(t_best > _T_MIN_M, t_best, np.inf)
-        normals = np.broadcast_to(n, (n_rays, 3)).copy()
-
-        # --- the boxes: slab method in each box's own frame
+        o, d = _checked_rays(origin, dirs)
+        # The plane first: the nearest hit so far and its normal.
+        t_best, normals = self._hit_plane(o, d)
+        # Then each box; a box hit replaces the current one only where it is nearer.
         for rot, centre, half in zip(self._box_rot, self._box_centre, self._box_half, strict=True):  # type: ignore[attr-defined]
-            o_l = rot.T @ (o - centre)
-            d_l = d @ rot  # == (rot.T @ d.T).T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                inv = 1.0 / d_l
-                t1 = (-half - o_l) * inv
-                t2 = (half - o_l) * inv
-            t_lo = np.fmin(t1, t2)  # NaN (0 * inf on a slab boundary) is ignored by fmin/fmax
-            t_hi = np.fmax(t1, t2)
-            t_near = np.nanmax(np.where(np.isnan(t_lo), -np.inf, t_lo), axis=1)
-            t_far = np.nanmin(np.where(np.isnan(t_hi), np.inf, t_hi), axis=1)
-            hit = (t_near <= t_far) & (t_near > _T_MIN_M) & np.isfinite(t_near)
-            closer = hit & (t_near < t_best)
-            if not np.any(closer):
-                continue
-            axis = np.argmax(np.where(np.isnan(t_lo), -np.inf, t_lo), axis=1)
-            idx = np.nonzero(closer)[0]
-            n_local = np.zeros((idx.size, 3))
-            n_local[np.arange(idx.size), axis[idx]] = -np.sign(d_l[idx, axis[idx]])
-            normals[idx] = n_local @ rot.T
-            t_best = np.where(closer, t_near, t_best)
-
+            t_best = _hit_box(o, d, rot, centre, half, t_best, normals)
         hit_any = np.isfinite(t_best)
-        # Orient normals against the ray; NaN where nothing was hit.
+        # Orient normals against the ray (dot(dir, normal) <= 0); NaN where nothing was hit.
         flip = np.einsum("ij,ij->i", normals, d) > 0
         normals[flip] *= -1.0
         normals[~hit_any] = np.nan
         return t_best, normals, hit_any
+
+    def _hit_plane(self, o: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Ray parameters of the plane hits (``inf`` for none) and the plane normal per ray, (N,) and (N, 3)."""
+        n = self.plane_normal
+        # t = (p0 - o).n / (d.n), with p0 a point on the plane
+        denom = d @ n
+        num = float((self.plane_point_m - o) @ n)
+        # Rays (nearly) parallel to the plane never hit it: t = inf.
+        parallel = np.abs(denom) < _PARALLEL_EPS
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_plane = np.where(parallel, np.inf, num / np.where(parallel, 1.0, denom))
+        # Hits behind (or at) the origin do not count.
+        t_plane = np.where(t_plane > _T_MIN_M, t_plane, np.inf)
+        normals = np.broadcast_to(n, (d.shape[0], 3)).copy()
+        return t_plane, normals
+
+
+def _checked_rays(origin: ArrayLike, dirs: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """``origin`` as a finite (3,) array and ``dirs`` as a finite (N, 3) array, float64.
+
+    Raises:
+        CalibrationError: On malformed shapes or non-finite values.
+    """
+    o = _vec3(origin, "ray origin")
+    d = np.asarray(dirs, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3:
+        raise CalibrationError(f"ray directions must have shape (N, 3), got {d.shape}")
+    if not np.all(np.isfinite(d)):
+        raise CalibrationError("ray directions must be finite")
+    return o, d
+
+
+def _hit_box(o: FloatArray, d: FloatArray, rot: FloatArray, centre: FloatArray, half: FloatArray,
+             t_best: FloatArray, normals: FloatArray) -> FloatArray:
+    """Intersect the rays with one box (slab method in the box's own frame).
+
+    Args:
+        o: Ray origin, world frame, metres, (3,).
+        d: Ray directions, world frame, (N, 3).
+        rot: Rotation world <- box, (3, 3).
+        centre: Box centre, world frame, metres, (3,).
+        half: Half edge lengths, metres, (3,).
+        t_best: Ray parameters of the nearest hits so far, (N,) (``inf`` for none).
+        normals: Surface normals of those hits, world frame, (N, 3); rows of rays the
+            box hits nearer are overwritten in place with the box face's normal.
+
+    Returns:
+        The updated nearest ray parameters, (N,).
+    """
+    # Ray origin and directions in the box frame (box centre at the origin, axes along its edges).
+    o_l = rot.T @ (o - centre)
+    d_l = d @ rot  # == (rot.T @ d.T).T
+    # Entry and exit parameters of the three slabs |x_i| <= half_i.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d_l
+        t1 = (-half - o_l) * inv
+        t2 = (half - o_l) * inv
+    t_lo = np.fmin(t1, t2)  # NaN (0 * inf on a slab boundary) is ignored by fmin/fmax
+    t_hi = np.fmax(t1, t2)
+    # The ray is inside the box between the last slab entry and the first slab exit.
+    t_near = np.nanmax(np.where(np.isnan(t_lo), -np.inf, t_lo), axis=1)
+    t_far = np.nanmin(np.where(np.isnan(t_hi), np.inf, t_hi), axis=1)
+    # A hit: a non-empty interval entered in front of the origin, nearer than the best so far.
+    hit = (t_near <= t_far) & (t_near > _T_MIN_M) & np.isfinite(t_near)
+    closer = hit & (t_near < t_best)
+    if not np.any(closer):
+        return t_best
+    normals[closer] = _entry_face_normals(t_lo, d_l, rot, np.nonzero(closer)[0])
+    return np.where(closer, t_near, t_best)
+
+
+def _entry_face_normals(t_lo: FloatArray, d_l: FloatArray, rot: FloatArray, idx: NDArray[np.intp]) -> FloatArray:
+    """World-frame normals of the box faces the rays ``idx`` enter through, (len(idx), 3).
+
+    Args:
+        t_lo: Slab entry parameters per ray and box axis, (N, 3) (NaN on a slab boundary).
+        d_l: Ray directions in the box frame, (N, 3).
+        rot: Rotation world <- box, (3, 3).
+        idx: Indices of the rays that hit the box.
+    """
+    # The entry face is the slab entered last; its outward normal points against the ray.
+    axis = np.argmax(np.where(np.isnan(t_lo), -np.inf, t_lo), axis=1)
+    n_local = np.zeros((idx.size, 3))
+    n_local[np.arange(idx.size), axis[idx]] = -np.sign(d_l[idx, axis[idx]])
+    # Box frame -> world frame.
+    out: FloatArray = n_local @ rot.T
+    return out
 
 
 def scene_from_boxes(plane_point_m: Sequence[float], plane_normal: Sequence[float],

@@ -1,22 +1,8 @@
 """The simulated world: scene + true camera mount + true arm state + simulated clock.
 
-One :class:`SimWorld` couples the simulated camera to the simulated arm: the camera
-renders from ``world.camera_pose()`` = true flange pose @ true mount, so moving the
-arm moves the camera. Every backend built from one configuration document shares the
-same world through :func:`world_from_context` (``context.shared["sim.world"]``).
-
-World frame == robot base frame (metres). The document's ``[sim]`` table
-(:class:`SimConfig`) sets the plane, the boxes, the initial flange pose, the seed and
-optionally a mount that overrides the document's ``[mount]`` table
-(:class:`MountConfig`: the hand-eye transform flange -> camera, which the lead's
-calibrator reads as its *nominal* mount; the sim uses it as the *true* one unless
-``[sim.mount]`` says otherwise, which is how a mount error is simulated).
-
-Simulated time: :class:`SimClock` counts simulated seconds. It advances only through
-simulated events (arm motions, camera frame periods), never by itself, so results do
-not depend on the machine's speed. A motion's progress is taken from wall time scaled
-by the arm's ``time_scale`` while it runs, and the clock is advanced to the motion's
-simulated time whenever the arm state is looked at.
+World frame == robot base frame (metres). One :class:`SimWorld` per configuration
+document (:func:`world_from_context`) couples the simulated camera to the simulated
+arm, so moving the arm moves the camera. Design: docs/adr/0014-simulated-cell.md.
 """
 
 from __future__ import annotations
@@ -78,7 +64,13 @@ class BoxConfig:
 
 @dataclass(frozen=True)
 class SimConfig:
-    """The ``[sim]`` table: the simulated cell's ground truth."""
+    """The ``[sim]`` table: the simulated cell's ground truth.
+
+    It sets the plane, the boxes, the initial flange pose, the seed and optionally a
+    mount that overrides the document's ``[mount]`` table: the calibrator reads
+    ``[mount]`` as its *nominal* mount, the sim uses it as the *true* one unless
+    ``[sim.mount]`` says otherwise, which is how a mount error is simulated.
+    """
 
     plane_point_m: tuple[float, float, float] = field(
         default=(0.0, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0, "doc": "a point on the plane, base frame, m"})
@@ -129,7 +121,11 @@ def parse_mount(table: Mapping[str, Any] | None, *, source: str | None = None,
 
 # ---------------------------------------------------------------------- clock and arm state
 class SimClock:
-    """Simulated time: seconds since the world was made, plus a Unix epoch offset."""
+    """Simulated time: seconds since the world was made, plus a Unix epoch offset.
+
+    It advances only through simulated events (arm motions, camera frame periods),
+    never by itself, so results do not depend on the machine's speed.
+    """
 
     def __init__(self, start_epoch_s: float | None = None) -> None:
         self._lock = threading.Lock()
@@ -174,7 +170,8 @@ class SimArmModel:
 
     Thread-safe. While a motion runs, its simulated time is
     ``(wall time since start) / time_scale`` (capped at its duration); with
-    ``time_scale == 0`` a motion completes the moment it starts.
+    ``time_scale == 0`` a motion completes the moment it starts. The clock is advanced
+    to the motion's simulated time whenever the arm state is looked at.
     """
 
     def __init__(self, flange_pose: Pose, clock: SimClock) -> None:
@@ -262,6 +259,8 @@ class SimArmModel:
 # ---------------------------------------------------------------------- the world
 class SimWorld:
     """Scene + true mount + true arm state + clock + seed.
+
+    The camera renders from :meth:`camera_pose` = true flange pose @ true mount.
 
     Attributes:
         scene: The measuring plane and boxes (world == base frame).

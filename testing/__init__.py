@@ -1,24 +1,9 @@
-"""cellcal.testing: a conformance kit for Camera3D and RobotArm backends.
+"""cellcal.testing: the conformance kit for Camera3D and RobotArm backends (docs/adr/0011-conformance-kit.md)::
 
-Point it at your backend to check it honours the device contract — units, frame
-shapes and dtypes, timeouts, errors on use after close, idempotent connect/close,
-pose round trips. Two ways to use it:
+    from cellcal.testing import CameraOptions, check_camera
+    print(check_camera(lambda: AcmeCamera.from_config({}), CameraOptions(distance_range_m=(0.2, 6.0))))
 
-* plain functions, no pytest needed::
-
-      from cellcal.testing import check_camera, CameraOptions
-      report = check_camera(lambda: AcmeCamera.from_config({}), CameraOptions(distance_range_m=(0.2, 6.0)))
-      print(report)            # raises ConformanceError (naming rule and backend) on a failure
-
-* pytest test classes, one test per contract rule::
-
-      from cellcal.testing import CameraConformance
-
-      class TestAcme(CameraConformance):
-          def make_camera(self):
-              return AcmeCamera.from_config({})
-
-The kit imports nothing from cellcal's simulators or drivers. See docs/extending.md.
+Under pytest, subclass :class:`CameraConformance` / :class:`ArmConformance` instead (see :mod:`.suite`).
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """Machinery shared by the camera and arm conformance checks (no pytest needed).
 
-A *check* is a function ``check(factory, options)`` that builds its own devices from
-``factory`` (a zero-argument callable returning a new, unconnected device), uses them,
-closes them, and raises :class:`Violation` (through :func:`expect` / :func:`raises`)
-when the backend breaks the contract rule the check is named after. The runner turns
-a violation — or any unexpected exception the backend raised — into a
-:class:`CheckResult` that names the rule and the backend.
+A check ``check(factory, options)`` builds its own devices from ``factory`` (a zero-argument
+callable returning a new, unconnected device), uses and closes them, and raises :class:`Violation`
+(through :func:`expect` / :func:`raises`) on a breach; :func:`run_check` turns that, or any
+unexpected exception of the backend, into a :class:`CheckResult` naming the rule and the backend.
 """
 
 from __future__ import annotations

@@ -1,21 +1,10 @@
-"""Importable pytest test classes: subclass one per backend, override the factory.
-
-::
-
-    from cellcal.testing import CameraConformance, CameraOptions
+"""The conformance kit as pytest test classes: subclass one per backend and override its factory::
 
     class TestAcmeZ1(CameraConformance):
         options = CameraOptions(distance_range_m=(0.2, 6.0))
 
         def make_camera(self):
             return AcmeCamera.from_config({"serial": "Z1-TEST"})
-
-Each contract rule becomes one test, ``test_contract[<rule>]``, so a failure names
-the rule and ``-k frame-units`` selects one. Backends that need other fixtures to be
-built (a mocked SDK, a temporary file) override the ``camera_factory`` /
-``arm_factory`` fixture instead, or set things up in an autouse fixture of their own.
-This module imports pytest; the function API (:func:`check_camera`, :func:`check_arm`)
-does not.
 """
 
 from __future__ import annotations
@@ -35,6 +24,11 @@ from .camera import CAMERA_CHECKS, CAMERA_RULES, CameraOptions
 
 class CameraConformance:
     """Base class of a camera backend's conformance tests (not collected by itself).
+
+    Each contract rule is one test, ``test_contract[<rule>]``, so a failure names the
+    rule and ``-k frame-units`` selects one. A backend that needs other fixtures to be
+    built (a mocked SDK, a temporary file) overrides the ``camera_factory`` fixture
+    instead of :meth:`make_camera`, or sets things up in an autouse fixture of its own.
 
     Attributes:
         options: What the backend declares (distance range, tolerances).
@@ -61,6 +55,8 @@ class CameraConformance:
 
 class ArmConformance:
     """Base class of an arm backend's conformance tests (not collected by itself).
+
+    Works like :class:`CameraConformance`, with :meth:`make_arm` / the ``arm_factory`` fixture.
 
     Attributes:
         options: Round-trip step, tolerances and timeouts for the backend.

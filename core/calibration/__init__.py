@@ -3,6 +3,7 @@
 from cellcal.core.calibration.calibrator import (
     Calibrator,
     PoseRecord,
+    build_camera,
     build_devices,
     poses_saved,
     run_to_file,
@@ -37,6 +38,12 @@ from cellcal.core.calibration.journal import (
     read_journal,
     remove_journal,
 )
+from cellcal.core.calibration.replay import (
+    compare_with_recording,
+    exact_part,
+    record,
+    replay_session,
+)
 from cellcal.core.calibration.report import (
     format_full_frame,
     format_table,
@@ -63,10 +70,13 @@ __all__ = [
     "PoseRecord",
     "ReferenceSection",
     "SafetySection",
+    "build_camera",
     "build_devices",
     "check_moves",
+    "compare_with_recording",
     "describe",
     "dry_run",
+    "exact_part",
     "format_full_frame",
     "format_table",
     "journal_path",
@@ -78,7 +88,9 @@ __all__ = [
     "plane_summary",
     "poses_saved",
     "read_journal",
+    "record",
     "remove_journal",
+    "replay_session",
     "run_to_file",
     "summarize",
     "summarize_poses",

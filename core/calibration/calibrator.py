@@ -1,13 +1,9 @@
 """The calibrator: drive the arm through the plan, capture, measure, report.
 
-For every plan pose: move (through the safety wrapper), settle, capture
-``frames_per_pose`` frames, read the arm's pose back, sample the P1-P9 grids and run
-each configured method (:mod:`cellcal.core.methods.measure`). When the reference plane and
-the hand-eye transform are known, the expected angle, tilts and height follow from
-the arm's reported pose, so every estimate gets an error, as in the paper's
-Tables 3 and 4.
-
-Devices come from the registry; this module never names a driver or a simulator.
+Per plan pose: move (through the safety wrapper), settle, capture, read the arm's pose
+back and run each configured method (:mod:`cellcal.core.methods.measure`); with a
+reference plane every estimate gets an error (the paper's Tables 3 and 4). Devices
+come from the registry: this module never names a driver or a simulator.
 """
 
 from __future__ import annotations
@@ -19,7 +15,6 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +53,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.registry import Registry, default_registry
 from cellcal.devices.safety import SafeArm
 from cellcal.devices.types import Intrinsics
+from cellcal.devices.version import cellcal_version
 
 ProgressFactory = Callable[[int], Any]
 
@@ -156,33 +152,55 @@ class PoseRecord:
             raise CalibrationError(f"malformed pose record: {type(exc).__name__}: {exc}") from None
 
 
-def build_devices(config: CellConfig, registry: Registry | None = None) -> tuple[Camera3D, SafeArm]:
+def _context_factory(document: Mapping[str, Any], source: str | None, seed: int) -> Callable[[str], BackendContext]:
+    """``section -> BackendContext`` for the backends of one document (one ``shared`` dict for all of them)."""
+    shared: dict[str, Any] = {}
+
+    def ctx(section: str) -> BackendContext:
+        return BackendContext(source=source, section=section, document=document, shared=shared, seed=seed)
+
+    return ctx
+
+
+def build_devices(config: CellConfig, registry: Registry | None = None, *, source: str | None = None,
+                  camera: Mapping[str, Any] | None = None, arm: Mapping[str, Any] | None = None,
+                  ) -> tuple[Camera3D, SafeArm]:
     """Create the (unconnected) camera and the safety-wrapped arm of a configuration.
+
+    Args:
+        config: The validated configuration (its document, ``[cell] seed`` and envelope).
+        registry: Where to find the backends; default: the process-wide one.
+        source: Configuration source the backends see; default ``config.source``.
+        camera: Backend section to use instead of the document's ``[camera]``.
+        arm: Backend section to use instead of the document's ``[arm]``.
 
     Raises:
         ConfigError: If a backend is unknown or rejects its section.
     """
     registry = registry or default_registry()
-    shared: dict[str, Any] = {}
+    ctx = _context_factory(config.document, config.source if source is None else source, config.cell.seed)
+    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx("camera"))
+    inner: RobotArm = registry.create_arm(config.arm_section if arm is None else arm, ctx("arm"))
+    return cam, SafeArm(inner, config.safety_limits())
 
-    def ctx(section: str) -> BackendContext:
-        return BackendContext(source=config.source, section=section, document=config.document,
-                              shared=shared, seed=config.cell.seed)
 
-    camera = registry.create_camera(config.camera_section, ctx("camera"))
-    arm: RobotArm = registry.create_arm(config.arm_section, ctx("arm"))
-    return camera, SafeArm(arm, config.safety_limits())
+def build_camera(document: Mapping[str, Any], registry: Registry | None = None, *,
+                 source: str | None = None) -> Camera3D:
+    """Create the (unconnected) camera of a raw configuration document, not validated as a cell.
+
+    For documents that only describe a camera (e.g. a study trial); the seed is the
+    document's ``[cell] seed`` (default 0).
+
+    Raises:
+        ConfigError: If the camera backend is unknown or rejects its section.
+    """
+    registry = registry or default_registry()
+    ctx = _context_factory(document, source, int(document.get("cell", {}).get("seed", 0)))
+    return registry.create_camera(document["camera"], ctx("camera"))
 
 
 #: Seconds the calibrator allows the arm's stop command when a run fails.
 STOP_TIMEOUT_S = 1.0
-
-
-def _package_version() -> str:
-    try:
-        return version("cellcal")
-    except PackageNotFoundError:  # pragma: no cover - running from a source tree
-        return "unknown"
 
 
 class Calibrator:
@@ -233,52 +251,92 @@ class Calibrator:
         """
         self.check_plan(None)
         fingerprint = plan_fingerprint(self.config.document, self.poses)
-        done: list[JournalEntry] = []
-        if resume:
-            if journal is None:
-                raise CalibrationError("resuming needs the journal of the interrupted run")
-            done = [e for e in read_journal(journal, fingerprint) if 0 <= e.index < len(self.poses)]
-        writer = None if journal is None else JournalWriter(journal, fingerprint, len(self.poses), append=resume)
-        self.journal_writer = writer
+        done = self._journal_entries(journal, fingerprint) if resume else []
+        self.journal_writer = None if journal is None else JournalWriter(journal, fingerprint, len(self.poses),
+                                                                         append=resume)
         started = time.perf_counter()
         created = datetime.now(UTC).isoformat(timespec="seconds")
-        by_index: dict[int, tuple[PoseRecord, dict[str, Any]]] = {
+        measured: dict[int, tuple[PoseRecord, dict[str, Any]]] = {
             e.index: (PoseRecord.from_dict(e.pose), e.pose) for e in done}
-        todo = [i for i in range(len(self.poses)) if i not in by_index]
-        t_connect = 0.0
+        todo = [i for i in range(len(self.poses)) if i not in measured]
+        connect_s = 0.0
         if todo:
-            with contextlib.ExitStack() as stack:
-                try:
-                    stack.enter_context(self.arm)
-                    stack.enter_context(self.camera)
-                    t_connect = time.perf_counter() - started
-                    self._check_arm_ready("before the first move")
-                    self._check_moves(self.arm.get_pose(), todo)
-                    if done:
-                        self._restore_device_state(done[-1].device_state)
-                    bar = self.progress(len(todo)) if self.progress else None
+            connect_s = self._measure_poses(todo, measured, done[-1].device_state if done else None, started)
+        total_s = time.perf_counter() - started
+        resumed = sorted(e.index for e in done) if resume else None
+        return self._result_document(measured, created, total_s, connect_s, resumed)
+
+    def _journal_entries(self, journal: str | Path | None, fingerprint: str) -> list[JournalEntry]:
+        """The poses of the interrupted run recorded in ``journal`` (those inside this plan)."""
+        if journal is None:
+            raise CalibrationError("resuming needs the journal of the interrupted run")
+        return [e for e in read_journal(journal, fingerprint) if 0 <= e.index < len(self.poses)]
+
+    def _measure_poses(self, todo: Sequence[int], measured: dict[int, tuple[PoseRecord, dict[str, Any]]],
+                       device_state: Mapping[str, Any] | None, started: float) -> float:
+        """Connect, check the moves left, measure the ``todo`` poses into ``measured``, close.
+
+        Args:
+            todo: 0-based plan indices still to measure, ascending.
+            measured: Filled with ``index -> (record, its result-document entry)``.
+            device_state: Device state to restore first (the last journal entry's), or None.
+            started: ``time.perf_counter()`` at the start of the run, seconds.
+
+        Returns:
+            Seconds from ``started`` until both devices were connected.
+        """
+        with contextlib.ExitStack() as stack:
+            try:
+                stack.enter_context(self.arm)
+                stack.enter_context(self.camera)
+                connect_s = time.perf_counter() - started
+                self._check_arm_ready("before the first move")
+                self._check_moves(self.arm.get_pose(), todo)
+                if device_state is not None:
+                    self._restore_device_state(device_state)
+                bar = self.progress(len(todo)) if self.progress else None
+                if bar is not None:
+                    stack.callback(bar.close)
+                for i in todo:
+                    measured[i] = self._measure_and_journal(i)
                     if bar is not None:
-                        stack.callback(bar.close)
-                    for i in todo:
-                        record = self._measure_pose(i, self.poses[i])
-                        self._check_arm_ready(f"after plan pose {i + 1}")
-                        data = record.to_dict()
-                        if writer is not None:
-                            writer.append(i, data, self._device_state())
-                        by_index[i] = (record, data)
-                        if bar is not None:
-                            bar.update(1)
-                except BaseException:
-                    if self.arm.connected:
-                        with contextlib.suppress(Exception):
-                            self.arm.stop(min(STOP_TIMEOUT_S, self.arm.default_timeout_s))
-                    raise
-        total = time.perf_counter() - started
-        records = [by_index[i][0] for i in sorted(by_index)]
-        poses = [by_index[i][1] for i in sorted(by_index)]
+                        bar.update(1)
+            except BaseException:
+                self._stop_arm()
+                raise
+        return connect_s
+
+    def _measure_and_journal(self, index: int) -> tuple[PoseRecord, dict[str, Any]]:
+        """Measure plan pose ``index``, check the arm is still fine, append the pose to the journal."""
+        record = self._measure_pose(index, self.poses[index])
+        self._check_arm_ready(f"after plan pose {index + 1}")
+        data = record.to_dict()
+        if self.journal_writer is not None:
+            self.journal_writer.append(index, data, self._device_state())
+        return record, data
+
+    def _stop_arm(self) -> None:
+        """After a failure: tell a connected arm to stop (bounded by :data:`STOP_TIMEOUT_S`), ignoring errors."""
+        if self.arm.connected:
+            with contextlib.suppress(Exception):
+                self.arm.stop(min(STOP_TIMEOUT_S, self.arm.default_timeout_s))
+
+    def _result_document(self, measured: Mapping[int, tuple[PoseRecord, dict[str, Any]]], created: str,
+                         total_s: float, connect_s: float, resumed: list[int] | None) -> dict[str, Any]:
+        """The result document (schema :data:`RESULT_SCHEMA`) of the measured poses, in plan order.
+
+        Args:
+            measured: ``index -> (record, its result-document entry)``.
+            created: Start of the run, ISO 8601 UTC.
+            total_s: Wall time of the run, seconds.
+            connect_s: Wall time until the devices were connected, seconds.
+            resumed: Indices taken from the journal (a resumed run), else None.
+        """
+        records = [measured[i][0] for i in sorted(measured)]
+        poses = [measured[i][1] for i in sorted(measured)]
         return {
             "schema": RESULT_SCHEMA,
-            "cellcal_version": _package_version(),
+            "cellcal_version": cellcal_version(),
             "created_utc": created,
             "config_source": self.config.source,
             "config": dict(self.config.document),
@@ -286,11 +344,11 @@ class Calibrator:
             "poses": poses,
             "summary": summarize_poses(poses, self._reference_plane()),
             "timings_s": {
-                "total": total,
-                "connect": t_connect,
+                "total": total_s,
+                "connect": connect_s,
                 "per_pose": [rec.timings_s for rec in records],
             },
-            **({"resumed_poses": sorted(e.index for e in done)} if resume else {}),
+            **({"resumed_poses": resumed} if resumed is not None else {}),
         }
 
     def _check_arm_ready(self, when: str) -> None:

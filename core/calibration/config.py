@@ -1,15 +1,9 @@
-"""Cell configuration: a TOML document validated into typed objects.
+"""Cell configuration: a TOML document validated into typed objects (ADR 0004).
 
-The document has these tables (see ``configs/sim.toml`` for a commented example):
-``[cell]``, ``[camera]`` and ``[arm]`` (each with ``backend = "name"``; the rest is
-validated by that backend), ``[mount]`` (hand-eye: camera in the flange frame),
-``[reference]`` (optional: the measuring plane as the cell believes it, base frame),
-``[safety]``, ``[plan]``, ``[monitor]`` (the live drift monitor) and ``[sim]`` (read only by
-simulated backends). Keys carry their unit in their name (``_m``, ``_s``, ``_deg``, ``_px``); degrees appear only in
-the file and are converted to radians on loading (ADR 0004).
-
-Any problem raises :class:`~cellcal.devices.errors.ConfigError` naming the file, the
-dotted key and what was expected.
+Tables: ``[cell]``, ``[camera]``/``[arm]`` (``backend = "name"``, the rest validated by
+the backend), ``[mount]``, ``[reference]``, ``[safety]``, ``[plan]``, ``[monitor]``,
+``[full_frame]`` and ``[sim]``; see ``configs/sim.toml``. Any problem raises
+:class:`~cellcal.devices.errors.ConfigError` naming the file, the dotted key and the expectation.
 """
 
 from __future__ import annotations
@@ -37,7 +31,7 @@ MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal", "full_f
 ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame")
 TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor",
                     "full_frame")
-#: Backends built on the simulated world, the only readers of ``[sim]`` (tests/test_config.py
+#: Backends built on the simulated world, the only readers of ``[sim]`` (tests/unit/core/calibration/test_config.py
 #: checks this against the registered backends that live in ``cellcal.sims``).
 SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated"})
 

@@ -1,11 +1,8 @@
 """``cellcal calibrate --dry-run``: every move the plan would make, with its safety checks.
 
-Nothing is connected, so nothing moves (not even a read-only connection to learn the
-arm's current pose: a dry run must be safe to run next to a cell in operation, and
-must work with no device reachable). Consequently the first move is checked at its
-target only; its path from wherever the arm stands is checked when the real run
-starts, before the first move. Every later move is checked along its whole straight
-path, exactly as :class:`~cellcal.devices.safety.SafeArm` checks it at run time.
+Nothing is connected, so nothing moves: the first move is checked at its target only,
+every later one along its whole straight path as :class:`~cellcal.devices.safety.SafeArm`
+checks it at run time (ADR 0008).
 """
 
 from __future__ import annotations
@@ -16,7 +13,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cellcal.core.calibration.config import CellConfig, plan_flange_poses
-from cellcal.devices.errors import SafetyError
 from cellcal.devices.pose import Pose
 from cellcal.devices.safety import SafetyLimits, format_pose
 
@@ -57,7 +53,9 @@ def check_moves(limits: SafetyLimits, poses: Sequence[Pose], speed_m_s: float, a
         standoff = None
         if limits.plane_point_m is not None and limits.plane_normal is not None:
             n = np.asarray(limits.plane_normal, float)
+            # smallest signed distance of the camera path to the plane, along its unit normal, m
             standoff = float(np.min((camera - np.asarray(limits.plane_point_m, float)) @ (n / np.linalg.norm(n))))
+        # straight-line flange travel, m (unknown for the first move: no start pose without the arm)
         length = None if previous is None else float(np.linalg.norm(target.translation - previous.translation))
         out.append(MoveCheck(i, target, length, standoff,
                              limits.violations(previous, target, speed_m_s, acceleration_m_s2)))
@@ -100,9 +98,9 @@ def dry_run(config: CellConfig, emit: Callable[[str], None] = print) -> list[Mov
     checks = check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2)
     for check in checks:
         emit(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2))
-        if not check.ok:
-            raise SafetyError(f"plan pose {check.index + 1} ({format_pose(check.target)}) rejected: "
-                              + "; ".join(check.problems))
+        if not check.ok:  # the safety layer words the rejection, exactly as a real run would
+            limits.check_plan(None, poses[:check.index + 1], plan.speed_m_s, plan.acceleration_m_s2)
+            raise AssertionError("check_moves and SafetyLimits.check_plan disagree")  # same rules: unreachable
     emit(f"dry run OK: all {len(poses)} moves inside the safety envelope")
     return checks
 

@@ -1,25 +1,8 @@
 """The resume journal: one JSON line per measured pose, next to the result file.
 
-While a calibration runs, every pose record is appended to ``<result>.journal.jsonl``
-(flushed and fsync'd before the next move), so a run that is interrupted or fails
-after some poses can be continued with ``cellcal calibrate --resume``: the recorded
-poses are taken from the journal (no move, no capture), the others are measured, and
-the result is written as usual. On success the result is written atomically and the
-journal removed.
-
-Format (``cellcal.journal/1``), one JSON object per line:
-
-* ``{"kind": "header", "schema": ..., "fingerprint": ..., "poses": N, "created_utc": ...}``
-  first, once;
-* ``{"kind": "pose", "index": i, "fingerprint": ..., "pose": {...}, "device_state": {...}}``
-  per measured pose: ``pose`` is the pose's entry of the result document verbatim;
-  ``device_state`` holds whatever the devices chose to save for a resume (simulated
-  devices save their noise streams, so a resumed simulated run equals an
-  uninterrupted one; real devices save nothing).
-
-The fingerprint is a SHA-256 of the configuration document and the planned flange
-poses: a journal written for another configuration or plan is refused. A torn last
-line (the process died while writing it) is ignored.
+``<result>.journal.jsonl`` (schema ``cellcal.journal/1``) lets ``cellcal calibrate
+--resume`` continue an interrupted run; each line is fsync'd before the next move.
+Format, fingerprint and failure rules: ADR 0008.
 """
 
 from __future__ import annotations

@@ -1,18 +1,6 @@
 """Calibration results: the versioned JSON document, atomic writing, and the summary table.
 
-Schema ``cellcal.calibration/2`` (changes from /1):
-
-* ``poses[i].camera_intrinsics`` — the lens model the frames were taken with;
-* ``poses[i].full_frame`` — the ``full_frame`` result (:meth:`FullFrameResult.to_dict`:
-  angle/tilts/height with 1-sigma and 95 % intervals, the plane in the camera frame,
-  gate values) plus ``plane_base`` (the plane in the robot base frame, from the reported
-  flange pose and the configured mount), ``error`` (estimate minus expected) and
-  ``expected_in_ci``; None when the method is not run;
-* ``poses[i].measurements`` — the ``full_frame`` row has ``perimeter_px: null``;
-* ``summary`` is ``{"methods": {method: {...}}, "plane_consistency": {...} | null}``
-  (in /1 it was the per-method mapping itself); ``plane_consistency`` holds the consensus
-  plane in the base frame, the spread across poses, a verdict, and the comparison with
-  the ``[reference]`` plane (:mod:`cellcal.core.geometry.consistency`).
+The document's schema is :data:`RESULT_SCHEMA` (what changed from ``/1``: ADR 0008).
 """
 
 from __future__ import annotations

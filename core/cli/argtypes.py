@@ -1,10 +1,6 @@
-"""argparse ``type=`` checkers for numeric command-line options.
+"""argparse ``type=`` checkers for numeric options: a bad number is a one-line usage error (exit 2).
 
-A bad number is a usage error: argparse reports it as one line naming the option
-(``cellcal devices: error: argument --timeout: expected a finite number > 0, got 'nan'``)
-and the command exits with status 2 before doing anything::
-
-    p.add_argument("--timeout", type=real(gt=0), default=2.0)
+Example: ``p.add_argument("--timeout", type=real(gt=0), default=2.0)``.
 """
 
 from __future__ import annotations

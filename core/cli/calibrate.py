@@ -10,8 +10,13 @@ from typing import Any
 
 from cellcal.core.calibration.calibrator import Calibrator, build_devices, poses_saved, run_to_file
 from cellcal.core.calibration.config import CellConfig, load_config
+from cellcal.core.calibration.dryrun import dry_run
 from cellcal.core.calibration.journal import journal_path
+from cellcal.core.calibration.replay import compare_with_recording, replay_session
 from cellcal.core.calibration.report import RESULT_FILENAME, format_full_frame, format_table
+from cellcal.core.cli.exits import EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.progress import progress_factory
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CellcalError, ConfigError
 from cellcal.devices.safety import SafeArm
@@ -23,7 +28,7 @@ def register(sub: Any) -> None:
                        description="Drive the arm through the plan, capture the 3D camera at each pose, "
                        "compute the measuring plane and report the camera's pose relative to it. "
                        "With no --config, runs the built-in simulated cell (the paper's experiment).")
-    p.add_argument("--config", metavar="PATH", help="cell configuration (TOML); default: packaged sim.toml")
+    add_config_option(p)
     p.add_argument("--out", metavar="DIR", default="cellcal-out", help="output directory (default: %(default)s)")
     p.add_argument("--check", action="store_true",
                    help="validate the configuration and show what would connect to what; touch no device")
@@ -44,8 +49,6 @@ def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
     if getattr(args, "replay", None):
         if args.config:
             raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
-        from cellcal.core.cli.record import replay_session
-
         return replay_session(args.replay)
     config = load_config(args.config)
     return (config, *build_devices(config))
@@ -77,11 +80,7 @@ def _check(args: argparse.Namespace) -> int:
     print(f"plan:    {len(poses)} poses x {len(plan.perimeters_px)} perimeters x {len(plan.methods)} methods "
           f"({', '.join(plan.methods)}); every target pose inside the safety envelope")
     print("config OK (no device was touched)")
-    return 0
-
-
-#: Exit status of an interrupted run (as ``cellcal.core.cli.EXIT_INTERRUPTED``).
-EXIT_INTERRUPTED = 130
+    return EXIT_OK
 
 
 def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
@@ -90,25 +89,32 @@ def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
             f"'cellcal calibrate{config} --out {args.out} --resume' continues the run")
 
 
+def _print_report(document: dict[str, Any]) -> None:
+    """The per-measurement table, the mean error per method, the full-frame block and the run time."""
+    rows = [row for pose in document["poses"] for row in pose["measurements"]]
+    print(format_table(rows))
+    print()
+    for method, groups in document["summary"]["methods"].items():
+        err = groups["all"]["mean_error_pct"]
+        text = f"{err:.3f} %" if err is not None else "n/a (no reference)"
+        print(f"{method:<18} mean |error| {text} over {groups['all']['n']} estimates")
+    full_frame = format_full_frame(document)
+    if full_frame:
+        print()
+        print(full_frame)
+    print(f"total {document['timings_s']['total']:.2f} s")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal calibrate``; returns the exit status."""
     if args.check:
         return _check(args)
     if getattr(args, "dry_run", False):
-        from cellcal.core.calibration.dryrun import dry_run
-
         dry_run(load_config(args.config))
-        return 0
+        return EXIT_OK
     config, camera, arm = _session(args)
     out = Path(args.out) / RESULT_FILENAME
-    progress = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        def progress(total: int) -> Any:
-            return tqdm(total=total, desc="poses", unit="pose", file=sys.stderr, leave=False)
-
-    calibrator = Calibrator(config, camera, arm, progress=progress)
+    calibrator = Calibrator(config, camera, arm, progress=progress_factory("poses", "pose", args.quiet))
     try:
         document = run_to_file(calibrator, out, resume=getattr(args, "resume", False))
     except KeyboardInterrupt:
@@ -122,21 +128,8 @@ def run(args: argparse.Namespace) -> int:
             exc.args = (f"{exc}; {_resume_hint(args, saved, len(calibrator.poses))}",)
         raise
     if not args.quiet:
-        rows = [row for pose in document["poses"] for row in pose["measurements"]]
-        print(format_table(rows))
-        print()
-        for method, groups in document["summary"]["methods"].items():
-            err = groups["all"]["mean_error_pct"]
-            text = f"{err:.3f} %" if err is not None else "n/a (no reference)"
-            print(f"{method:<18} mean |error| {text} over {groups['all']['n']} estimates")
-        full_frame = format_full_frame(document)
-        if full_frame:
-            print()
-            print(full_frame)
-        print(f"total {document['timings_s']['total']:.2f} s")
+        _print_report(document)
     print(f"result written to {out}")
     if getattr(args, "replay", None):
-        from cellcal.core.cli.record import compare_with_recording
-
         print(compare_with_recording(args.replay, document))
-    return 0
+    return EXIT_OK

@@ -1,9 +1,7 @@
 """The ``cellcal`` console command: dispatches to one module per subcommand.
 
-Each subcommand module exposes ``register(subparsers) -> None`` that adds its parser
-and sets ``func=run`` with ``run(args) -> int``. Exit status: 0 success; 2 bad input
-(configuration, CLI usage, data file); 1 a device or calibration failure at run time;
-130 interrupted.
+Each subcommand module has ``register(subparsers)`` (adds its parser, sets
+``func=run``) and ``run(args) -> int``; exit statuses are in :mod:`cellcal.core.cli.exits`.
 """
 
 from __future__ import annotations

@@ -1,43 +1,30 @@
 """``cellcal monitor``: watch one or more cameras for drift of the measuring plane.
 
-Exit status (see :mod:`cellcal.core.cli`): 0 the run ended (``--duration`` /
-``--frames``) without any drift flagged; 1 drift was flagged at some time during the
-run, or a device failed; 2 bad input (configuration, baseline file, usage);
-130 stopped with Ctrl-C (the summary is printed first, whatever was seen).
+Exit status: 0 no drift flagged during the run; 1 drift flagged, or a device failed;
+2 bad input (configuration, baseline file, usage); 130 Ctrl-C (after the summary).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from cellcal.core.calibration.calibrator import build_devices
 from cellcal.core.calibration.config import CellConfig, load_config
-from cellcal.core.calibration.report import write_json_atomic
-from cellcal.core.cli import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from cellcal.core.cli.argtypes import integer, real
-from cellcal.core.geometry.planes import Plane
-from cellcal.core.monitor.monitor import (
-    BASELINE_SCHEMA,
+from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.monitor import (
     Baseline,
-    CameraSummary,
     DriftEvent,
     Monitor,
-    MonitoredCamera,
     MonitorStatus,
     MonitorSummary,
+    monitored_cameras,
+    write_baselines,
 )
-from cellcal.devices.arm import RobotArm
-from cellcal.devices.errors import CalibrationError, ConfigError
-
-#: Schema tags of ``cellcal calibrate`` results start with this.
-CALIBRATION_SCHEMA_PREFIX = "cellcal.calibration/"
 
 EPILOG = ("exit status: 0 no drift flagged during the run; 1 drift flagged (or a device failed); "
           "2 bad configuration, baseline file or usage; 130 stopped with Ctrl-C (after the summary).")
@@ -141,7 +128,7 @@ class _Printer:
                   f"height {_mm(d.height_deviation_m)} from baseline", flush=True)
 
 
-# ---------------------------------------------------------------------- baselines
+# ---------------------------------------------------------------------- cameras
 def _label(path: str | None, taken: set[str]) -> str:
     base = "sim" if path is None else Path(path).stem
     label, n = base, 2
@@ -151,110 +138,13 @@ def _label(path: str | None, taken: set[str]) -> str:
     return label
 
 
-def read_json(path: str) -> Any:
-    """A JSON document from a file.
-
-    Raises:
-        ConfigError: Missing or unreadable file, invalid JSON.
-    """
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError("baseline file not found", source=path) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"cannot read baseline file: {exc}", source=path) from None
-
-
-def is_calibration_result(doc: Any) -> bool:
-    """Whether a JSON document is a ``cellcal calibrate`` result."""
-    return isinstance(doc, dict) and str(doc.get("schema", "")).startswith(CALIBRATION_SCHEMA_PREFIX)
-
-
-def consensus_plane(doc: Mapping[str, Any], path: str) -> Plane:
-    """The calibrated plane in the base frame of a calibration result.
-
-    Raises:
-        ConfigError: If the result has no usable ``summary.plane_consistency.consensus_plane_base``.
-    """
-    key = "summary.plane_consistency.consensus_plane_base"
-    try:
-        table = doc["summary"]["plane_consistency"]["consensus_plane_base"]
-        return Plane.from_dict(table)
-    except (KeyError, TypeError, ValueError, CalibrationError):
-        raise ConfigError("calibration result has no plane in the base frame (needs a [reference] plane "
-                          "and a cellcal version that writes it)", source=path, key=key) from None
-
-
-def baseline_from_result(doc: Mapping[str, Any], path: str, config: CellConfig, arm: RobotArm) -> Baseline:
-    """The expected plane at the arm's current pose, from a calibration result.
-
-    The arm is connected only to read its flange pose (nothing moves); the camera pose is
-    that pose @ the configuration's ``[mount]``.
-
-    Raises:
-        ConfigError: If the result holds no plane in the base frame.
-        DeviceError: If the arm cannot be reached.
-    """
-    plane = consensus_plane(doc, path)
-    timeout = config.monitor.connect_timeout_s
-    with arm.connect(timeout):
-        flange = arm.get_pose(timeout)
-    return Baseline.from_plane_in_base(plane, flange @ config.mount.pose())
-
-
-def read_baselines(path: str, labels: list[str], doc: Any = None) -> dict[str, Baseline]:
-    """Baselines per label from a ``--save-baseline`` file.
-
-    A file with a single camera applies to a single monitored camera whatever its label.
-
-    Raises:
-        ConfigError: Unreadable file, wrong schema, or no entry for a monitored camera.
-    """
-    doc = read_json(path) if doc is None else doc
-    if not isinstance(doc, dict) or doc.get("schema") != BASELINE_SCHEMA:
-        raise ConfigError(f"not a monitor baseline file or calibration result (expected schema "
-                          f"{BASELINE_SCHEMA!r} or {CALIBRATION_SCHEMA_PREFIX}N)", source=path)
-    cams = doc.get("cameras")
-    if not isinstance(cams, dict) or not cams:
-        raise ConfigError("expected a non-empty table", source=path, key="cameras")
-    if len(cams) == 1 and len(labels) == 1:
-        ((key, only),) = cams.items()
-        return {labels[0]: Baseline.from_dict(only, source=f"{path} (cameras.{key})")}
-    out = {}
-    for label in labels:
-        if label not in cams:
-            raise ConfigError(f"no baseline for camera {label!r} (has: {', '.join(sorted(cams))})", source=path)
-        out[label] = Baseline.from_dict(cams[label], source=f"{path} (cameras.{label})")
-    return out
-
-
-def write_baselines(path: str, cameras: list[CameraSummary]) -> Path:
-    """Write the established baselines (cameras without one are left out)."""
-    doc = {"schema": BASELINE_SCHEMA,
-           "cameras": {c.label: c.baseline.to_dict() for c in cameras if c.baseline is not None}}
-    return write_json_atomic(path, doc)
-
-
 # ---------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal monitor``; returns the exit status."""
     paths: list[str | None] = list(args.config) if args.config else [None]
     taken: set[str] = set()
     configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]
-    labels = [label for label, _ in configs]
-    doc = read_json(args.baseline) if args.baseline else None
-    from_result = is_calibration_result(doc)
-    if from_result and len(configs) > 1:
-        raise ConfigError("a calibration result is the baseline of one camera: give one --config, or use a "
-                          "--save-baseline file for several", source=args.baseline)
-    baselines = read_baselines(args.baseline, labels, doc) if args.baseline and not from_result else {}
-    specs = []
-    for label, config in configs:
-        camera, arm = build_devices(config)  # the arm is at most connected to read its pose
-        if from_result and isinstance(doc, dict):
-            baselines[label] = baseline_from_result(doc, args.baseline, config, arm)
-        specs.append(MonitoredCamera(label, camera, config.monitor, config.full_frame,
-                                     baselines.get(label)))
+    specs = monitored_cameras(configs, args.baseline)
     printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)
     monitor = Monitor(specs, printer)
     printer.monitor = monitor

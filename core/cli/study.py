@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from cellcal.core.calibration.report import write_json_atomic
 from cellcal.core.cli.argtypes import integer
-from cellcal.core.study.trials import (
+from cellcal.core.cli.progress import progress_factory
+from cellcal.core.study import (
     TARGET_CLUTTER,
     TARGET_COVERAGE,
     TARGET_ERROR_CLUTTER_DEG,
@@ -115,13 +115,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         settings = StudySettings(trials=args.trials or DEFAULT_TRIALS, seed=args.seed)
     out = Path(args.out)
-    progress = None
-    if not args.quiet:
-        from tqdm import tqdm
-
-        def progress(total: int) -> Any:
-            return tqdm(total=total, desc="trials", unit="trial", file=sys.stderr, leave=False)
-
+    progress = progress_factory("trials", "trial", args.quiet)
     started = time.perf_counter()
     result = run_study(settings, progress=progress)
     elapsed = time.perf_counter() - started

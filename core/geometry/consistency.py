@@ -1,31 +1,9 @@
 """The measuring plane in the robot base frame, and its consistency across poses.
 
-At each pose the camera measures the plane in its own frame. With the arm's reported
-flange pose ``T_base_flange`` and the configured mount (hand-eye transform)
-``T_flange_camera``, the plane goes into the base frame
-(``T_base_camera = T_base_flange @ T_flange_camera``, :func:`plane_in_base`). The table
-does not move, so every pose must give the same base-frame plane. How far they scatter
-checks the whole chain:
-
-* spread at noise level — hand-eye transform and arm kinematics agree with the camera;
-* large spread — the hand-eye transform (``[mount]``) or the arm's calibration is off
-  (a mount rotation error of ``e`` rad tilts each pose's plane by up to ``e``, in a
-  direction that turns with the camera; a mount translation error ``t`` shifts it by
-  ``n · R_base_camera t``).
-
-The check is blind when all poses share one orientation: a mount error then moves every
-pose's plane the same way (an offset of the consensus, not a spread). The result says so
-(``orientation_span_rad``); vary the camera's orientation (e.g. rotate about the plane
-normal) for a real test of the mount. It is strong on the mount's rotation (0.1 deg shows
-clearly on the sim) and weak on its translation: a plane only sees the component of a
-translation error along its normal, which varies between poses only as much as the camera's
-inclination to the plane varies (a shift along an axis parallel to the plane never shows).
-
-Figures (:class:`PlaneConsistency`): the consensus plane (weighted mean normal, through
-the weighted mean of the poses' planes at a common reference point); per pose the angle
-between its normal and the consensus normal, and its height above the consensus along
-the consensus normal at the reference point (the centre of the measured area); their
-maximum/peak-to-peak and RMS; the noise level expected from the per-pose uncertainties.
+Each pose's camera-frame plane goes into the base frame through the arm's reported flange
+pose and the mount (:func:`plane_in_base`); the table does not move, so the poses must
+agree (:func:`plane_consistency`). What the spread reveals, and when the check is blind,
+is in ADR 0002.
 """
 
 from __future__ import annotations
@@ -227,22 +205,17 @@ def plane_consistency(poses: Sequence[PosePlane], *, normal_tolerance_rad: float
 
     Returns:
         The figures and a verdict; ``"inconsistent"`` means the hand-eye transform or the
-        arm's calibration is off (see the module docstring).
+        arm's calibration is off (see ADR 0002).
 
     Raises:
         CalibrationError: No poses, or planes whose normals point to opposite sides.
     """
     if not poses:
         raise CalibrationError("plane consistency needs at least one pose")
-    normals = np.array([p.plane_base.normal for p in poses])
-    offsets = np.array([p.plane_base.offset_m for p in poses])
-    flip = normals @ normals[0] < 0  # keep every normal on the first one's side
-    normals[flip] *= -1.0
-    offsets[flip] *= -1.0
-    if np.any(normals @ normals[0] < math.cos(math.radians(60.0))):
-        raise CalibrationError("the poses' planes differ by more than 60 deg; they are not one plane")
+    normals, offsets = _aligned_planes(poses)
     w_n = _weights([p.normal_sigma_rad for p in poses])
     w_h = _weights([p.offset_sigma_m for p in poses])
+    # consensus normal: the weighted mean of the unit normals, renormalised
     n_bar = w_n @ normals
     n_bar /= np.linalg.norm(n_bar)
     anchor = (np.mean([p.anchor_m for p in poses], axis=0) if reference_point_m is None
@@ -251,31 +224,52 @@ def plane_consistency(poses: Sequence[PosePlane], *, normal_tolerance_rad: float
         raise CalibrationError(f"reference_point_m must be 3 finite numbers, got {anchor}")
     # height of each pose's plane above the anchor along n_bar: n_i . (a + s n_bar) + d_i = 0
     s = -(normals @ anchor + offsets) / (normals @ n_bar)
+    # the consensus plane passes through the weighted mean height; deviations are about it
     ref = anchor + float(w_h @ s) * n_bar
     consensus = Plane.from_point_normal(ref, n_bar)
     heights = s - float(w_h @ s)
-    dev = np.arccos(np.clip(normals @ n_bar, -1.0, 1.0))
+    dev = np.arccos(np.clip(normals @ n_bar, -1.0, 1.0))  # angle of each normal to the consensus, rad
     exp_n = _expected_rms([p.normal_sigma_rad for p in poses], w_n)
     exp_h = _expected_rms([p.offset_sigma_m for p in poses], w_h)
     span = _orientation_span([p.camera_rotation for p in poses])
+    # tolerances: the configured margin on top of NOISE_FACTOR x the expected noise spread
     n_tol = normal_tolerance_rad + NOISE_FACTOR * (exp_n or 0.0)
     h_tol = height_tolerance_m + 2.0 * NOISE_FACTOR * (exp_h or 0.0)  # peak-to-peak ~ 2x a deviation
     n_spread, h_spread = float(dev.max()), float(heights.max() - heights.min())
-    figures = (f"normal spread {math.degrees(n_spread):.3f} deg (accepted {math.degrees(n_tol):.3f}), "
-               f"height spread {h_spread * 1e3:.2f} mm (accepted {h_tol * 1e3:.2f})")
-    if len(poses) == 1:
-        verdict, text = "single pose", "one pose only: nothing to compare; plan several poses to check the mount"
-    elif n_spread > n_tol or h_spread > h_tol:
-        verdict = "inconsistent"
-        text = (f"{figures}: the poses disagree on where the plane is, so the hand-eye transform ([mount]) "
-                "or the arm's calibration is off")
-    elif span is not None and span < MIN_ORIENTATION_SPAN_RAD:
-        verdict = "blind"
-        text = (f"{figures}, but every pose has the same camera orientation (span "
-                f"{math.degrees(span):.1f} deg), so a mount error would not show; vary the orientation")
-    else:
-        verdict, text = "consistent", f"{figures}: hand-eye transform and arm agree with the camera"
+    verdict, text = _verdict(len(poses), n_spread, n_tol, h_spread, h_tol, span)
     return PlaneConsistency(consensus, ref, tuple(float(v) for v in dev), tuple(float(v) for v in heights),
                             n_spread, float(math.sqrt(np.mean(dev**2))), h_spread,
                             float(math.sqrt(np.mean(heights**2))), exp_n, exp_h, span, n_tol, h_tol,
                             verdict, text)
+
+
+def _aligned_planes(poses: Sequence[PosePlane]) -> tuple[FloatArray, FloatArray]:
+    """The poses' unit normals (N, 3) and offsets (N,), every normal on the first one's side.
+
+    Raises:
+        CalibrationError: Two planes more than 60 deg apart (not one plane).
+    """
+    normals = np.array([p.plane_base.normal for p in poses])
+    offsets = np.array([p.plane_base.offset_m for p in poses])
+    flip = normals @ normals[0] < 0  # (n, d) and (-n, -d) are the same plane
+    normals[flip] *= -1.0
+    offsets[flip] *= -1.0
+    if np.any(normals @ normals[0] < math.cos(math.radians(60.0))):
+        raise CalibrationError("the poses' planes differ by more than 60 deg; they are not one plane")
+    return normals, offsets
+
+
+def _verdict(n_poses: int, n_spread: float, n_tol: float, h_spread: float, h_tol: float,
+             span: float | None) -> tuple[str, str]:
+    """The verdict and its one-sentence interpretation (spreads and tolerances in rad and metres)."""
+    figures = (f"normal spread {math.degrees(n_spread):.3f} deg (accepted {math.degrees(n_tol):.3f}), "
+               f"height spread {h_spread * 1e3:.2f} mm (accepted {h_tol * 1e3:.2f})")
+    if n_poses == 1:
+        return "single pose", "one pose only: nothing to compare; plan several poses to check the mount"
+    if n_spread > n_tol or h_spread > h_tol:
+        return "inconsistent", (f"{figures}: the poses disagree on where the plane is, so the hand-eye transform "
+                                "([mount]) or the arm's calibration is off")
+    if span is not None and span < MIN_ORIENTATION_SPAN_RAD:
+        return "blind", (f"{figures}, but every pose has the same camera orientation (span "
+                         f"{math.degrees(span):.1f} deg), so a mount error would not show; vary the orientation")
+    return "consistent", f"{figures}: hand-eye transform and arm agree with the camera"

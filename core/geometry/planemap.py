@@ -1,24 +1,9 @@
 """Pixel <-> measuring-plane mapping: an image detection becomes a robot target.
 
-A :class:`PlaneMap` holds a calibrated camera (:class:`~cellcal.devices.types.Intrinsics`,
-distortion included), the measuring plane in the camera frame and, optionally, the
-camera's pose in the robot base frame (``T_base_camera = T_base_flange @ T_flange_camera``).
-It maps
-
-* a pixel ``(u, v)`` to the 3D point where its viewing ray meets the plane, in the camera
-  frame (:meth:`PlaneMap.pixel_to_camera`) or the base frame (:meth:`PlaneMap.pixel_to_base`);
-* a 3D point back to its (distorted) pixel (:meth:`PlaneMap.camera_to_pixel`,
-  :meth:`PlaneMap.base_to_pixel`).
-
-Every method is vectorised over any leading shape: pixels ``(..., 2)`` give points
-``(..., 3)`` and vice versa. A pixel whose ray is parallel to the plane or meets it
-behind the camera, or where the lens model does not invert, maps to NaN; a point with
-``z <= 0`` in the camera frame (no image) maps to NaN; NaN in gives NaN out. Frames:
-camera = OpenCV optical frame (x right, y down, z forward), metres; pixel centres at
-integer coordinates.
-
-The lens model is :mod:`cellcal.devices.geometry.camera_model` (OpenCV projection, Newton-polished
-undistortion), so ``camera_to_pixel(pixel_to_camera(uv)) == uv`` to ~1e-9 px.
+A :class:`PlaneMap` holds the calibrated camera (distortion included), the plane in the
+camera frame and optionally ``T_base_camera``; it maps pixels to plane points (camera or
+base frame) and back, vectorised over any leading shape. Unmappable inputs give NaN
+(conventions in ADR 0002).
 """
 
 from __future__ import annotations

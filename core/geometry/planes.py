@@ -1,22 +1,9 @@
-"""Planes and plane fits with honest uncertainty.
+"""Planes and plane fits with first-order 1-sigma uncertainty: OLS, TLS and robust (RANSAC).
 
-A :class:`Plane` is ``{x : normal · x + offset_m = 0}`` with a unit ``normal``; its
-signed distance is ``normal · x + offset_m`` (metres). Fits in the camera frame return
-the normal oriented toward the camera origin, so ``offset_m >= 0`` is the distance from
-the optical centre to the plane along the normal and the camera lies on the positive
-side. Camera frame: OpenCV (x right, y down, z along the optical axis), metres.
-
-Fits over an (N, 3) array, all vectorised:
-
-* :func:`fit_plane_ols` — the paper's ordinary least squares ``z = a x + b y + c``;
-* :func:`fit_plane_tls` — total (orthogonal) least squares via the scatter matrix;
-* :func:`fit_plane_robust` — seeded RANSAC (MSAC scoring) then a TLS refit on the
-  inliers, returning the inlier mask.
-
-Uncertainties are first-order (linearised) 1-sigma values with the point noise
-estimated from the residuals (``rms * sqrt(n / (n - 3))``). ``normal_sigma_rad`` is the
-RMS angular error of the normal's direction, ``sqrt(trace(normal_covariance))``, so the
-true angular error exceeds ``3 * normal_sigma_rad`` with probability below 0.3 %.
+A :class:`Plane` is ``{x : normal · x + offset_m = 0}`` with a unit ``normal``. Fits in the
+camera frame (OpenCV: x right, y down, z along the optical axis; metres) orient the normal
+toward the camera, so ``offset_m >= 0`` and the camera lies on the positive side. The fits
+and their uncertainty: docs/adr/0007-full-frame-fit.md ("The plane fits of geometry.planes").
 """
 
 from __future__ import annotations
@@ -238,6 +225,9 @@ class Plane:
 class PlaneFit:
     """Result of a plane fit.
 
+    Uncertainties are first-order 1-sigma values, the point noise estimated from the
+    residuals as ``rms * sqrt(n / (n - 3))``.
+
     Attributes:
         plane: The fitted plane (camera-facing: offset_m >= 0).
         rms_m: RMS orthogonal residual of the points used in the fit, metres.
@@ -429,6 +419,76 @@ def _hypotheses(p: FloatArray, idx: NDArray[np.intp]) -> tuple[FloatArray, Float
     return n, d, valid
 
 
+def _check_robust_args(threshold_m: float, max_iterations: int, confidence: float) -> None:
+    if not (math.isfinite(threshold_m) and threshold_m > 0):
+        raise CalibrationError(f"threshold_m must be positive, got {threshold_m!r}")
+    if max_iterations < 1:
+        raise CalibrationError(f"max_iterations must be >= 1, got {max_iterations}")
+    if not (0.0 < confidence < 1.0):
+        raise CalibrationError(f"confidence must be in (0, 1), got {confidence}")
+
+
+def _ransac(p: FloatArray, threshold_m: float, max_iterations: int, confidence: float,
+            rng: np.random.Generator, max_score_points: int) -> Plane:
+    """Seeded RANSAC with MSAC scoring: the best triplet plane (see :func:`fit_plane_robust`).
+
+    Raises:
+        CalibrationError: If no non-degenerate triplet was drawn (points collinear).
+    """
+    n_pts = p.shape[0]
+    # hypotheses are scored on a fixed random subset (drawn with replacement)
+    score_pts = p if n_pts <= max_score_points else p[rng.integers(0, n_pts, max_score_points)]
+    t2 = threshold_m * threshold_m
+    best_cost = math.inf
+    best: tuple[FloatArray, float] | None = None
+    drawn = 0
+    needed = float(max_iterations)
+    batch = 64
+    while drawn < min(needed, max_iterations):
+        k = int(min(batch, max_iterations - drawn))
+        idx = rng.integers(0, n_pts, size=(k, 3))          # a batch of random triplets
+        drawn += k
+        normals, offsets, valid = _hypotheses(p, idx)
+        if not valid.any():
+            continue
+        normals, offsets = normals[valid], offsets[valid]
+        dist2 = (score_pts @ normals.T + offsets) ** 2     # (M, K) squared distances
+        cost = np.minimum(dist2, t2).sum(axis=0)           # MSAC: squared distance capped at the threshold
+        j = int(np.argmin(cost))
+        if cost[j] < best_cost:
+            best_cost = float(cost[j])
+            best = (normals[j].copy(), float(offsets[j]))
+            best_ratio = float(np.count_nonzero(dist2[:, j] <= t2)) / score_pts.shape[0]   # inlier ratio
+            if best_ratio >= 1.0:
+                needed = 0.0
+            elif best_ratio > 0:
+                # draws after which an all-inlier triplet was drawn with probability `confidence`
+                needed = math.log(1 - confidence) / math.log(1 - best_ratio**3)
+    if best is None:
+        _, w, _ = _scatter(p)
+        _check_spread(w)
+        raise CalibrationError("RANSAC drew no non-degenerate sample; points may be collinear")
+    return Plane(best[0], best[1])
+
+
+def _refit_inliers(p: FloatArray, plane: Plane, threshold_m: float, refine_iterations: int) -> PlaneFit:
+    """TLS on the points within ``threshold_m`` of ``plane``; re-select and refit until stable."""
+    inliers = np.abs(plane.signed_distance(p)) <= threshold_m
+    fit: PlaneFit | None = None
+    for _ in range(max(refine_iterations, 0) + 1):
+        if np.count_nonzero(inliers) < 3:
+            raise CalibrationError(
+                f"robust plane fit found only {int(np.count_nonzero(inliers))} inlier(s) "
+                f"within {threshold_m} m")
+        fit = _tls(np.compress(inliers, p, axis=0), "robust", inliers)
+        new = np.abs(fit.plane.signed_distance(p)) <= threshold_m   # inliers of the refit plane
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    assert fit is not None
+    return fit  # its inlier mask is the one it was fitted on
+
+
 def fit_plane_robust(points: ArrayLike, threshold_m: float, *, max_iterations: int = 1000,
                      confidence: float = 0.999, seed: int | None = 0,
                      max_score_points: int = 2000, refine_iterations: int = 2) -> PlaneFit:
@@ -455,57 +515,7 @@ def fit_plane_robust(points: ArrayLike, threshold_m: float, *, max_iterations: i
         CalibrationError: On invalid input or if fewer than 3 non-collinear inliers exist.
     """
     p = validate_points(points)
-    if not (math.isfinite(threshold_m) and threshold_m > 0):
-        raise CalibrationError(f"threshold_m must be positive, got {threshold_m!r}")
-    if max_iterations < 1:
-        raise CalibrationError(f"max_iterations must be >= 1, got {max_iterations}")
-    if not (0.0 < confidence < 1.0):
-        raise CalibrationError(f"confidence must be in (0, 1), got {confidence}")
-    n_pts = p.shape[0]
+    _check_robust_args(threshold_m, max_iterations, confidence)
     rng = np.random.default_rng(seed)
-    score_pts = p if n_pts <= max_score_points else p[rng.integers(0, n_pts, max_score_points)]
-    t2 = threshold_m * threshold_m
-    best_cost = math.inf
-    best: tuple[FloatArray, float] | None = None
-    best_ratio = 0.0
-    drawn = 0
-    needed = float(max_iterations)
-    batch = 64
-    while drawn < min(needed, max_iterations):
-        k = int(min(batch, max_iterations - drawn))
-        idx = rng.integers(0, n_pts, size=(k, 3))
-        drawn += k
-        normals, offsets, valid = _hypotheses(p, idx)
-        if not valid.any():
-            continue
-        normals, offsets = normals[valid], offsets[valid]
-        dist2 = (score_pts @ normals.T + offsets) ** 2  # (M, K)
-        cost = np.minimum(dist2, t2).sum(axis=0)
-        j = int(np.argmin(cost))
-        if cost[j] < best_cost:
-            best_cost = float(cost[j])
-            best = (normals[j].copy(), float(offsets[j]))
-            best_ratio = float(np.count_nonzero(dist2[:, j] <= t2)) / score_pts.shape[0]
-            if best_ratio >= 1.0:
-                needed = 0.0
-            elif best_ratio > 0:
-                needed = math.log(1 - confidence) / math.log(1 - best_ratio**3)
-    if best is None:
-        _, w, _ = _scatter(p)
-        _check_spread(w)
-        raise CalibrationError("RANSAC drew no non-degenerate sample; points may be collinear")
-    plane = Plane(best[0], best[1])
-    inliers = np.abs(plane.signed_distance(p)) <= threshold_m
-    fit: PlaneFit | None = None
-    for _ in range(max(refine_iterations, 0) + 1):
-        if np.count_nonzero(inliers) < 3:
-            raise CalibrationError(
-                f"robust plane fit found only {int(np.count_nonzero(inliers))} inlier(s) "
-                f"within {threshold_m} m")
-        fit = _tls(np.compress(inliers, p, axis=0), "robust", inliers)
-        new = np.abs(fit.plane.signed_distance(p)) <= threshold_m
-        if np.array_equal(new, inliers):
-            break
-        inliers = new
-    assert fit is not None
-    return fit  # its inlier mask is the one it was fitted on
+    plane = _ransac(p, threshold_m, max_iterations, confidence, rng, max_score_points)
+    return _refit_inliers(p, plane, threshold_m, refine_iterations)

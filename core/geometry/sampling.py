@@ -1,9 +1,8 @@
 """Robust sampling of measurement points from depth frames.
 
-A grid point of the paper is one pixel; a real ToF pixel is noisy and may be
-invalid. :func:`sample_window` takes the median over a small window around the
-pixel (and over several frames), skipping invalid pixels, so one flying pixel or
-dropout does not move the point.
+:func:`sample_window` takes the median over a small window around a pixel (and over
+several frames), skipping invalid pixels, so one flying pixel or dropout does not move
+the point.
 """
 
 from __future__ import annotations
@@ -60,16 +59,56 @@ def sample_points(frames: Sequence[Frame], uv: NDArray[np.float64], window_px: i
     Raises:
         CalibrationError: If a window leaves the image or holds too few valid positions.
     """
+    uv = _checked_locations(frames, uv, window_px)
+    us, vs = _window_positions(uv, window_px, frames[0].shape)
+    xyz, dist, ok = _interpolate(frames, us, vs)
+    # pool frames: (N, frames * window positions); invalid positions become NaN
+    n = len(uv)
+    pooled_ok = ok.transpose(1, 0, 2).reshape(n, -1)
+    pooled_xyz = np.where(pooled_ok[..., None], xyz.transpose(1, 0, 2, 3).reshape(n, -1, 3), np.nan)
+    pooled_dist = np.where(pooled_ok, dist.transpose(1, 0, 2).reshape(n, -1), np.nan)
+    counts = pooled_ok.sum(axis=1)
+    if np.any(counts < min_valid):
+        i = int(np.argmax(counts < min_valid))
+        u, v = uv[i]
+        raise CalibrationError(
+            f"only {counts[i]} valid samples (need {min_valid}) around pixel ({u:.1f}, {v:.1f}) "
+            f"in {len(frames)} frame(s)"
+        )
+    # coordinate-wise medians over the valid positions (NaNs ignored)
+    med_xyz = np.nanmedian(pooled_xyz, axis=1)
+    med_dist = np.nanmedian(pooled_dist, axis=1)
+    return [Sample(med_xyz[i], float(med_dist[i]), int(counts[i]), (math.floor(u + 0.5), math.floor(v + 0.5)))
+            for i, (u, v) in enumerate(uv)]
+
+
+def _checked_locations(frames: Sequence[Frame], uv: NDArray[np.float64], window_px: int) -> NDArray[np.float64]:
+    """The locations as a finite (N, 2) float array, after checking frames and window size.
+
+    Raises:
+        CalibrationError: No frames, an even or non-positive window, or a non-finite location.
+    """
     if not frames:
         raise CalibrationError("no frames to sample")
     if window_px < 1 or window_px % 2 != 1:
         raise CalibrationError(f"window_px must be a positive odd number, got {window_px}")
-    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
-    if not np.all(np.isfinite(uv)):
+    out = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if not np.all(np.isfinite(out)):
         raise CalibrationError("sample positions must be finite")
-    h, w = frames[0].shape
+    return out
+
+
+def _window_positions(uv: NDArray[np.float64], window_px: int,
+                      shape: tuple[int, int]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Sub-pixel columns and rows of every location's window, each shape (N, window_px**2).
+
+    Raises:
+        CalibrationError: If a window leaves the image (pixel centres span [0, size - 1]).
+    """
+    h, w = shape
     half = window_px // 2
-    offsets = np.arange(-half, half + 1, dtype=np.float64)
+    offsets = np.arange(-half, half + 1, dtype=np.float64)  # one-pixel steps about the centre
+    # (N, window, window) grids flattened to (N, window**2): u varies along a row, v down the columns
     us = (uv[:, 0, None, None] + offsets[None, None, :]).repeat(window_px, 1).reshape(len(uv), -1)
     vs = (uv[:, 1, None, None] + offsets[None, :, None]).repeat(window_px, 2).reshape(len(uv), -1)
     outside = (us.min(1) < 0) | (vs.min(1) < 0) | (us.max(1) > w - 1) | (vs.max(1) > h - 1)
@@ -78,33 +117,31 @@ def sample_points(frames: Sequence[Frame], uv: NDArray[np.float64], window_px: i
         raise CalibrationError(
             f"sample window at pixel ({u:.1f}, {v:.1f}) leaves the {w}x{h} image; use a smaller perimeter"
         )
+    return us, vs
+
+
+def _interpolate(frames: Sequence[Frame], us: NDArray[np.float64], vs: NDArray[np.float64]
+                 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Bilinear XYZ and distance of every frame at every window position.
+
+    Returns:
+        ``xyz`` (frames, N, P, 3) metres, ``distance`` (frames, N, P) metres and ``ok``
+        (frames, N, P): True where every neighbour with a non-zero weight is valid.
+    """
+    h, w = frames[0].shape
+    # top-left neighbour, clamped so that the bottom-right one stays inside the image
     u0 = np.minimum(np.floor(us).astype(np.intp), w - 2)
     v0 = np.minimum(np.floor(vs).astype(np.intp), h - 2)
-    fu, fv = us - u0, vs - v0
+    fu, fv = us - u0, vs - v0  # fractional position inside the 2x2 cell, 0..1
+    # (row step, column step, weight) of the four neighbours; the weights sum to 1
     corners = ((0, 0, (1 - fu) * (1 - fv)), (0, 1, fu * (1 - fv)), (1, 0, (1 - fu) * fv), (1, 1, fu * fv))
-    n_frames = len(frames)
-    xyz = np.zeros((n_frames, *us.shape, 3))
-    dist = np.zeros((n_frames, *us.shape))
-    ok = np.ones((n_frames, *us.shape), dtype=bool)
+    xyz = np.zeros((len(frames), *us.shape, 3))
+    dist = np.zeros((len(frames), *us.shape))
+    ok = np.ones((len(frames), *us.shape), dtype=bool)
     for i, f in enumerate(frames):
         for dv, du, wgt in corners:
             rows, cols = v0 + dv, u0 + du
-            ok[i] &= (wgt <= 0) | f.valid[rows, cols]
+            ok[i] &= (wgt <= 0) | f.valid[rows, cols]  # a zero-weight neighbour may be invalid
             xyz[i] += wgt[..., None] * f.xyz[rows, cols]
             dist[i] += wgt * f.distance[rows, cols]
-    # pool frames: (N, frames * window positions)
-    pooled_ok = ok.transpose(1, 0, 2).reshape(len(uv), -1)
-    pooled_xyz = np.where(pooled_ok[..., None], xyz.transpose(1, 0, 2, 3).reshape(len(uv), -1, 3), np.nan)
-    pooled_dist = np.where(pooled_ok, dist.transpose(1, 0, 2).reshape(len(uv), -1), np.nan)
-    counts = pooled_ok.sum(axis=1)
-    if np.any(counts < min_valid):
-        i = int(np.argmax(counts < min_valid))
-        u, v = uv[i]
-        raise CalibrationError(
-            f"only {counts[i]} valid samples (need {min_valid}) around pixel ({u:.1f}, {v:.1f}) "
-            f"in {n_frames} frame(s)"
-        )
-    med_xyz = np.nanmedian(pooled_xyz, axis=1)
-    med_dist = np.nanmedian(pooled_dist, axis=1)
-    return [Sample(med_xyz[i], float(med_dist[i]), int(counts[i]), (math.floor(u + 0.5), math.floor(v + 0.5)))
-            for i, (u, v) in enumerate(uv)]
+    return xyz, dist, ok

@@ -1,24 +1,9 @@
-"""The per-pose measurement: P1-P9 grids sampled from frames, each method applied.
+"""The per-pose measurement: which methods run on which frames, and their result rows.
 
-Three methods, named as in the configuration:
-
-``law_of_cosines``
-    The paper's approach 1 on real 3D samples: triangle camera centre C, the on-axis
-    point O (P5) and the point Ay (P8) on the plane; CO and CAy are measured radial
-    distances, OAy their 3D separation. The same construction along x (P4) gives the
-    tilt about y. Reported angle: the y construction, as in the paper's Table 3.
-``plane_fit``
-    The paper's approach 2 (least squares ``z = a x + b y + c`` over the nine points)
-    on points placed with the camera's *own* intrinsics (distortion honoured: the
-    frame's XYZ), with a first-order 1-sigma uncertainty on the angle.
-``plane_fit_nominal``
-    Approach 2 exactly as the paper built its points: measured radial distance R at
-    each grid pixel, with (Theta, Phi) from the nominal constant angle-per-pixel model.
-    Its error against the truth is the model's bias, reported rather than hidden.
-``full_frame``
-    Every valid pixel of the pose's frames, robust plane fit with 95 % intervals and
-    quality gates (:mod:`cellcal.core.methods.fullframe`). Not tied to a perimeter: its row has
-    ``perimeter_px = None``; :func:`measure_full_frame` also returns the full result.
+The paper's grid methods (``law_of_cosines``, ``plane_fit``, ``plane_fit_nominal``) are
+computed in :mod:`cellcal.core.methods.paper`, ``full_frame`` in
+:mod:`cellcal.core.methods.fullframe`; this module turns them into :class:`Measurement`
+rows, compares them with the :class:`ExpectedGeometry` and builds the full-frame document.
 """
 
 from __future__ import annotations
@@ -29,20 +14,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 from numpy.typing import ArrayLike
 
-from cellcal.core.geometry.planes import Plane, PlaneFit, fit_plane_ols
-from cellcal.core.geometry.sampling import Sample, sample_points
+from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings, check_gates, fit_full_frame
-from cellcal.core.methods.paper import error_pct, grid_phi_theta, grid_points, law_of_cosines_angle, plane_fit
+from cellcal.core.methods.paper import GridEstimate, error_pct, grid_estimates, nominal_model
 from cellcal.devices.errors import CalibrationError
-from cellcal.devices.geometry.camera_model import NominalFovModel
 from cellcal.devices.pose import Pose
-from cellcal.devices.types import Frame, Intrinsics
+from cellcal.devices.types import Frame
 
-#: The methods evaluated on the P1-P9 grid at every perimeter.
-GRID_METHODS = ("law_of_cosines", "plane_fit", "plane_fit_nominal")
 #: The whole-frame method (one estimate per pose, no perimeter).
 FULL_FRAME = "full_frame"
 
@@ -138,46 +118,17 @@ class Measurement:
         }
 
 
-def _fold(angle: float) -> float:
-    """Fold an angle between two lines into [0, pi/2]."""
-    return min(angle, math.pi - angle)
+def _with_error(m: Measurement, expected: ExpectedGeometry | None) -> Measurement:
+    """The row with its ``error_pct`` against the expected angle (unchanged without one)."""
+    if expected is None:
+        return m
+    return dataclasses.replace(m, error_pct=error_pct(m.angle_rad, expected.angle_rad))
 
 
-def _law_of_cosines(samples: dict[str, Sample], perimeter: int) -> Measurement:
-    o, ay, ax = samples["P5"], samples["P8"], samples["P4"]
-    co = float(np.linalg.norm(o.xyz_m))
-
-    def axis_angle(a: Sample, along: int) -> tuple[float, float]:
-        ca = float(np.linalg.norm(a.xyz_m))
-        oa = float(np.linalg.norm(a.xyz_m - o.xyz_m))
-        if oa <= 0:
-            raise CalibrationError(f"grid points coincide at perimeter {perimeter} px")
-        angle = _fold(law_of_cosines_angle(co, ca, oa))
-        slope = (a.xyz_m[2] - o.xyz_m[2]) / (a.xyz_m[along] - o.xyz_m[along])
-        return angle, math.copysign(1.0, float(slope))
-
-    angle_y, slope_y = axis_angle(ay, 1)
-    angle_x, slope_x = axis_angle(ax, 0)
-    # z falls along +y for a positive tilt about x, and rises along +x for a positive tilt about y
-    tilt_x = -slope_y * (math.pi / 2 - angle_y)
-    tilt_y = slope_x * (math.pi / 2 - angle_x)
-    return Measurement("law_of_cosines", perimeter, angle_y, None, tilt_x, tilt_y, co, None)
-
-
-def _plane_measurement(method: str, perimeter: int, fit: PlaneFit) -> Measurement:
-    plane = fit.plane
-    return Measurement(method, perimeter, plane.angle_to_optical_axis_rad(), fit.angle_to_optical_axis_sigma_rad(),
-                       plane.tilt_about_x_rad(), plane.tilt_about_y_rad(), plane.distance_along_optical_axis_m(),
-                       fit.rms_m, plane=plane)
-
-
-def nominal_model(intrinsics: Intrinsics, fov_rad: tuple[float, float] | None = None) -> NominalFovModel:
-    """The paper's angle-per-pixel model for a camera: the datasheet field of view if given,
-    else the pinhole field of view of its intrinsics (distortion ignored, as in the paper)."""
-    if fov_rad is None:
-        fov_rad = (2 * math.atan(intrinsics.width / (2 * intrinsics.fx)),
-                   2 * math.atan(intrinsics.height / (2 * intrinsics.fy)))
-    return NominalFovModel(intrinsics.width, intrinsics.height, fov_rad[0], fov_rad[1])
+def _grid_row(method: str, perimeter_px: int, est: GridEstimate) -> Measurement:
+    """A grid method's estimate as a :class:`Measurement` row."""
+    return Measurement(method, perimeter_px, est.angle_rad, est.angle_sigma_rad, est.tilt_x_rad, est.tilt_y_rad,
+                       est.height_m, est.residual_rms_m, plane=est.plane)
 
 
 def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], methods: Sequence[str],
@@ -188,7 +139,7 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
     Args:
         frames: Frames captured at the pose (their samples are pooled).
         perimeters_px: Grid half-sizes, pixels.
-        methods: Method names (see module docstring).
+        methods: Method names (:data:`~cellcal.core.methods.paper.GRID_METHODS`, ``full_frame``).
         window_px: Odd sampling window, pixels.
         expected: Expected geometry, to compute each estimate's error.
         nominal_fov_rad: Datasheet field of view (x, y), rad, for ``plane_fit_nominal``.
@@ -201,29 +152,12 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
     """
     if not frames:
         raise CalibrationError("no frames captured")
-    intr = frames[0].intrinsics
-    model = nominal_model(intr, nominal_fov_rad) if "plane_fit_nominal" in methods else None
-    methods = [m for m in methods if m != FULL_FRAME]
+    model = nominal_model(frames[0].intrinsics, nominal_fov_rad) if "plane_fit_nominal" in methods else None
+    grid_methods = [m for m in methods if m != FULL_FRAME]
     out: list[Measurement] = []
-    for p in perimeters_px if methods else ():
-        grid = grid_points(p, width_px=intr.width, height_px=intr.height, cx=intr.cx, cy=intr.cy)
-        uv = np.array([[intr.cx + g.dx_px, intr.cy + g.dy_px] for g in grid])
-        samples = dict(zip((g.name for g in grid), sample_points(frames, uv, window_px), strict=True))
-        for method in methods:
-            if method == "law_of_cosines":
-                m = _law_of_cosines(samples, p)
-            elif method == "plane_fit":
-                m = _plane_measurement(method, p, fit_plane_ols(np.array([samples[g.name].xyz_m for g in grid])))
-            elif method == "plane_fit_nominal":
-                assert model is not None
-                phi, theta = grid_phi_theta(grid, model)
-                r = np.array([samples[g.name].distance_m for g in grid])
-                m = _plane_measurement(method, p, plane_fit(r, phi, theta))
-            else:
-                raise CalibrationError(f"unknown method '{method}'")
-            if expected is not None:
-                m = dataclasses.replace(m, error_pct=error_pct(m.angle_rad, expected.angle_rad))
-            out.append(m)
+    for p in perimeters_px if grid_methods else ():
+        estimates = grid_estimates(frames, p, grid_methods, window_px=window_px, model=model)
+        out += [_with_error(_grid_row(method, p, est), expected) for method, est in estimates]
     return out
 
 
@@ -252,9 +186,7 @@ def measure_full_frame(frames: Sequence[Frame], settings: FullFrameSettings | No
         check_gates(res, settings)
     m = Measurement(FULL_FRAME, None, res.angle_rad, res.angle_sigma_rad, res.tilt_x_rad, res.tilt_y_rad,
                     res.height_m, res.residual_rms_m, plane=res.plane)
-    if expected is not None:
-        m = dataclasses.replace(m, error_pct=error_pct(m.angle_rad, expected.angle_rad))
-    return m, res
+    return _with_error(m, expected), res
 
 
 def full_frame_document(result: FullFrameResult, camera_in_base: Pose,

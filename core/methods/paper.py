@@ -1,16 +1,9 @@
-"""The two tilt-measurement approaches of Parpală et al. (Appl. Sci. 2024, 14, 8687).
+"""The paper's two tilt measurements on the P1–P9 grid (Parpală et al., Appl. Sci. 2024, 14, 8687).
 
-Nine points P1–P9 sit on a square of half-size ``p`` pixels around the image centre.
-Each measured point becomes spherical ``(Theta, Phi, R)`` and then Cartesian; the
-plane ``Z = a X + b Y + c`` through them gives the angle between the plane and the
-optical axis (approach 2, "planar interpolation"). Approach 1 takes three points
-(camera centre C, on-axis point O = P5, point Ay = P8 along the image y axis) and the
-law of cosines. See ``../shared/spec/paper-method.md``.
-
-All functions take SI units (metres, radians); the paper's millimetres and degrees
-appear only in :mod:`cellcal.core.methods.paper_data` and the CLI. Phi comes from a camera
-model: the paper's nominal field-of-view model (:class:`NominalFovModel`) or a real
-lens model (:class:`~cellcal.devices.types.Intrinsics`).
+Approach 1: the law of cosines on camera centre C, on-axis point O = P5 and Ay = P8.
+Approach 2: the least-squares plane ``Z = a X + b Y + c`` through the nine points.
+Both run on a published table (:func:`paper_methods`) or on depth frames
+(:func:`grid_estimates`); SI units throughout. See ``../shared/spec/paper-method.md``.
 """
 
 from __future__ import annotations
@@ -22,26 +15,35 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cellcal.core.geometry.planes import PlaneFit, fit_plane_ols
+from cellcal.core.geometry.planes import Plane, PlaneFit, fit_plane_ols
+from cellcal.core.geometry.sampling import Sample, sample_points
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.geometry.camera_model import NominalFovModel, pixel_rays
-from cellcal.devices.types import Intrinsics
+from cellcal.devices.types import Frame, Intrinsics
 
 FloatArray = NDArray[np.float64]
 
 __all__ = [
+    "GRID_METHODS",
     "GRID_NAMES",
+    "GridEstimate",
     "GridPoint",
     "PaperResult",
+    "camera_grid",
     "error_pct",
+    "grid_estimates",
     "grid_phi_theta",
     "grid_pixels",
     "grid_points",
     "law_of_cosines_angle",
+    "law_of_cosines_estimate",
     "max_perimeter_px",
+    "nominal_model",
     "paper_methods",
     "plane_fit",
     "plane_fit_angle",
+    "plane_fit_estimate",
+    "sample_grid",
     "spherical_to_cartesian",
 ]
 
@@ -60,6 +62,9 @@ _LAYOUT: tuple[tuple[str, int, int, float], ...] = (
 
 #: Point names in the paper's order.
 GRID_NAMES: tuple[str, ...] = tuple(row[0] for row in _LAYOUT)
+
+#: The methods evaluated on the P1-P9 grid at every perimeter (configuration names).
+GRID_METHODS: tuple[str, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal")
 
 
 @dataclass(frozen=True)
@@ -125,9 +130,22 @@ def grid_pixels(intrinsics: Intrinsics, p_px: float) -> FloatArray:
     Raises:
         CalibrationError: If the grid leaves the image.
     """
-    pts = grid_points(p_px, width_px=intrinsics.width, height_px=intrinsics.height,
-                      cx=intrinsics.cx, cy=intrinsics.cy)
-    return np.array([[intrinsics.cx + g.dx_px, intrinsics.cy + g.dy_px] for g in pts])
+    return _pixels(intrinsics, camera_grid(intrinsics, p_px))
+
+
+def camera_grid(intrinsics: Intrinsics, p_px: float) -> list[GridPoint]:
+    """The nine points for perimeter ``p_px`` around a camera's principal point.
+
+    Raises:
+        CalibrationError: If the grid leaves the image.
+    """
+    return grid_points(p_px, width_px=intrinsics.width, height_px=intrinsics.height,
+                       cx=intrinsics.cx, cy=intrinsics.cy)
+
+
+def _pixels(intrinsics: Intrinsics, points: Sequence[GridPoint]) -> FloatArray:
+    """``(u, v)`` of grid points: their offsets added to the principal point, shape (N, 2)."""
+    return np.array([[intrinsics.cx + g.dx_px, intrinsics.cy + g.dy_px] for g in points])
 
 
 def grid_phi_theta(points: Sequence[GridPoint], model: NominalFovModel | Intrinsics, *,
@@ -290,3 +308,162 @@ def paper_methods(points_m: Mapping[str, ArrayLike], perimeter_px: float,
     p5, p8 = xyz[GRID_NAMES.index("P5")], xyz[GRID_NAMES.index("P8")]
     loc = law_of_cosines_angle(float(p5[2]), float(p8[2]), abs(float(p8[1])))
     return PaperResult(float(perimeter_px), loc, fit.plane.angle_to_optical_axis_rad(), fit)
+
+
+# ---------------------------------------------------------------------- the paper's methods on depth frames
+@dataclass(frozen=True)
+class GridEstimate:
+    """One grid method's estimate of the plane at one perimeter, camera frame.
+
+    Attributes:
+        angle_rad: Angle between the plane and the optical axis, rad.
+        angle_sigma_rad: 1-sigma uncertainty of ``angle_rad``, rad (None for the law of cosines).
+        tilt_x_rad: Camera tilt about its x axis, rad.
+        tilt_y_rad: Camera tilt about its y axis, rad.
+        height_m: Distance to the plane along the optical axis, metres (CO for the law of cosines).
+        residual_rms_m: RMS residual of the plane fit, metres (None for the law of cosines).
+        plane: The fitted plane (None for the law of cosines).
+    """
+
+    angle_rad: float
+    angle_sigma_rad: float | None
+    tilt_x_rad: float
+    tilt_y_rad: float
+    height_m: float
+    residual_rms_m: float | None
+    plane: Plane | None = None
+
+
+def nominal_model(intrinsics: Intrinsics, fov_rad: tuple[float, float] | None = None) -> NominalFovModel:
+    """The paper's angle-per-pixel model for a camera.
+
+    Args:
+        intrinsics: The camera's intrinsics (image size and, without ``fov_rad``, focal lengths).
+        fov_rad: Datasheet field of view (x, y), rad; None: the pinhole field of view of
+            the intrinsics (distortion ignored, as in the paper).
+    """
+    if fov_rad is None:
+        # full pinhole field of view: 2 atan(half the image size / focal length), per axis
+        fov_rad = (2 * math.atan(intrinsics.width / (2 * intrinsics.fx)),
+                   2 * math.atan(intrinsics.height / (2 * intrinsics.fy)))
+    return NominalFovModel(intrinsics.width, intrinsics.height, fov_rad[0], fov_rad[1])
+
+
+def sample_grid(frames: Sequence[Frame], points: Sequence[GridPoint], window_px: int = 3) -> dict[str, Sample]:
+    """Robust samples of the frames at grid points around the principal point, keyed by point name.
+
+    Args:
+        frames: Frames of one stream (same intrinsics); their samples are pooled.
+        points: Output of :func:`camera_grid` for the frames' intrinsics.
+        window_px: Odd sampling window, pixels.
+
+    Raises:
+        CalibrationError: A window leaves the image or a point has no valid pixel.
+    """
+    uv = _pixels(frames[0].intrinsics, points)
+    return dict(zip((g.name for g in points), sample_points(frames, uv, window_px), strict=True))
+
+
+def _fold(angle_rad: float) -> float:
+    """Fold an angle between two lines into [0, pi/2]."""
+    return min(angle_rad, math.pi - angle_rad)
+
+
+def _axis_angle(o: Sample, a: Sample, along: int, perimeter_px: float) -> tuple[float, float]:
+    """Law-of-cosines angle at O toward ``a`` and the sign of the plane's slope along ``along``.
+
+    Args:
+        o: The on-axis sample (P5).
+        a: The off-axis sample (P8 along y, P4 along x).
+        along: Camera axis the two points are separated along (0: x, 1: y).
+        perimeter_px: For the error message.
+
+    Returns:
+        The angle between the optical axis and the line O-A, folded into [0, pi/2], rad,
+        and +1 or -1: the sign of dz / d(along) between O and A.
+    """
+    co = float(np.linalg.norm(o.xyz_m))  # camera centre to O
+    ca = float(np.linalg.norm(a.xyz_m))  # camera centre to A
+    oa = float(np.linalg.norm(a.xyz_m - o.xyz_m))  # O to A, in the plane
+    if oa <= 0:
+        raise CalibrationError(f"grid points coincide at perimeter {perimeter_px} px")
+    angle = _fold(law_of_cosines_angle(co, ca, oa))
+    slope = (a.xyz_m[2] - o.xyz_m[2]) / (a.xyz_m[along] - o.xyz_m[along])
+    return angle, math.copysign(1.0, float(slope))
+
+
+def law_of_cosines_estimate(samples: Mapping[str, Sample], perimeter_px: float) -> GridEstimate:
+    """Approach 1 on real 3D samples: the angle from the triangle C, O = P5, Ay = P8.
+
+    CO and CAy are the measured radial distances, OAy their 3D separation; the same
+    construction along x (P4) gives the tilt about y. The reported angle is the y
+    construction, as in the paper's Table 3.
+
+    Raises:
+        CalibrationError: Coinciding points or lengths that form no triangle.
+    """
+    o, ay, ax = samples["P5"], samples["P8"], samples["P4"]
+    angle_y, slope_y = _axis_angle(o, ay, 1, perimeter_px)
+    angle_x, slope_x = _axis_angle(o, ax, 0, perimeter_px)
+    # the tilt is the complement of the axis-to-line angle; z falls along +y for a
+    # positive tilt about x, and rises along +x for a positive tilt about y
+    tilt_x = -slope_y * (math.pi / 2 - angle_y)
+    tilt_y = slope_x * (math.pi / 2 - angle_x)
+    return GridEstimate(angle_y, None, tilt_x, tilt_y, float(np.linalg.norm(o.xyz_m)), None)
+
+
+def plane_fit_estimate(fit: PlaneFit) -> GridEstimate:
+    """Approach 2's figures from a plane fit: angle with its first-order 1-sigma, tilts, height."""
+    plane = fit.plane
+    return GridEstimate(plane.angle_to_optical_axis_rad(), fit.angle_to_optical_axis_sigma_rad(),
+                        plane.tilt_about_x_rad(), plane.tilt_about_y_rad(), plane.distance_along_optical_axis_m(),
+                        fit.rms_m, plane)
+
+
+def _nominal_plane_fit(samples: Mapping[str, Sample], points: Sequence[GridPoint],
+                       model: NominalFovModel) -> PlaneFit:
+    """Approach 2 as the paper built its points: measured R at each grid pixel, nominal (Theta, Phi)."""
+    phi, theta = grid_phi_theta(points, model)
+    r = np.array([samples[g.name].distance_m for g in points])  # measured radial distances, metres
+    return plane_fit(r, phi, theta)
+
+
+def grid_estimates(frames: Sequence[Frame], p_px: float, methods: Sequence[str], *, window_px: int = 3,
+                   model: NominalFovModel | None = None) -> list[tuple[str, GridEstimate]]:
+    """The paper's methods on the frames of one pose at one perimeter.
+
+    ``law_of_cosines`` is approach 1 on the sampled 3D points (:func:`law_of_cosines_estimate`);
+    ``plane_fit`` is approach 2 on the frame's XYZ (the camera's own intrinsics, distortion
+    honoured); ``plane_fit_nominal`` is approach 2 exactly as the paper built its points (R at
+    each grid pixel, (Theta, Phi) from the nominal model), so its error is the model's bias.
+
+    Args:
+        frames: Frames captured at the pose (their samples are pooled).
+        p_px: Perimeter, pixels.
+        methods: Names from :data:`GRID_METHODS`, in the order wanted.
+        window_px: Odd sampling window, pixels.
+        model: The nominal model for ``plane_fit_nominal``; None: :func:`nominal_model`
+            of the frames' intrinsics.
+
+    Returns:
+        ``(method, estimate)`` pairs in the order of ``methods``.
+
+    Raises:
+        CalibrationError: The grid leaves the image, too few valid pixels at a point,
+            degenerate geometry or an unknown method.
+    """
+    points = camera_grid(frames[0].intrinsics, p_px)
+    samples = sample_grid(frames, points, window_px)
+    out: list[tuple[str, GridEstimate]] = []
+    for method in methods:
+        if method == "law_of_cosines":
+            est = law_of_cosines_estimate(samples, p_px)
+        elif method == "plane_fit":
+            est = plane_fit_estimate(fit_plane_ols(np.array([samples[g.name].xyz_m for g in points])))
+        elif method == "plane_fit_nominal":
+            mdl = model if model is not None else nominal_model(frames[0].intrinsics)
+            est = plane_fit_estimate(_nominal_plane_fit(samples, points, mdl))
+        else:
+            raise CalibrationError(f"unknown method '{method}'")
+        out.append((method, est))
+    return out

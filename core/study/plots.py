@@ -1,17 +1,8 @@
-"""Pictures of the accuracy study (matplotlib, headless Agg backend; extra ``plots``).
+"""Pictures of the accuracy study (matplotlib on the headless Agg backend; extra ``plots``).
 
-* :func:`plot_error_vs_perimeter` — |tilt error| of each method against the
-  perimeter at each of the paper's heights, boxes showing the spread (the paper's
-  Tables 3 and 4 give one number per cell);
-* :func:`plot_error_vs_clutter` — |tilt error| against the fraction of the plane
-  covered by boxes;
-* :func:`plot_error_vs_conditions` — |tilt error| against the noise level and the
-  inclination;
-* :func:`plot_plane_fit` — the full-frame plane over the point cloud of one cluttered
-  frame, inliers against outliers (the paper's Figure 14 shows its nine-point plane).
-
-matplotlib is imported inside the functions, so ``cellcal.core.study.plots`` imports
-without it; each PNG is written atomically (temp file + rename).
+Error against perimeter, clutter, noise and inclination, and the full-frame plane over one
+cluttered frame (the paper's Figure 14 shows its nine-point plane). matplotlib is imported
+inside the functions, so this module imports without it; each PNG is written atomically.
 """
 
 from __future__ import annotations
@@ -26,15 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.calibration.report import write_bytes_atomic
+from cellcal.core.study.table import select
 from cellcal.core.study.trials import (
     FULL_FRAME,
-    GRID_METHODS,
     METHODS,
     PAPER_HEIGHTS_M,
     PAPER_INCLINATION_DEG,
     StudyResult,
     TrialData,
-    select,
 )
 from cellcal.devices.errors import MissingDependencyError
 
@@ -235,39 +225,45 @@ def inlier_image(trial: TrialData) -> NDArray[np.bool_] | None:
 def plot_plane_fit(trial: TrialData, path: str | Path, *, max_points: int = 6000, seed: int = 0) -> Path:
     """The full-frame plane over one frame's point cloud: inliers, outliers (boxes), the plane.
 
-    Left: the camera-frame cloud (subsampled) with the fitted plane; right: the image,
-    inliers vs outliers, with the true box outlines.
+    Left: the camera-frame cloud (subsampled to ``max_points``, seeded) with the fitted plane;
+    right: the image, inliers vs outliers, with the true box outlines.
     """
     plt = _pyplot()
-    frame = trial.frame
-    valid = frame.valid
     inl = inlier_image(trial)
     if inl is None:  # no full-frame result: colour by the truth instead
-        inl = valid & ~trial.occluded_mask
+        inl = trial.frame.valid & ~trial.occluded_mask
         fit_label = "plane (truth; full frame unavailable)"
         plane = trial.truth.plane_cam
     else:
         fit_label = "full-frame plane"
         plane = trial.full_frame.plane
-    pts = frame.xyz[valid].astype(np.float64)
+    fig = plt.figure(figsize=(11.5, 5.4))
+    _draw_cloud(fig.add_subplot(1, 2, 1, projection="3d"), trial, inl, plane, fit_label,
+                np.random.default_rng(seed), max_points)
+    _draw_image(fig.add_subplot(1, 2, 2), trial, inl)
+    fig.subplots_adjust(left=0.0, right=0.97, top=0.9, bottom=0.2, wspace=0.12)
+    return save_figure(fig, path)
+
+
+def _draw_cloud(ax: Any, trial: TrialData, inl: NDArray[np.bool_], plane: Any, fit_label: str,
+                rng: np.random.Generator, max_points: int) -> None:
+    """The camera-frame cloud (random subsample), inliers vs outliers, and the plane as a wireframe."""
+    valid = trial.frame.valid
+    pts = trial.frame.xyz[valid].astype(np.float64)
     is_in = inl[valid]
-    rng = np.random.default_rng(seed)
     idx = rng.permutation(pts.shape[0])[:max_points]
     p, flag = pts[idx], is_in[idx]
-
-    fig = plt.figure(figsize=(11.5, 5.4))
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
     # drawn as (x, -y, -z): image right, image up, toward the camera (boxes stand up)
     ax.scatter(p[flag, 0], -p[flag, 1], -p[flag, 2], s=0.6, c="#4c72b0", alpha=0.5, label="inliers",
                depthshade=False)
     ax.scatter(p[~flag, 0], -p[~flag, 1], -p[~flag, 2], s=0.8, c="#dd3322", alpha=0.8, label="outliers",
                depthshade=False)
-    # the plane over the cloud's x/y extent: solve n . (x, y, z) + d = 0 for z
+    # the plane over the cloud's x/y extent (1st-99th percentiles), on a 12 x 12 grid
     x0, x1 = float(np.percentile(pts[:, 0], 1)), float(np.percentile(pts[:, 0], 99))
     y0, y1 = float(np.percentile(pts[:, 1], 1)), float(np.percentile(pts[:, 1], 99))
     gx, gy = np.meshgrid(np.linspace(x0, x1, 12), np.linspace(y0, y1, 12))
     n, d = plane.normal, plane.offset_m
-    if abs(n[2]) > 1e-9:
+    if abs(n[2]) > 1e-9:  # solve n . (x, y, z) + d = 0 for z (skip a plane containing the optical axis)
         gz = -(n[0] * gx + n[1] * gy + d) / n[2]
         ax.plot_wireframe(gx, -gy, -gz, color="k", linewidth=0.5, alpha=0.7, label=fit_label)
     ax.set_xlabel("x, m")
@@ -280,21 +276,22 @@ def plot_plane_fit(trial: TrialData, path: str | Path, *, max_points: int = 6000
     ax.set_title(f"camera-frame cloud: height {c.height_m:.2f} m, {c.inclination_deg:g} deg,\n"
                  f"{trial.clutter_achieved * 100:.0f} % of the plane hidden by boxes", fontsize=9)
 
-    ax2 = fig.add_subplot(1, 2, 2)
-    img = np.full((*valid.shape, 3), 0.85)
+
+def _draw_image(ax: Any, trial: TrialData, inl: NDArray[np.bool_]) -> None:
+    """The image coloured by inlier, outlier and invalid, with the true box outlines and the errors."""
+    valid = trial.frame.valid
+    img = np.full((*valid.shape, 3), 0.85)  # grey: invalid
     img[valid & inl] = (0.30, 0.45, 0.69)
     img[valid & ~inl] = (0.87, 0.20, 0.13)
-    ax2.imshow(img, interpolation="nearest")
+    ax.imshow(img, interpolation="nearest")
     if trial.occluded_mask.any():
-        ax2.contour(trial.occluded_mask.astype(float), levels=[0.5], colors="k", linewidths=0.8)
-    ax2.set_title("image: inliers (blue), outliers (red), invalid (grey);\nblack: true box outlines", fontsize=9)
-    ax2.set_xlabel("u, px")
-    ax2.set_ylabel("v, px")
-    rows = _trial_errors(trial)
-    if rows:
-        ax2.text(0.0, -0.12, rows, transform=ax2.transAxes, fontsize=8, va="top", family="monospace")
-    fig.subplots_adjust(left=0.0, right=0.97, top=0.9, bottom=0.2, wspace=0.12)
-    return save_figure(fig, path)
+        ax.contour(trial.occluded_mask.astype(float), levels=[0.5], colors="k", linewidths=0.8)
+    ax.set_title("image: inliers (blue), outliers (red), invalid (grey);\nblack: true box outlines", fontsize=9)
+    ax.set_xlabel("u, px")
+    ax.set_ylabel("v, px")
+    text = _trial_errors(trial)
+    if text:
+        ax.text(0.0, -0.12, text, transform=ax.transAxes, fontsize=8, va="top", family="monospace")
 
 
 def _trial_errors(trial: TrialData) -> str:
@@ -326,5 +323,5 @@ def write_plots(result: StudyResult, out_dir: str | Path) -> dict[str, Path]:
     return paths
 
 
-__all__ = ["GRID_METHODS", "PLOT_FILES", "inlier_image", "plot_error_vs_clutter", "plot_error_vs_conditions",
+__all__ = ["PLOT_FILES", "inlier_image", "plot_error_vs_clutter", "plot_error_vs_conditions",
            "plot_error_vs_perimeter", "plot_plane_fit", "save_figure", "write_plots"]

@@ -1,18 +1,9 @@
 """Camera models: projection, back-projection (undistorting) and triangulation.
 
-Conventions (OpenCV, see ``cellcal.devices.types``): the camera (optical) frame has
-x right, y down, z forward along the optical axis, in metres; pixel ``(u, v)`` has
-its centre at integer coordinates, ``u`` along columns and ``v`` along rows.
-
-Two camera models live here:
-
-* the real lens model, :class:`~cellcal.devices.types.Intrinsics` (pinhole with
-  Brown–Conrady radial / decentering / thin-prism distortion and the rational
-  radial terms), evaluated with OpenCV (``cv2.projectPoints``) and inverted with
-  ``cv2.undistortPoints`` followed by a vectorised Newton refinement on OpenCV's
-  own Jacobian so that ``project(pixel_rays(uv)) == uv`` to well below 1e-6 px;
-* the paper's nominal field-of-view model, :class:`NominalFovModel` (a constant
-  angle per pixel along each image axis).
+Conventions (OpenCV, see ``cellcal.devices.types``): the camera (optical) frame has x right,
+y down, z forward along the optical axis, in metres; pixel ``(u, v)`` has its centre at
+integer coordinates, ``u`` along columns and ``v`` along rows. Two models: the real lens,
+:class:`~cellcal.devices.types.Intrinsics`, and the paper's :class:`NominalFovModel`.
 """
 
 from __future__ import annotations
@@ -134,8 +125,12 @@ def _undistort(intr: Intrinsics, uv: FloatArray, iterations: int = 6
                ) -> tuple[FloatArray, FloatArray]:
     """Normalized undistorted coordinates of pixels plus the final pixel residual.
 
-    Seeds with ``cv2.undistortPoints`` (fixed-point iteration) and polishes with a
-    few vectorised Newton steps using OpenCV's Jacobian of ``projectPoints``.
+    The lens model is pinhole with Brown–Conrady radial / decentering / thin-prism
+    distortion and the rational radial terms, evaluated with OpenCV
+    (``cv2.projectPoints``). Its inverse seeds with ``cv2.undistortPoints``
+    (fixed-point iteration) and polishes with a few vectorised Newton steps using
+    OpenCV's Jacobian of ``projectPoints``, so that ``project(pixel_rays(uv)) == uv`` to
+    well below 1e-6 px.
     """
     if not intr.has_distortion:
         xy = np.column_stack(((uv[:, 0] - intr.cx) / intr.fx, (uv[:, 1] - intr.cy) / intr.fy))

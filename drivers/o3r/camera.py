@@ -1,17 +1,7 @@
-"""The ifm O3R 3D head as a cellcal :class:`Camera3D` (backend ``o3r``), PCIC over TCP.
+"""The ifm O3R 3D head as a cellcal :class:`Camera3D` (backend ``o3r``): XML-RPC set-up, PCIC over TCP.
 
-On connect the port's PCIC TCP port, type and state are read over XML-RPC; the port
-must be a 3D port and not in CONF. ``trigger = "free_run"`` wants the port in RUN
-(``capture`` returns the newest frame received after the previous capture, never one
-older than the timeout); ``"software"`` wants IDLE (``capture`` sends one PCIC ``t``
-and returns exactly the frame it produced). With ``set_state = true`` the driver
-switches a port between RUN and IDLE itself.
-
-XYZ: the model-0 (or fisheye 2) unit vectors of TOF_INFO times the radial distance,
-in the camera optical frame (``xyz_frame = "optical"``, what :class:`Frame`
-documents), or additionally transformed by extrinsicOpticToUser into ifm's user
-frame (``"user"``, equal to ifm3d's XYZ buffer). Intrinsics: the inverse model 1,
-which is OpenCV's projection (see :mod:`.tofinfo`).
+XYZ in the camera optical frame by default (``xyz_frame = "optical"``); intrinsics
+from TOF_INFO's inverse model 1, which is OpenCV's projection (see :mod:`.tofinfo`).
 """
 
 from __future__ import annotations
@@ -63,6 +53,18 @@ class O3RConfig:
 
 class O3RCamera(Camera3D):
     """ifm O3R 3D head over PCIC/TCP.
+
+    On connect the port's PCIC TCP port, type and state are read over XML-RPC; the
+    port must be a 3D port and not in CONF. ``trigger = "free_run"`` wants the port in
+    RUN (``capture`` returns the newest frame received after the previous capture,
+    never one older than the timeout); ``"software"`` wants IDLE (``capture`` sends one
+    PCIC ``t`` and returns exactly the frame it produced). With ``set_state = true``
+    the driver switches a port between RUN and IDLE itself.
+
+    XYZ: the model-0 (or fisheye 2) unit vectors of TOF_INFO times the radial
+    distance, in the camera optical frame (``xyz_frame = "optical"``, what
+    :class:`Frame` documents), or additionally transformed by extrinsicOpticToUser
+    into ifm's user frame (``"user"``, equal to ifm3d's XYZ buffer).
 
     Args:
         config: Backend config; None uses the defaults.

@@ -1,18 +1,4 @@
-"""PCIC client over TCP: a background reader, commands with replies, reconnect with backoff.
-
-One reader thread owns the receiving side of the socket. It reads whole messages
-into freshly allocated buffers of the (checked, capped) announced length — the only
-copy of the pixel data — validates image payloads (:func:`walk_chunks`) and keeps
-the newest one; command replies are matched by ticket; async errors (ticket 0001)
-and protocol violations are queued and raised by the next call that waits for
-data; notifications (0010) are kept in a bounded list.
-
-Link faults: a dropped connection, or a message that stops arriving for longer than
-``io_timeout_s`` (a stall), closes the socket and the reader reconnects with
-exponential backoff, re-sending the schema (``c``) and output mask (``p``). A
-protocol violation is reported once (``ProtocolError`` naming the stream offset)
-and the reader reconnects, because a byte stream cannot be re-synchronised safely.
-"""
+"""PCIC client over TCP (:class:`PcicStream`): a background reader, commands with replies, reconnect with backoff."""
 
 from __future__ import annotations
 
@@ -96,6 +82,19 @@ class _StallError(Exception):
 
 class PcicStream:
     """A PCIC connection to one O3R port with a background reader.
+
+    One reader thread owns the receiving side of the socket. It reads whole messages
+    into freshly allocated buffers of the (checked, capped) announced length, the only
+    copy of the pixel data, validates image payloads (:func:`walk_chunks`) and keeps
+    the newest one; command replies are matched by ticket; async errors (ticket 0001)
+    and protocol violations are queued and raised by the next call that waits for
+    data; notifications (0010) are kept in a bounded list.
+
+    Link faults: a dropped connection, or a message that stops arriving for longer than
+    ``io_timeout_s`` (a stall), closes the socket and the reader reconnects with
+    exponential backoff, re-sending the schema (``c``) and output mask (``p``). A
+    protocol violation is reported once (``ProtocolError`` naming the stream offset)
+    and the reader reconnects, because a byte stream cannot be re-synchronised safely.
 
     Args:
         host: VPU address.

@@ -99,20 +99,31 @@ class FrameDecoder:
         """
         if chunks is None:
             chunks = walk_chunks(payload, offset=offset)
-        by_type: dict[int, Chunk] = {}
-        for c in chunks:
-            by_type.setdefault(c.chunk_type, c)
-        dist_c = by_type.get(CHUNK_RADIAL_DISTANCE)
-        info_c = by_type.get(CHUNK_TOF_INFO)
-        if dist_c is None or info_c is None:
-            missing = [n for n, c in (("RADIAL_DISTANCE (100)", dist_c), ("TOF_INFO (420)", info_c)) if c is None]
-            raise ProtocolError(f"image lacks chunk(s) {', '.join(missing)}", offset=offset + 8)
+        by_type, dist_c, info_c = _required_chunks(chunks, offset)
         info = parse_tof_info(blob_view(payload, info_c), offset=offset + info_c.data_offset)
+        distance, valid, conf = self._distance(payload, by_type, dist_c, info, offset)
+        h, w = distance.shape
+        amplitude = self._amplitude_image(payload, by_type.get(CHUNK_NORM_AMPLITUDE), info, (h, w), offset)
+        intr = self.intrinsics(info, w, h)
+        xyz = self._xyz(info, distance)
+        frame = Frame(distance=distance, xyz=xyz, amplitude=amplitude, valid=valid,
+                      intrinsics=intr, timestamp=_timestamp_s(dist_c, received_at),
+                      sequence=int(dist_c.frame_count), confidence=conf)
+        return DecodedFrame(frame, info, int(dist_c.frame_count))
+
+    def _distance(self, payload: bytes | bytearray | memoryview, by_type: dict[int, Chunk], dist_c: Chunk,
+                  info: TofInfo, offset: int
+                  ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.uint16] | None]:
+        """Radial distance (metres, float32, NaN where invalid), validity and the raw confidence image.
+
+        A pixel is invalid where its raw distance is 0 (no measurement) or, if the
+        payload has a confidence chunk, where its confidence has the invalid bit set.
+        """
         raw = image_view(payload, dist_c, offset=offset, expect_format=(2,))
         h, w = raw.shape
-        # uint16 -> float32 metres in one ufunc; raw 0 (no measurement) and the
-        # confidence's invalid bit become NaN
+        # uint16 counts -> float32 metres in one ufunc
         distance = np.multiply(raw, np.float32(info.distance_resolution_m), dtype=np.float32)
+        # raw 0 = no measurement
         invalid = raw == 0
         conf: NDArray[np.uint16] | None = None
         conf_c = by_type.get(CHUNK_CONFIDENCE)
@@ -120,35 +131,41 @@ class FrameDecoder:
             conf = image_view(payload, conf_c, offset=offset, expect_format=(2,))  # type: ignore[assignment]
             self._check_shape(conf_c, conf, (h, w), offset)  # type: ignore[arg-type]
             assert conf is not None
+            # the confidence's invalid bit also marks a pixel invalid
             invalid |= (conf & CONF_INVALID_BIT) != 0
+        # invalid pixels read NaN metres
         np.copyto(distance, np.float32(np.nan), where=invalid)
-        valid = ~invalid
-        amp_c = by_type.get(CHUNK_NORM_AMPLITUDE)
-        if amp_c is not None:
-            araw = image_view(payload, amp_c, offset=offset, expect_format=(2,))
-            self._check_shape(amp_c, araw, (h, w), offset)
-            amplitude = self._amplitude(araw, info.amplitude_resolution)  # type: ignore[arg-type]
-        else:
-            amplitude = np.zeros((h, w), dtype=np.float32)
-        intr = self.intrinsics(info, w, h)
+        return distance, ~invalid, conf
+
+    def _amplitude_image(self, payload: bytes | bytearray | memoryview, amp_c: Chunk | None, info: TofInfo,
+                         shape: tuple[int, int], offset: int) -> NDArray[np.float32]:
+        """Normalised amplitude from the amplitude chunk, or zeros (float32, ``shape``) without one."""
+        if amp_c is None:
+            return np.zeros(shape, dtype=np.float32)
+        araw = image_view(payload, amp_c, offset=offset, expect_format=(2,))
+        self._check_shape(amp_c, araw, shape, offset)
+        return self._amplitude(araw, info.amplitude_resolution)  # type: ignore[arg-type]
+
+    def _xyz(self, info: TofInfo, distance: NDArray[np.float32]) -> NDArray[np.float32]:
+        """XYZ (metres, float32, (H, W, 3)): unit vectors times radial distance, optionally in ifm's user frame.
+
+        XYZ is computed planar (3, H, W) -- one contiguous multiply per channel, ~6x
+        faster than an interleaved (H, W, 3) broadcast -- and handed out as a
+        (H, W, 3) view of it, which is what :class:`Frame` documents.
+        """
+        h, w = distance.shape
         uv = self._unit_vectors(info, w, h)
-        # XYZ is computed planar (3, H, W) -- one contiguous multiply per channel,
-        # ~6x faster than an interleaved (H, W, 3) broadcast -- and handed out as a
-        # (H, W, 3) view of it, which is what Frame documents.
         with np.errstate(invalid="ignore", over="ignore"):
+            # optical frame: unit ray x radial distance, per channel
             planar = uv * distance
             if self.apply_extrinsic:
+                # user frame: p_user = R p_optic + t (extrinsicOpticToUser), as one (3, 3) @ (3, H*W)
                 rot, trans = optic_to_user(info.extrinsic_optic_to_user)
                 flat = rot.astype(np.float32) @ planar.reshape(3, -1)
                 flat += trans.astype(np.float32)[:, None]
                 planar = flat.reshape(3, h, w)
-        xyz = planar.transpose(1, 2, 0)
-        ts_ns = dist_c.timestamp_ns
-        timestamp = ts_ns / 1e9 if ts_ns else (received_at if received_at is not None else time.time())
-        frame = Frame(distance=distance, xyz=xyz, amplitude=amplitude, valid=valid,
-                      intrinsics=intr, timestamp=float(timestamp),
-                      sequence=int(dist_c.frame_count), confidence=conf)
-        return DecodedFrame(frame, info, int(dist_c.frame_count))
+        out: NDArray[np.float32] = planar.transpose(1, 2, 0)
+        return out
 
     @staticmethod
     def _amplitude(raw: NDArray[np.uint16], resolution: float) -> NDArray[np.float32]:
@@ -164,3 +181,28 @@ class FrameDecoder:
         if arr.shape[:2] != shape:
             raise ProtocolError(f"chunk {chunk.chunk_type} is {arr.shape[1]}x{arr.shape[0]}, distance image is "
                                 f"{shape[1]}x{shape[0]}", offset=offset + chunk.offset + 16)
+
+
+def _required_chunks(chunks: list[Chunk], offset: int) -> tuple[dict[int, Chunk], Chunk, Chunk]:
+    """The payload's chunks by type (first of each type), its distance chunk and its TOF_INFO chunk.
+
+    Raises:
+        ProtocolError: If the distance (100) or TOF_INFO (420) chunk is missing.
+    """
+    by_type: dict[int, Chunk] = {}
+    for c in chunks:
+        by_type.setdefault(c.chunk_type, c)
+    dist_c = by_type.get(CHUNK_RADIAL_DISTANCE)
+    info_c = by_type.get(CHUNK_TOF_INFO)
+    if dist_c is None or info_c is None:
+        missing = [n for n, c in (("RADIAL_DISTANCE (100)", dist_c), ("TOF_INFO (420)", info_c)) if c is None]
+        raise ProtocolError(f"image lacks chunk(s) {', '.join(missing)}", offset=offset + 8)
+    return by_type, dist_c, info_c
+
+
+def _timestamp_s(dist_c: Chunk, received_at: float | None) -> float:
+    """Frame time, epoch seconds: the distance chunk's timestamp, else ``received_at``, else now."""
+    ts_ns = dist_c.timestamp_ns
+    # chunk timestamps are nanoseconds; 0 means the chunk carries none
+    timestamp = ts_ns / 1e9 if ts_ns else (received_at if received_at is not None else time.time())
+    return float(timestamp)

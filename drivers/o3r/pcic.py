@@ -1,15 +1,9 @@
 """ifm PCIC v3 wire format: message framing and image-chunk walking (pure, no I/O).
 
-Framing (both directions): a 16-byte header ``<4-digit ticket>L<9-digit length>\\r\\n``
-followed by ``length`` payload bytes, which are the ticket again, the content and
-``\\r\\n``. An image payload (ticket ``0000``) is ``<ticket>star<chunks>stop\\r\\n``;
-chunks are walked by their CHUNK_SIZE and their pixel data located by HEADER_SIZE
-(header versions 1-3). Facts: ``shared/spec/protocols.md`` part A.
-
-Every malformed input raises :class:`~cellcal.devices.errors.ProtocolError` naming
-the byte offset (relative to the start of the message or stream given); no length
-field is trusted before it has been checked against the bytes actually present and
-against a cap, so nothing is allocated from an unchecked length.
+Framing: a 16-byte header ``<4-digit ticket>L<9-digit length>\\r\\n``, then ``length``
+payload bytes: the ticket again, the content and ``\\r\\n``. Facts: ``shared/spec/protocols.md``
+part A. Malformed input raises :class:`~cellcal.devices.errors.ProtocolError` naming the byte
+offset; no length field is trusted (or allocated from) before it is checked.
 """
 
 from __future__ import annotations
@@ -198,6 +192,10 @@ class Chunk:
 
 def walk_chunks(payload: bytes | bytearray | memoryview, *, offset: int = 0) -> list[Chunk]:
     """Validate an image payload (``<ticket>star ... stop\\r\\n``) and list its chunks.
+
+    Chunks are walked by their CHUNK_SIZE and their pixel data located by HEADER_SIZE
+    (header versions 1-3). Every length is checked against the bytes actually present
+    and against a cap before it is used.
 
     Args:
         payload: The whole payload including the leading ticket and trailing CR LF.

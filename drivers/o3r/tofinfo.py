@@ -1,27 +1,8 @@
 """O3R TOF_INFO (chunk 420) and the O3R intrinsic models (pure numpy).
 
-Layout (offsets from the start of the chunk data, little-endian; protocols.md A8):
-version u32, distanceResolution f32 (m per count), amplitudeResolution f32, three
-amplitude normalisation f32, extrinsicOpticToUser (transX/Y/Z m, rotX/Y/Z rad; 6 f32),
-intrinsic calibration (model id u32 + 32 f32), inverse intrinsic calibration (same),
-then for version >= 2 three exposure timestamps (u64 ns) and three exposure times
-(f32 s), and for version >= 3 the illumination temperature (f32), mode and imager
-names (32 chars each).
-
-Intrinsic models (parameters fx, fy, mx, my, alpha, then distortion):
-
-* 0 — Bouguet, *pixel -> ray*: ``c = ((ix+0.5-mx)/fx, (iy+0.5-my)/fy)``, ``cx -= alpha*cy``,
-  ``d = c*(1 + k1 r² + k2 r⁴ + k5 r⁶) + tangential(k3, k4)``, ray = normalise(dx, dy, 1).
-* 1 — inverse Bouguet, *ray -> pixel*: the same polynomial applied to ``(x/z, y/z)``,
-  then ``u = fx*(xd + alpha*yd) + mx - 0.5``, ``v = fy*yd + my - 0.5``. This is exactly
-  OpenCV's Brown–Conrady projection with ``k1=k1, k2=k2, k3=k5, p1=k3, p2=k4`` (ifm's
-  k3/k4 are the tangential terms, k5 the r⁶ term) and ``cx = mx - 0.5, cy = my - 0.5``.
-* 2 / 3 — fisheye (fx, fy, mx, my, alpha, k1..k4, theta_max), forward / inverse.
-
-XYZ as ifm's clients compute it: unit vectors of the model-0 (or 2) intrinsic
-calibration times the radial distance, in the *optical* frame; ifm then rotates by
-``Rx(rotX) Ry(rotY) Rz(rotZ)`` and translates by extrinsicOpticToUser
-(:func:`optic_to_user`).
+:func:`parse_tof_info` reads the chunk; :func:`unit_vectors` evaluates a pixel -> ray
+model as ifm's clients do; :func:`intrinsics_from_models` gives the OpenCV intrinsics;
+:func:`optic_to_user` the extrinsic transform. Facts: ``shared/spec/protocols.md`` A8.
 """
 
 from __future__ import annotations
@@ -61,6 +42,18 @@ MIN_SIZE_V3 = MIN_SIZE_V2 + _V3.size                     # 416
 @dataclass(frozen=True)
 class IntrinsicModel:
     """An O3R intrinsic calibration block.
+
+    Models (parameters fx, fy, mx, my, alpha, then distortion):
+
+    * 0: Bouguet, *pixel -> ray*: ``c = ((ix+0.5-mx)/fx, (iy+0.5-my)/fy)``,
+      ``cx -= alpha*cy``, ``d = c*(1 + k1 r² + k2 r⁴ + k5 r⁶) + tangential(k3, k4)``,
+      ray = normalise(dx, dy, 1).
+    * 1: inverse Bouguet, *ray -> pixel*: the same polynomial applied to ``(x/z, y/z)``,
+      then ``u = fx*(xd + alpha*yd) + mx - 0.5``, ``v = fy*yd + my - 0.5``. This is
+      exactly OpenCV's Brown–Conrady projection with ``k1=k1, k2=k2, k3=k5, p1=k3,
+      p2=k4`` (ifm's k3/k4 are the tangential terms, k5 the r⁶ term) and
+      ``cx = mx - 0.5, cy = my - 0.5``.
+    * 2 / 3: fisheye (fx, fy, mx, my, alpha, k1..k4, theta_max), forward / inverse.
 
     Attributes:
         model_id: 0 Bouguet, 1 inverse Bouguet, 2 fisheye, 3 inverse fisheye.
@@ -106,6 +99,14 @@ class TofInfo:
 
 def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> TofInfo:
     """Decode TOF_INFO chunk data.
+
+    Layout (offsets from the start of the chunk data, little-endian): version u32,
+    distanceResolution f32 (m per count), amplitudeResolution f32, three amplitude
+    normalisation f32, extrinsicOpticToUser (transX/Y/Z m, rotX/Y/Z rad; 6 f32),
+    intrinsic calibration (model id u32 + 32 f32), inverse intrinsic calibration (same),
+    then for version >= 2 three exposure timestamps (u64 ns) and three exposure times
+    (f32 s), and for version >= 3 the illumination temperature (f32), mode and imager
+    names (32 chars each).
 
     Args:
         data: The chunk's data bytes (after its header).
@@ -161,7 +162,9 @@ def unit_vectors(model: IntrinsicModel, width: int, height: int) -> NDArray[np.f
     """Unit ray of every pixel in the optical frame, as ifm's clients evaluate it.
 
     Evaluated in float32 like ifm's reference code, so XYZ agrees with ifm3d's to
-    float32 rounding.
+    float32 rounding. ifm's clients compute XYZ as these unit vectors (of the model-0
+    or 2 intrinsic calibration) times the radial distance, in the *optical* frame;
+    ifm then applies extrinsicOpticToUser (:func:`optic_to_user`).
 
     Args:
         model: A pixel -> ray model (id 0 Bouguet or 2 fisheye).
@@ -242,7 +245,10 @@ def intrinsics_from_models(info: TofInfo, width: int, height: int) -> Intrinsics
 
 
 def optic_to_user(extrinsic: tuple[float, ...]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Rotation matrix ``Rx(rotX) Ry(rotY) Rz(rotZ)`` and translation (m) of extrinsicOpticToUser."""
+    """Rotation matrix ``Rx(rotX) Ry(rotY) Rz(rotZ)`` and translation (m) of extrinsicOpticToUser.
+
+    ``p_user = R @ p_optic + t``: ifm rotates optical-frame XYZ, then translates.
+    """
     tx, ty, tz, rx, ry, rz = extrinsic[:6]
     rot = Rotation.from_euler("XYZ", [rx, ry, rz]).as_matrix()
     return rot, np.array([tx, ty, tz], dtype=np.float64)

@@ -1,35 +1,8 @@
 """Luxonis OAK depth camera over ``depthai`` v3 (registered as ``oak``).
 
-Pipeline (built in :meth:`OakCamera._connect`; ``depthai`` is imported only there):
-
-* ``depth_source = "stereo"``: two ``dai.node.Camera`` on CAM_B / CAM_C feed a
-  ``dai.node.StereoDepth`` (``build(left, right, presetMode)``). The depth is
-  aligned to ``align_socket`` at ``width`` x ``height``: for a mono socket through
-  ``setDepthAlign(socket)`` + ``setOutputSize``; for a colour socket by linking that
-  camera's ``requestOutput((width, height))`` to ``stereo.inputAlignTo`` (RVC2) or
-  through a ``dai.node.ImageAlign`` (RVC4).
-* ``depth_source = "tof"``: a ``dai.node.ToF`` built on ``align_socket``.
-
-Depth arrives as uint16 millimetres along the optical axis (Z-depth, not radial),
-0 = invalid. Each pixel's XYZ is the unit ray through the pixel centre from
-:func:`cellcal.devices.geometry.camera_model.pixel_grid_rays` (lens distortion inverted), scaled so
-its z equals the depth: ``xyz = ray / ray_z * depth_z``; ``Frame.distance`` is
-``|xyz|`` (radial). Intrinsics come from the device's own calibration for the
-aligned socket at the output size: ``readCalibration().getCameraIntrinsics(socket,
-w, h)`` and ``getDistortionCoefficients(socket)`` (14 OpenCV rational terms).
-With ``distortion = "none"`` the outputs are requested undistorted (colour camera
-``enableUndistortion``, ToF ``setOutputUndistortion``) and the coefficients are
-dropped. Fisheye-calibrated sockets need ``distortion = "none"``.
-
-Timeouts: ``dai.Device(...)`` searches and boots with no timeout parameter, and
-``Pipeline.start()`` uploads the pipeline; both run in a worker joined with the
-connect timeout (:class:`~cellcal.drivers._blocking.BoundedCaller`). Every queue
-read is ``MessageQueue.get(timedelta)`` (returns None on timeout). A closed queue
-or a closed device means the device is gone: :class:`DeviceConnectionError`.
-
-Discovery (:meth:`OakCamera.discover`): ``dai.Device.getAllAvailableDevices()``;
-where depthai is absent or finds nothing, USB vendor 0x03E7 through ``pyusb``
-(:mod:`cellcal.drivers.oak.usb_scan`), the boot state named from the product id.
+Stereo or ToF depth (uint16 mm, Z-depth) aligned to one socket, turned into radial
+distance and optical-frame XYZ (metres) with the device's own calibration. ``depthai``
+is imported only in :meth:`OakCamera._connect`. Design: docs/adr/0015-vendor-drivers.md.
 """
 
 from __future__ import annotations
@@ -103,6 +76,11 @@ def depth_to_xyz(depth_mm: NDArray[Any], rays_over_z: NDArray[np.float64]
                  ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
     """Turn a Z-depth image into camera-frame points.
 
+    Each pixel's XYZ is its unit ray through the pixel centre (from
+    :func:`~cellcal.devices.geometry.camera_model.pixel_grid_rays`, lens distortion
+    inverted) scaled so its z equals the depth: ``xyz = ray / ray_z * depth_z``;
+    the distance is ``|xyz|`` (radial).
+
     Args:
         depth_mm: uint16 depth along the optical axis, millimetres, 0 = invalid, (H, W).
         rays_over_z: Pixel rays scaled to z = 1, (H, W, 3); NaN where undefined.
@@ -120,7 +98,33 @@ def depth_to_xyz(depth_mm: NDArray[Any], rays_over_z: NDArray[np.float64]
 
 
 class OakCamera(Camera3D):
-    """A Luxonis OAK stereo or ToF camera over depthai v3."""
+    """A Luxonis OAK stereo or ToF camera over depthai v3.
+
+    Pipeline (built in :meth:`_connect`):
+
+    * ``depth_source = "stereo"``: two ``dai.node.Camera`` on CAM_B / CAM_C feed a
+      ``dai.node.StereoDepth`` (``build(left, right, presetMode)``). The depth is
+      aligned to ``align_socket`` at ``width`` x ``height``: for a mono socket through
+      ``setDepthAlign(socket)`` + ``setOutputSize``; for a colour socket by linking that
+      camera's ``requestOutput((width, height))`` to ``stereo.inputAlignTo`` (RVC2) or
+      through a ``dai.node.ImageAlign`` (RVC4).
+    * ``depth_source = "tof"``: a ``dai.node.ToF`` built on ``align_socket``.
+
+    Depth arrives as uint16 millimetres along the optical axis (Z-depth, not radial),
+    0 = invalid; :func:`depth_to_xyz` makes XYZ and radial distance of it. Intrinsics
+    come from the device's own calibration for the aligned socket at the output size:
+    ``readCalibration().getCameraIntrinsics(socket, w, h)`` and
+    ``getDistortionCoefficients(socket)`` (14 OpenCV rational terms). With
+    ``distortion = "none"`` the outputs are requested undistorted (colour camera
+    ``enableUndistortion``, ToF ``setOutputUndistortion``) and the coefficients are
+    dropped. Fisheye-calibrated sockets need ``distortion = "none"``.
+
+    Timeouts: ``dai.Device(...)`` (search and boot) and ``Pipeline.start()`` (pipeline
+    upload) take no timeout parameter, so both run in a
+    :class:`~cellcal.drivers._blocking.BoundedCaller` worker joined with the connect
+    timeout. Every queue read is ``MessageQueue.get(timedelta)`` (None on timeout). A
+    closed queue or a closed device means the device is gone: :class:`DeviceConnectionError`.
+    """
 
     backend_name: ClassVar[str] = "oak"
     Config: ClassVar[type[OakConfig]] = OakConfig
@@ -144,6 +148,10 @@ class OakCamera(Camera3D):
     @classmethod
     def discover(cls, timeout: float = 2.0) -> list[DeviceInfo] | None:
         """OAK devices reachable now: from depthai, else from USB enumeration (pyusb).
+
+        ``dai.Device.getAllAvailableDevices()`` first; where depthai is absent or finds
+        nothing, USB vendor 0x03E7 through ``pyusb`` (:mod:`cellcal.drivers.oak.usb_scan`),
+        the boot state named from the product id.
 
         Raises:
             MissingDependencyError: If neither depthai nor pyusb with libusb is available.

@@ -1,47 +1,8 @@
 """Universal Robots arm over the ``ur_rtde`` library (registered as ``ur``).
 
-Three ``ur_rtde`` interfaces are used, all imported only inside :meth:`URArm._connect`:
-
-* ``rtde_receive.RTDEReceiveInterface`` — pose, joints, timestamp and the status
-  calls (``isProtectiveStopped``, ``isEmergencyStopped``, ``getSafetyMode``,
-  ``getRobotMode``, ``getRuntimeState``);
-* ``rtde_control.RTDEControlInterface`` — ``moveL``, ``stopL``, ``setTcp``,
-  ``isProgramRunning``, ``reuploadScript``;
-* ``dashboard_client.DashboardClient`` (optional) — identity (model, serial,
-  PolyScope version), remote-control check, and recovery in :meth:`clear_errors`
-  (``closeSafetyPopup``, ``unlockProtectiveStop``, optionally ``powerOn`` and
-  ``brakeRelease``).
-
-Timeouts: the two RTDE constructors connect (and upload the control script) with no
-timeout parameter, so they run in a worker thread joined with the caller's timeout
-(:class:`~cellcal.drivers._blocking.BoundedCaller`); a constructor that finishes
-late is disconnected by the worker. The dashboard has its own ``connect(timeout_ms)``.
-``moveL`` is issued *asynchronously* and its completion polled against the motion
-timeout, so a motion never blocks longer than asked; on timeout the arm is told to
-``stopL``.
-
-Errors: ``ur_rtde`` reports most failures by returning False. Every False (and every
-refused motion) is explained from the library's own status calls and raised as a
-typed error:
-
-* emergency / protective / safeguard stop, violation, fault — the robot's own
-  safety system stopped it: :class:`VendorError` ``("ur", safety_mode, meaning)``
-  (UR safety-mode codes). Not :class:`SafetyError`, which in cellcal means *our*
-  envelope rejected a command before anything moved;
-* robot not powered / brakes engaged: :class:`VendorError` with the robot-mode code;
-* control script not running (stopped from the pendant, remote control off):
-  :class:`VendorError` with the program runtime-state code;
-* speed / acceleration beyond UR's limits (3 m/s, 150 m/s²) or the configured
-  ones: :class:`SafetyError` (nothing moved);
-* lost link: :class:`DeviceConnectionError`.
-
-Staleness: ``isConnected()`` can stay True on a receive interface whose stream has
-died (values frozen). Every read checks ``getTimestamp()`` (controller time, advancing
-at 125-500 Hz); a value unchanged for longer than ``stale_after_s`` means a stale
-stream, and the receive interface is rebuilt (counted in :attr:`URArm.receive_rebuilds`).
-
-Poses are of the flange: with ``set_tcp_to_flange = true`` (default) the TCP offset is
-set to zero at connect, so ``getActualTCPPose`` and ``moveL`` act on the flange.
+Poses are flange poses in the base frame (metres, radians). ``ur_rtde`` is imported
+only in :meth:`URArm._connect`; every False it returns becomes a typed error
+(:meth:`URArm._raise_failure`). Design: docs/adr/0015-vendor-drivers.md.
 """
 
 from __future__ import annotations
@@ -145,6 +106,28 @@ class URConfig:
 
 class URArm(RobotArm):
     """A Universal Robots arm (CB3 / e-Series / UR Series) over ``ur_rtde`` 1.6.
+
+    Three ``ur_rtde`` interfaces are used, all imported only inside :meth:`_connect`:
+
+    * ``rtde_receive.RTDEReceiveInterface``: pose, joints, timestamp and the status
+      calls (``isProtectiveStopped``, ``isEmergencyStopped``, ``getSafetyMode``,
+      ``getRobotMode``, ``getRuntimeState``);
+    * ``rtde_control.RTDEControlInterface``: ``moveL``, ``stopL``, ``setTcp``,
+      ``isProgramRunning``, ``reuploadScript``;
+    * ``dashboard_client.DashboardClient`` (optional): identity (model, serial,
+      PolyScope version), remote-control check, and recovery in :meth:`clear_errors`
+      (``closeSafetyPopup``, ``unlockProtectiveStop``, optionally ``powerOn`` and
+      ``brakeRelease``).
+
+    Timeouts: the two RTDE constructors connect (and upload the control script) with
+    no timeout parameter, so they run in a :class:`~cellcal.drivers._blocking.BoundedCaller`
+    worker joined with the caller's timeout; a constructor that finishes late is
+    disconnected by the worker. The dashboard has its own ``connect(timeout_ms)``.
+    ``moveL`` is issued *asynchronously* and its completion polled against the motion
+    timeout; on timeout the arm is told to ``stopL``.
+
+    Poses are of the flange: with ``set_tcp_to_flange = true`` (default) the TCP offset
+    is set to zero at connect, so ``getActualTCPPose`` and ``moveL`` act on the flange.
 
     Attributes:
         receive_rebuilds: How many times a stale receive interface was rebuilt.
@@ -343,7 +326,13 @@ class URArm(RobotArm):
         self._last_change = self._clock()
 
     def _fresh_receive(self, deadline: float) -> Any:
-        """The receive interface, rebuilt first if its timestamp has stopped advancing."""
+        """The receive interface, rebuilt first if its timestamp has stopped advancing.
+
+        ``isConnected()`` can stay True on a receive interface whose stream has died
+        (values frozen). ``getTimestamp()`` is controller time, advancing at 125-500 Hz;
+        a value unchanged for longer than ``stale_after_s`` means a stale stream, and the
+        interface is rebuilt (counted in :attr:`receive_rebuilds`).
+        """
         ts = float(self._receive.getTimestamp())
         now = self._clock()
         if ts != self._last_ts:
@@ -411,7 +400,20 @@ class URArm(RobotArm):
         return ""
 
     def _raise_failure(self, operation: str) -> NoReturn:
-        """Explain a False return (or a refused motion) from the status calls and raise."""
+        """Explain a False return (or a refused motion) from the status calls and raise.
+
+        * emergency / protective / safeguard stop, violation, fault (the robot's own
+          safety system stopped it): :class:`VendorError` ``("ur", safety_mode, meaning)``
+          with the UR safety-mode code; not :class:`SafetyError`, which in cellcal means
+          *our* envelope rejected a command before anything moved;
+        * robot not powered / brakes engaged: :class:`VendorError` with the robot-mode code;
+        * control script not running (stopped from the pendant, remote control off):
+          :class:`VendorError` with the program runtime-state code;
+        * lost link: :class:`DeviceConnectionError`.
+
+        Speed / acceleration beyond UR's limits (3 m/s, 150 m/s²) or the configured ones
+        are refused earlier, in :meth:`_move_linear`, with :class:`SafetyError` (nothing moved).
+        """
         receive = self._receive
         if receive is None or not receive.isConnected() or self._control is None \
                 or not self._control.isConnected():

@@ -1,13 +1,8 @@
 """UFACTORY xArm 5/6/7 as a :class:`RobotArm`, over RS-485/USB serial.
 
-Everything SI on this class's API; millimetres and radians only on the wire (the
-conversion happens here, through :mod:`cellcal.devices.geometry.vendor_poses`). Poses are of the
-tool flange: the controller's TCP offset is assumed to be zero.
-
-A motion is one MOVE_LINE followed by state polling (GET_STATE, GET_CMDNUM,
-GET_ERROR) until the arm reports it is idle with an empty queue. Errors are never
-cleared silently: :meth:`recover` (= :meth:`clear_errors`) is the one place that runs
-the vendor's recovery sequence.
+SI units on the API; millimetres and radians only on the wire (converted through
+:mod:`cellcal.devices.geometry.vendor_poses`). Poses are of the tool flange: the
+controller's TCP offset is assumed to be zero.
 """
 
 from __future__ import annotations
@@ -59,6 +54,11 @@ _MM = 1000.0
 
 class XArmArm(RobotArm):
     """xArm over a serial line (backend ``"xarm"``).
+
+    A motion is one MOVE_LINE followed by state polling (GET_STATE, GET_CMDNUM,
+    GET_ERROR) until the arm reports it is idle with an empty queue. Errors are never
+    cleared silently: :meth:`recover` (= :meth:`clear_errors`) is the one place that
+    runs the vendor's recovery sequence.
 
     Args:
         config: Validated :class:`XArmArm.Config`.

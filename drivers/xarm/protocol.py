@@ -1,18 +1,7 @@
-"""UFACTORY xArm serial framing ("UX2 hex"): CRC-16/MODBUS, requests and replies.
+"""UFACTORY xArm serial framing ("UX2 hex") on the host side: CRC-16/MODBUS, requests out, replies in.
 
-Pure functions on bytes, no I/O, so they can be fuzzed. Wire facts
-(``shared/spec/protocols.md`` part D1, D3):
-
-* request (host -> arm): ``0xAA 0x55 LEN REG params... CRC_lo CRC_hi``; LEN counts
-  REG + params.
-* reply (arm -> host): ``0x55 0xAA LEN STATE data... CRC_lo CRC_hi``; LEN counts
-  STATE + data and is below 50 (the vendor's parser drops longer frames). There is
-  no register echo on the serial line, so a reply is matched to its request only by
-  order (and, here, by its expected data length).
-* CRC-16/MODBUS (init 0xFFFF, reflected polynomial 0xA001) over everything before
-  the CRC, sent low byte first.
-* STATE bits: 0x40 error pending, 0x20 warning pending, 0x10 not ready to move,
-  0x08 invalid / execution failed.
+Pure functions on bytes, no I/O, so they can be fuzzed. Wire facts from
+``shared/spec/protocols.md`` part D1, D3; each function names the layout it handles.
 """
 
 from __future__ import annotations
@@ -30,17 +19,23 @@ MAX_REPLY_LEN = 49
 MAX_REQUEST_LEN = 255
 """Largest LEN byte of a request (one byte on the wire)."""
 
+# Bits of a reply's STATE byte.
 STATE_ERROR = 0x40
+"""An uncleared controller error is pending."""
 STATE_WARNING = 0x20
+"""An uncleared controller warning is pending."""
 STATE_NOT_READY = 0x10
+"""Not ready to move."""
 STATE_INVALID = 0x08
+"""Invalid command, or its execution failed."""
 
 
 def _crc_table() -> tuple[int, ...]:
+    """CRC-16/MODBUS of each single byte value (the table of the byte-wise algorithm)."""
     table = []
     for byte in range(256):
         crc = byte
-        for _ in range(8):
+        for _ in range(8):  # one shift per bit, least significant first (reflected)
             crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
         table.append(crc)
     return tuple(table)
@@ -57,12 +52,12 @@ def crc16_modbus(data: bytes | bytearray | memoryview) -> int:
     """
     crc = 0xFFFF
     for b in bytes(data):
-        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ b) & 0xFF]
+        crc = (crc >> 8) ^ _CRC_TABLE[(crc ^ b) & 0xFF]  # fold in one byte through the table
     return crc
 
 
 def crc_bytes(data: bytes | bytearray | memoryview) -> bytes:
-    """The two CRC bytes to append to ``data`` (low byte first)."""
+    """The two CRC bytes to append to ``data`` (the whole frame before the CRC), low byte first."""
     return crc16_modbus(data).to_bytes(2, "little")
 
 
@@ -99,21 +94,8 @@ class Reply:
         return bool(self.state & STATE_INVALID)
 
 
-@dataclass(frozen=True)
-class Request:
-    """One decoded request frame (what the emulator receives).
-
-    Attributes:
-        register: Register (command) number.
-        params: Parameter bytes after the register.
-    """
-
-    register: int
-    params: bytes
-
-
 def encode_request(register: int, params: bytes = b"") -> bytes:
-    """Build a request frame.
+    """Build a request frame: ``0xAA 0x55 LEN REG params... CRC_lo CRC_hi`` (LEN counts REG + params).
 
     Args:
         register: Register number, 0..255.
@@ -130,21 +112,15 @@ def encode_request(register: int, params: bytes = b"") -> bytes:
     return head + crc_bytes(head)
 
 
-def encode_reply(state: int, data: bytes = b"") -> bytes:
-    """Build a reply frame (used by the emulator).
+def check_frame(frame: bytes, first: int, second: int, max_len: int, what: str) -> int:
+    """Check one whole frame: header bytes ``first``, ``second``, LEN in 1..``max_len``, size, CRC.
+
+    Returns:
+        The LEN byte (the frame is ``3 + LEN + 2`` bytes long).
 
     Raises:
-        ProtocolError: If the state is not a byte or the data is longer than 48 bytes.
+        ProtocolError: Naming ``what`` (``"reply"``, ``"request"``) and the first problem found.
     """
-    if not 0 <= state <= 255:
-        raise ProtocolError(f"xarm state byte must be 0..255, got {state}")
-    if len(data) + 1 > MAX_REPLY_LEN:
-        raise ProtocolError(f"xarm reply data too long: {len(data)} bytes (max {MAX_REPLY_LEN - 1})")
-    head = bytes([ARM_ID, HOST_ID, len(data) + 1, state]) + bytes(data)
-    return head + crc_bytes(head)
-
-
-def _check_frame(frame: bytes, first: int, second: int, max_len: int, what: str) -> int:
     if len(frame) < 6:
         raise ProtocolError(f"xarm {what} frame too short: {len(frame)} bytes (need at least 6)", offset=len(frame))
     if frame[0] != first or frame[1] != second:
@@ -164,7 +140,11 @@ def _check_frame(frame: bytes, first: int, second: int, max_len: int, what: str)
 
 
 def parse_reply(frame: bytes | bytearray | memoryview) -> Reply:
-    """Decode exactly one reply frame.
+    """Decode exactly one reply frame: ``0x55 0xAA LEN STATE data... CRC_lo CRC_hi``.
+
+    LEN counts STATE + data and is below 50 (the vendor's parser drops longer frames).
+    There is no register echo on the serial line: a reply is matched to its request
+    only by order (and by the data length the caller expects).
 
     Raises:
         ProtocolError: On a short frame, a bad header, a bad LEN, trailing bytes or a
@@ -173,27 +153,16 @@ def parse_reply(frame: bytes | bytearray | memoryview) -> Reply:
     if not isinstance(frame, (bytes, bytearray, memoryview)):
         raise ProtocolError(f"xarm reply must be bytes, got {type(frame).__name__}")
     raw = bytes(frame)
-    length = _check_frame(raw, ARM_ID, HOST_ID, MAX_REPLY_LEN, "reply")
+    length = check_frame(raw, ARM_ID, HOST_ID, MAX_REPLY_LEN, "reply")
     return Reply(state=raw[3], data=raw[4: 3 + length])
-
-
-def parse_request(frame: bytes | bytearray | memoryview) -> Request:
-    """Decode exactly one request frame (the emulator's side).
-
-    Raises:
-        ProtocolError: As :func:`parse_reply`.
-    """
-    raw = bytes(frame)
-    length = _check_frame(raw, HOST_ID, ARM_ID, MAX_REQUEST_LEN, "request")
-    return Request(register=raw[3], params=raw[4: 3 + length])
 
 
 class FrameSplitter:
     """Cut a byte stream into candidate frames by header and LEN (no CRC check).
 
     Bytes before a header are skipped (counted in :attr:`skipped`). Complete frames
-    come out in order; checking them (CRC, contents) is the caller's job, with
-    :func:`parse_reply` or :func:`parse_request`.
+    come out in order; checking them (CRC, contents) is the caller's job, e.g. with
+    :func:`parse_reply`.
 
     Args:
         first: Expected first header byte (``ARM_ID`` for replies).
@@ -212,11 +181,6 @@ class FrameSplitter:
     def for_replies(cls) -> FrameSplitter:
         """A splitter for the arm -> host direction."""
         return cls(ARM_ID, HOST_ID, MAX_REPLY_LEN)
-
-    @classmethod
-    def for_requests(cls) -> FrameSplitter:
-        """A splitter for the host -> arm direction."""
-        return cls(HOST_ID, ARM_ID, MAX_REQUEST_LEN)
 
     def clear(self) -> None:
         """Forget buffered bytes."""

@@ -66,8 +66,6 @@ JOINT_FLOATS = 7
 """GET_JOINT_POS always carries 7 floats, whatever the axis count."""
 COMMON_MOVE_LINE_SINCE = (1, 11, 100)
 """Firmware from which MOVE_LINE takes the extended ("common") parameter layout."""
-MOVE_LINE_LEGACY_PARAMS = 9 * 4
-MOVE_LINE_COMMON_PARAMS = 10 * 4 + 3
 MOVE_LINE_COMMON_REPLY = 3
 """Data bytes in the reply to an extended MOVE_LINE (only-check result in the last)."""
 
@@ -112,52 +110,6 @@ def encode_move_line(pose_mm_rad: Sequence[float], speed_mm_s: float, acc_mm_s2:
     if not common:
         return pack_floats(floats)
     return pack_floats([*floats, -1.0]) + bytes([0, 0, 0])
-
-
-@dataclass(frozen=True)
-class MoveLine:
-    """A decoded MOVE_LINE request (emulator side).
-
-    Attributes:
-        pose: ``[x, y, z]`` mm and ``[roll, pitch, yaw]`` rad, or an axis-angle
-            rotation when :attr:`axis_angle`; ``inf`` means "keep the current value"
-            (sent by the SDK for firmware >= 2.4.101 when a coordinate is omitted).
-        speed_mm_s: Tool speed.
-        acc_mm_s2: Tool acceleration.
-        radius_mm: Blend radius (-1: none); None in the legacy layout.
-        coord: 0 base frame, 1 tool frame.
-        axis_angle: Orientation given as a rotation vector.
-        only_check: Only check reachability, do not move.
-        common: Whether the extended layout was used (its reply carries 3 bytes).
-    """
-
-    pose: tuple[float, ...]
-    speed_mm_s: float
-    acc_mm_s2: float
-    radius_mm: float | None = None
-    coord: int = 0
-    axis_angle: bool = False
-    only_check: int = 0
-    common: bool = False
-
-
-def decode_move_line(params: bytes) -> MoveLine:
-    """Decode MOVE_LINE parameters in either layout.
-
-    Raises:
-        ProtocolError: On a parameter length that matches neither layout.
-    """
-    n = len(params)
-    if n in (MOVE_LINE_LEGACY_PARAMS, MOVE_LINE_LEGACY_PARAMS + 1, MOVE_LINE_LEGACY_PARAMS + 2):
-        f = unpack_floats(params, 9)
-        only = params[36] if n > 36 else 0
-        return MoveLine(tuple(f[:6]), f[6], f[7], only_check=only, common=n > 36)
-    if n in (MOVE_LINE_COMMON_PARAMS, MOVE_LINE_COMMON_PARAMS + 1):
-        f = unpack_floats(params, 10)
-        coord, aa, only = params[40], params[41], params[42]
-        return MoveLine(tuple(f[:6]), f[6], f[7], radius_mm=f[9], coord=coord, axis_angle=bool(aa),
-                        only_check=only, common=True)
-    raise ProtocolError(f"xarm MOVE_LINE with {n} parameter bytes matches no known layout")
 
 
 def decode_text(data: bytes) -> str:

@@ -1,9 +1,7 @@
-"""One request/reply transaction at a time over a serial line (pyserial).
+"""One request/reply transaction at a time over a serial line (pyserial, imported lazily).
 
-The transport owns the port, the retry policy and nothing else: it sends a request,
-waits for one well-formed reply within a per-attempt timeout, and retries a bounded
-number of times on a bad CRC, a malformed frame, a reply of the wrong length or no
-reply. ``pyserial`` is imported lazily so that importing the driver does not need it.
+The transport owns the port and the retry policy and nothing else: it retries a bounded
+number of times on a bad CRC, a malformed frame, a reply of the wrong length or no reply.
 """
 
 from __future__ import annotations

@@ -1,18 +1,8 @@
 """Backend ``o3r-emulated``: the real ``o3r`` driver talking to an in-process O3R emulator.
 
-The emulator serves a :class:`~cellcal.sims.camera.SimCamera` of the shared
-simulated world on 127.0.0.1 ephemeral ports; every capture goes through XML-RPC,
-PCIC framing, the O3R chunk layout and the driver's decoder. Its config is the
-``sim`` camera's table plus the keys below, so ``configs/o3r_emulated.toml`` is
-``configs/sim.toml`` with ``backend = "o3r-emulated"``.
-
-With ``trigger = "software"`` (the default) the port is IDLE and each capture sends
-one PCIC ``t``: the emulator renders exactly one frame from the world's current
-camera pose, drawing the simulated camera's random numbers exactly as the pure
-``sim`` backend does — so both give the same calibration for the same seed, up to
-the wire's float32 / distance quantisation. ``"free_run"`` streams at the camera's
-``frame_rate_hz`` (this advances the simulated clock on its own, so it is not
-deterministic).
+Every capture goes through XML-RPC, PCIC framing, the O3R chunk layout and the
+driver's decoder. ``configs/o3r_emulated.toml`` is ``configs/sim.toml`` with
+``backend = "o3r-emulated"``.
 """
 
 from __future__ import annotations
@@ -56,7 +46,16 @@ def intrinsics_from_inverse_model(models: O3RModels, width: int, height: int) ->
 
 @dataclass(frozen=True)
 class EmulatedO3RConfig(SimCameraConfig):
-    """The ``sim`` camera keys plus the emulator / driver keys."""
+    """The ``sim`` camera keys plus the emulator / driver keys.
+
+    With ``trigger = "software"`` (the default) the port is IDLE and each capture sends
+    one PCIC ``t``: the emulator renders exactly one frame from the world's current
+    camera pose, drawing the simulated camera's random numbers exactly as the pure
+    ``sim`` backend does, so both give the same calibration for the same seed, up to
+    the wire's float32 / distance quantisation. ``"free_run"`` streams at the camera's
+    ``frame_rate_hz`` (this advances the simulated clock on its own, so it is not
+    deterministic).
+    """
 
     trigger: Literal["software", "free_run"] = field(
         default="software", metadata={"doc": "IDLE + PCIC t per capture (deterministic) or RUN"})
@@ -70,8 +69,10 @@ class EmulatedO3RConfig(SimCameraConfig):
 class EmulatedO3RCamera(Camera3D):
     """``O3RCamera`` connected to an in-process O3R emulator around ``SimCamera``.
 
-    The driver is the camera registered as :data:`DRIVER_BACKEND` (``"o3r"``), built
-    by the registry from a config section, as a cell config would build it.
+    The emulator serves a :class:`~cellcal.sims.camera.SimCamera` of the shared
+    simulated world on 127.0.0.1 ephemeral ports. The driver is the camera registered
+    as :data:`DRIVER_BACKEND` (``"o3r"``), built by the registry from a config section,
+    as a cell config would build it.
 
     Args:
         config: Backend config; None uses the defaults.

@@ -3,9 +3,7 @@
 ``get(pointers)`` returns the sub-tree holding just the requested JSON pointers
 (``get([])`` the whole tree); ``set(json)`` merges a partial tree after checking
 that every key exists, that leaf types match, that ``state`` is RUN/IDLE/CONF and
-that the extrinsics are numbers. Errors raise :class:`ConfigTreeError`, which the
-XML-RPC layer turns into a fault (codes are the emulator's own: 101000 unknown
-pointer / key, 101001 invalid value, 101002 malformed JSON).
+that the extrinsics are numbers.
 """
 
 from __future__ import annotations
@@ -21,7 +19,11 @@ STATES = ("RUN", "IDLE", "CONF")
 
 
 class ConfigTreeError(Exception):
-    """A rejected get/set; ``code`` is the XML-RPC fault code."""
+    """A rejected get/set; ``code`` is the XML-RPC fault code the XML-RPC layer answers with.
+
+    The codes are the emulator's own: 101000 unknown pointer / key, 101001 invalid
+    value, 101002 malformed JSON.
+    """
 
     def __init__(self, code: int, message: str) -> None:
         super().__init__(message)

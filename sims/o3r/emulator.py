@@ -1,29 +1,8 @@
-"""A wire-level emulator of an ifm O3R VPU with one 3D head (XML-RPC + PCIC over TCP).
+"""A wire-level emulator of an ifm O3R VPU with one 3D head: XML-RPC + PCIC over TCP, on 127.0.0.1.
 
-Serves on 127.0.0.1 only:
+Frames come from any :class:`Camera3D` (e.g. ``SimCamera``)::
 
-* XML-RPC at ``/api/rpc/v1/com.ifm.efector/``: ``get``, ``set``, ``getInit``, ``saveInit``,
-  ``getInitStatus``, ``getSchema``, ``reset``, ``getSWVersion`` (what ifm3dpy 1.6 calls);
-* a PCIC server for the 3D port honouring ``p`` (output mask), ``c`` (schema: which of
-  chunks 100/101/300/420 to send) and ``t`` (software trigger, only in state IDLE).
-  In state RUN frames are rendered at ``/ports/<port>/acquisition/framerate`` and sent
-  to every connection whose mask has bit 0; in IDLE one frame is rendered per ``t``
-  and sent to the connection that triggered; CONF sends nothing.
-
-Frames come from a *frame source*: anything with ``intrinsics`` and
-``capture(timeout) -> Frame`` (any :class:`Camera3D`, e.g. ``SimCamera``). Exactly
-one ``capture`` is made per frame sent, so a simulated camera's random stream and
-clock advance exactly as if it were captured directly.
-
-Faults for tests (:meth:`O3REmulator.inject_fault`, applied to the next frame):
-``drop`` (close the connection instead of sending), ``stall`` (send half the frame,
-then nothing for ``seconds``, then close), ``truncate`` (announce the full length,
-send half, continue with the next message), ``corrupt`` (a header field: ``field`` =
-``chunk_size`` | ``header_version`` | ``star`` | ``pcic_length``) and ``async_error``
-(an ifm async error message, ticket 0001, with ``code`` and ``message``).
-A fault injected while a frame is being rendered (e.g. from the frame source's own
-fault hook) applies to that frame. :meth:`O3REmulator.go_offline` takes the head off
-the network for good.
+    emu = O3REmulator(SimCamera().connect(), state="IDLE").start()  # then emu.xmlrpc_port, emu.pcic_port
 """
 
 from __future__ import annotations
@@ -109,6 +88,20 @@ class _Conn:
 
 class O3REmulator:
     """Emulated O3R VPU.
+
+    Serves, on 127.0.0.1 only:
+
+    * XML-RPC at ``/api/rpc/v1/com.ifm.efector/``: ``get``, ``set``, ``getInit``,
+      ``saveInit``, ``getInitStatus``, ``getSchema``, ``reset``, ``getSWVersion`` (what
+      ifm3dpy 1.6 calls);
+    * a PCIC server for the 3D port honouring ``p`` (output mask), ``c`` (schema: which
+      of chunks 100/101/300/420 to send) and ``t`` (software trigger, only in state
+      IDLE). In state RUN frames are rendered at ``/ports/<port>/acquisition/framerate``
+      and sent to every connection whose mask has bit 0; in IDLE one frame is rendered
+      per ``t`` and sent to the connection that triggered; CONF sends nothing.
+
+    Exactly one ``source.capture`` is made per frame sent, so a simulated camera's
+    random stream and clock advance exactly as if it were captured directly.
 
     Args:
         source: Frame source (see :class:`FrameSource`).
@@ -262,7 +255,16 @@ class O3REmulator:
                                                 float(rz))
 
     def inject_fault(self, kind: str, **params: Any) -> None:
-        """Arm a one-shot fault applied to the next frame sent (see module docstring)."""
+        """Arm a one-shot fault applied to the next frame sent.
+
+        Kinds: ``drop`` (close the connection instead of sending), ``stall`` (send half
+        the frame, then nothing for ``seconds``, then close), ``truncate`` (announce the
+        full length, send half, continue with the next message), ``corrupt`` (a header
+        field: ``field`` = ``chunk_size`` | ``header_version`` | ``star`` |
+        ``pcic_length``) and ``async_error`` (an ifm async error message, ticket 0001,
+        with ``code`` and ``message``). A fault injected while a frame is being rendered
+        (e.g. from the frame source's own fault hook) applies to that frame.
+        """
         if kind not in FAULT_KINDS:
             raise ValueError(f"unknown fault {kind!r}; one of {FAULT_KINDS}")
         with self._faults_lock:

@@ -1,18 +1,8 @@
 """Byte-level encoding of O3R frames for the emulator (written independently of the driver).
 
 Turns a cellcal :class:`Frame` into the O3R PCIC image payload (chunks 100, 101, 300,
-420) and encodes the camera's OpenCV intrinsics as O3R intrinsic models:
-
-* inverse model 1 (ray -> pixel) exactly: ``mx = cx + 0.5``, ``my = cy + 0.5``, ifm
-  ``k1, k2, k3, k4, k5 = k1, k2, p1, p2, k3`` (OpenCV's k4..k6 and s1..s4 have no
-  place in the model and must be 0);
-* forward model 0 (pixel -> ray): same fx, fy, mx, my; with distortion its five
-  coefficients are the linear least-squares fit of the exact back-projection over
-  the pixel grid (OpenCV undistortion), since model 0 *applies* its polynomial to
-  pixel coordinates. Without distortion both models are identical.
-
-All values travel as float32, so the intrinsics round-trip to float32 precision
-(exactly for float32-representable values).
+420) and encodes the camera's OpenCV intrinsics as O3R intrinsic models
+(:func:`models_from_intrinsics`). All values travel as float32.
 """
 
 from __future__ import annotations
@@ -83,6 +73,17 @@ def _pad32(values: Sequence[float]) -> tuple[float, ...]:
 
 def models_from_intrinsics(intr: Intrinsics, rays: NDArray[np.float64] | None = None) -> O3RModels:
     """Encode OpenCV intrinsics as O3R models 0 (forward) and 1 (inverse).
+
+    * inverse model 1 (ray -> pixel) exactly: ``mx = cx + 0.5``, ``my = cy + 0.5``, ifm
+      ``k1, k2, k3, k4, k5 = k1, k2, p1, p2, k3`` (OpenCV's k4..k6 and s1..s4 have no
+      place in the model and must be 0);
+    * forward model 0 (pixel -> ray): same fx, fy, mx, my; with distortion its five
+      coefficients are the linear least-squares fit of the exact back-projection over
+      the pixel grid (OpenCV undistortion), since model 0 *applies* its polynomial to
+      pixel coordinates. Without distortion both models are identical.
+
+    All values travel as float32, so the intrinsics round-trip to float32 precision
+    (exactly for float32-representable values).
 
     Args:
         intr: The camera's intrinsics.

@@ -1,17 +1,8 @@
-"""``xarm-emulated``: the real xArm driver talking to the xArm emulator on a pty.
+"""Backend ``xarm-emulated``: the real ``xarm`` driver talking to the xArm emulator on a pty.
 
-:class:`EmulatedXArmArm` builds the simulated arm of the shared sim world
-(:class:`~cellcal.sims.arm.SimArm`), serves it with an
-:class:`~cellcal.sims.xarm.emulator.XArmEmulator` on a pseudo-terminal, and delegates
-every call to the real xArm driver (the arm registered as ``"xarm"``, built by the
-registry from a config section as a cell config would build it) connected to that
-pty. So a cell configured with it exercises the whole serial stack — framing, CRC,
-state polling, unit conversion — against the same simulated world a ``sim`` camera
-sees. ``close()`` shuts down the driver, the emulator thread and the pty.
-
-Its config section accepts every key of the ``sim`` arm (``time_scale``,
-``reach_m``, ...) plus the emulator/driver keys below, so an emulated config is the
-simulated one with ``backend = "xarm-emulated"``.
+Every call goes through the whole serial stack (framing, CRC, state polling, unit
+conversion) against the same simulated world a ``sim`` camera sees. An emulated config
+is the simulated one with ``backend = "xarm-emulated"``.
 """
 
 from __future__ import annotations
@@ -81,6 +72,15 @@ def _make_config() -> type[Any]:
 
 class EmulatedXArmArm(RobotArm):
     """The xArm driver over a pty to the xArm emulator of the shared simulated arm.
+
+    Builds the simulated arm of the shared sim world (:class:`~cellcal.sims.arm.SimArm`),
+    serves it with an :class:`~cellcal.sims.xarm.emulator.XArmEmulator` on a
+    pseudo-terminal, and delegates every call to the real xArm driver (the arm
+    registered as ``"xarm"``, built by the registry from a config section as a cell
+    config would build it) connected to that pty. ``close()`` shuts down the driver,
+    the emulator thread and the pty. Its config section accepts every key of the
+    ``sim`` arm (``time_scale``, ``reach_m``, ...) plus the emulator/driver keys of
+    ``_OWN_FIELDS``.
 
     Args:
         config: Validated :attr:`Config`; None uses the defaults.

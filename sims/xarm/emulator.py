@@ -1,18 +1,9 @@
 """An xArm controller on a pseudo-terminal, backed by a simulated arm.
 
-:class:`XArmEmulator` opens a pty pair (``os.openpty``) and answers UFACTORY's serial
-register protocol on the master side, so anything that opens the slave path as a
-serial port — cellcal's :class:`~cellcal.drivers.xarm.arm.XArmArm` or UFACTORY's
-own ``xarm-python-sdk`` — talks to it as to a real controller. Motion, workspace and
-errors come from the simulated arm (:class:`ArmModel`, satisfied by
-``cellcal.sims.arm.SimArm``); the emulator adds the controller's state machine
-(motion enable, mode, state, error/warning latching, command counter). Its framing,
-CRC and register layouts are its own (:mod:`cellcal.sims.xarm.wire`), not the driver's,
-so a wire bug in the driver shows up as a disagreement with the emulator.
+Anything that opens the printed slave path as a serial port (cellcal's ``xarm`` driver
+or UFACTORY's ``xarm-python-sdk``) talks to it as to a real controller::
 
-Fault injection (tests): :meth:`XArmEmulator.inject` corrupts the CRC of, drops,
-truncates or stalls upcoming replies; :meth:`XArmEmulator.fail_next_move` raises a
-controller error in the middle of the next motion.
+    path = XArmEmulator(SimArm().connect()).start()   # e.g. "/dev/pts/7"
 """
 
 from __future__ import annotations
@@ -102,6 +93,17 @@ class _ScheduledError:
 
 class XArmEmulator:
     """Serve the xArm serial protocol on a pty, driven by a simulated arm.
+
+    Opens a pty pair (``os.openpty``) and answers UFACTORY's serial register protocol
+    on the master side. Motion, workspace and errors come from the simulated arm
+    (:class:`ArmModel`, satisfied by ``cellcal.sims.arm.SimArm``); the emulator adds the
+    controller's state machine (motion enable, mode, state, error/warning latching,
+    command counter). Its framing, CRC and register layouts are its own
+    (:mod:`cellcal.sims.xarm.wire`), not the driver's.
+
+    Fault injection (tests): :meth:`inject` corrupts the CRC of, drops, truncates or
+    stalls upcoming replies; :meth:`fail_next_move` raises a controller error in the
+    middle of the next motion.
 
     Args:
         arm: The simulated arm (connected).

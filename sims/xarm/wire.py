@@ -1,20 +1,9 @@
 """The controller's side of UFACTORY's xArm serial protocol ("UX2 hex"), for the emulator.
 
-Written from the protocol facts (``shared/spec/protocols.md`` part D) and on purpose
-independent of the driver's wire code (``cellcal.drivers.xarm``): an emulator that
-shared the driver's framing, CRC or register layouts would agree with every bug in
-them. What the host sends and what the controller answers:
-
-* request: ``AA 55 LEN REG params... CRC_lo CRC_hi``; LEN counts REG + params.
-* reply: ``55 AA LEN FLAGS data... CRC_lo CRC_hi``; LEN counts FLAGS + data and stays
-  below 50 (UFACTORY's SDK drops longer frames). No register echo on the serial line.
-* CRC-16/MODBUS over everything before it (init 0xFFFF, reflected polynomial 0xA001).
-* FLAGS bits: 0x40 error pending, 0x20 warning pending, 0x10 not ready to move,
-  0x08 invalid command / execution failed.
-* floats are float32 little-endian (millimetres and radians); the command counter is
-  a big-endian uint16.
-
-Pure functions on bytes and a small stream reader; no I/O.
+Pure functions on bytes and a small stream reader; no I/O. Written from the protocol
+facts (``shared/spec/protocols.md`` part D) and on purpose independent of the driver's
+wire code (docs/adr/0014-simulated-cell.md). Frame layouts: :data:`REQUEST_MAGIC`,
+:data:`REPLY_MAGIC`; checksum: :func:`modbus_crc`; numbers: :func:`floats`.
 """
 
 from __future__ import annotations
@@ -24,23 +13,31 @@ from dataclasses import dataclass
 from enum import IntEnum
 
 REQUEST_MAGIC = b"\xaa\x55"
-"""Host id, arm id: the first two bytes of a request."""
+"""Host id, arm id: the first two bytes of a request.
+
+A request is ``AA 55 LEN REG params... CRC_lo CRC_hi``; LEN counts REG + params.
+"""
 REPLY_MAGIC = b"\x55\xaa"
-"""Arm id, host id: the first two bytes of a reply."""
+"""Arm id, host id: the first two bytes of a reply.
+
+A reply is ``55 AA LEN FLAGS data... CRC_lo CRC_hi``; LEN counts FLAGS + data and stays
+below 50 (UFACTORY's SDK drops longer frames). No register echo on the serial line.
+"""
 MAX_REPLY_DATA = 48
 """Data bytes a reply may carry (LEN = 1 + data <= 49)."""
 
-FLAG_ERROR = 0x40
-FLAG_WARNING = 0x20
-FLAG_NOT_READY = 0x10
-FLAG_INVALID = 0x08
+# FLAGS bits of a reply.
+FLAG_ERROR = 0x40  # an error is pending
+FLAG_WARNING = 0x20  # a warning is pending
+FLAG_NOT_READY = 0x10  # not ready to move
+FLAG_INVALID = 0x08  # invalid command / execution failed
 
 
 class Register(IntEnum):
     """The registers (commands) the emulated controller serves.
 
-    The driver keeps its own table of the same numbers on purpose (see the module
-    docstring); tests/test_xarm_sdk.py checks both against UFACTORY's SDK.
+    The driver keeps its own table of the same numbers on purpose (see
+    docs/adr/0014-simulated-cell.md); tests/integration/xarm/test_xarm_sdk.py checks both against UFACTORY's SDK.
     """
 
     GET_VERSION = 1
@@ -91,7 +88,10 @@ _EXTENDED_LINE_FLOATS = 10  # ... plus the blend radius
 
 
 def modbus_crc(data: bytes) -> int:
-    """CRC-16/MODBUS of ``data`` (sent low byte first)."""
+    """CRC-16/MODBUS of ``data`` (sent low byte first): init 0xFFFF, reflected polynomial 0xA001.
+
+    Every frame ends with the CRC of everything before it.
+    """
     crc = 0xFFFF
     for byte in data:
         crc ^= byte
@@ -173,7 +173,10 @@ class RequestReader:
 
 
 def floats(values: list[float]) -> bytes:
-    """``values`` as float32 little-endian."""
+    """``values`` as float32 little-endian (the wire's numbers: millimetres and radians).
+
+    The command counter (the GET_CMDNUM reply) is a big-endian uint16 instead.
+    """
     return struct.pack(f"<{len(values)}f", *values)
 
 

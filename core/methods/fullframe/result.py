@@ -1,0 +1,201 @@
+"""What a full-frame fit returns: :class:`FullFrameResult` and its :class:`Estimate` values."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.core.geometry.planes import Plane
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+__all__ = ["Estimate", "FullFrameResult"]
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A derived quantity with its 1-sigma and its confidence interval.
+
+    Attributes:
+        value: The estimate, SI units (radians or metres).
+        sigma: Its 1-sigma, same unit.
+        interval: ``(lo, hi)`` at the result's confidence, same unit.
+    """
+
+    value: float
+    sigma: float
+    interval: tuple[float, float]
+
+    @classmethod
+    def from_sigma(cls, value: float, sigma: float, z: float, lo: float = -math.inf,
+                   hi: float = math.inf) -> Estimate:
+        """``value ± z sigma`` clipped to ``[lo, hi]`` (``z``: normal quantile of the confidence)."""
+        return cls(value, sigma, (max(value - z * sigma, lo), min(value + z * sigma, hi)))
+
+    def to_dict(self, name: str, unit: str, convert: Callable[[float], Any]) -> dict[str, Any]:
+        """``{name_unit, name_sigma_unit, name_ci_unit}`` with every number passed through ``convert``."""
+        lo, hi = self.interval
+        return {f"{name}_{unit}": convert(self.value), f"{name}_sigma_{unit}": convert(self.sigma),
+                f"{name}_ci_{unit}": [convert(lo), convert(hi)]}
+
+
+def _finite_or_none(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+@dataclass(frozen=True, eq=False)
+class FullFrameResult:
+    """A full-frame plane fit with uncertainty and quality-gate values.
+
+    Angles in radians, lengths in metres; intervals are ``(lo, hi)`` at ``confidence``.
+    The flat names of the estimates (``angle_rad``, ``angle_sigma_rad``, ``angle_ci_rad``,
+    ``tilt_x_*``, ``tilt_y_*``, ``height_m``, ``height_sigma_m``, ``height_ci_m``) are
+    read-only properties over the :class:`Estimate` fields.
+
+    Attributes:
+        plane: The plane in the camera frame, normal toward the camera.
+        angle: Angle between the plane and the optical axis (pi/2 looking straight),
+            rad; interval clipped to [0, pi/2].
+        tilt_x: Camera tilt about its x axis (:meth:`Plane.tilt_about_x_rad`), rad.
+        tilt_y: Same about y, rad.
+        height: Distance from the optical centre along the optical axis to the plane,
+            metres (NaN when the axis misses the plane).
+        confidence: Confidence level of the intervals.
+        normal_covariance: 3x3 covariance of the unit normal (tangent to the sphere).
+        offset_variance_m2: Variance of ``plane.offset_m``, m^2.
+        normal_offset_covariance: Cross-covariance of normal and offset, shape (3,), m.
+        valid_fraction: Valid pixels / all pixels (1.0 for raw point clouds).
+        inlier_fraction: Inliers / valid points.
+        residual_rms_m: RMS orthogonal distance of the inliers to the plane.
+        coverage: Fraction of the image cells holding inliers (NaN for raw clouds).
+        noise_scale_m: Robust scale of the range residuals: with ``weighted``, the
+            range-noise sigma at 1 m and normal incidence implied by the data; otherwise
+            the range-noise sigma itself, metres.
+        n_points: Valid points used (all frames).
+        n_inliers: Inlier points (all frames).
+        n_frames: Number of frames pooled (1 for raw clouds).
+        inlier_mask: (H, W) bool, pixels that are inliers in at least half of the frames
+            where they are valid; shape (N,) for raw point clouds.
+        gates: ``name -> (value, threshold, passed)``.
+    """
+
+    plane: Plane
+    angle: Estimate
+    tilt_x: Estimate
+    tilt_y: Estimate
+    height: Estimate
+    confidence: float
+    normal_covariance: FloatArray
+    offset_variance_m2: float
+    normal_offset_covariance: FloatArray
+    valid_fraction: float
+    inlier_fraction: float
+    residual_rms_m: float
+    coverage: float
+    noise_scale_m: float
+    n_points: int
+    n_inliers: int
+    n_frames: int
+    inlier_mask: BoolArray
+    gates: dict[str, tuple[float, float, bool]]
+
+    @property
+    def angle_rad(self) -> float:
+        """Angle between the plane and the optical axis, rad."""
+        return self.angle.value
+
+    @property
+    def angle_sigma_rad(self) -> float:
+        """1-sigma of :attr:`angle_rad`, rad."""
+        return self.angle.sigma
+
+    @property
+    def angle_ci_rad(self) -> tuple[float, float]:
+        """Interval of :attr:`angle_rad` (clipped to [0, pi/2]), rad."""
+        return self.angle.interval
+
+    @property
+    def tilt_x_rad(self) -> float:
+        """Camera tilt about its x axis, rad."""
+        return self.tilt_x.value
+
+    @property
+    def tilt_x_sigma_rad(self) -> float:
+        """1-sigma of :attr:`tilt_x_rad`, rad."""
+        return self.tilt_x.sigma
+
+    @property
+    def tilt_x_ci_rad(self) -> tuple[float, float]:
+        """Interval of :attr:`tilt_x_rad`, rad."""
+        return self.tilt_x.interval
+
+    @property
+    def tilt_y_rad(self) -> float:
+        """Camera tilt about its y axis, rad."""
+        return self.tilt_y.value
+
+    @property
+    def tilt_y_sigma_rad(self) -> float:
+        """1-sigma of :attr:`tilt_y_rad`, rad."""
+        return self.tilt_y.sigma
+
+    @property
+    def tilt_y_ci_rad(self) -> tuple[float, float]:
+        """Interval of :attr:`tilt_y_rad`, rad."""
+        return self.tilt_y.interval
+
+    @property
+    def height_m(self) -> float:
+        """Distance along the optical axis to the plane, metres (NaN if it misses)."""
+        return self.height.value
+
+    @property
+    def height_sigma_m(self) -> float:
+        """1-sigma of :attr:`height_m`, metres."""
+        return self.height.sigma
+
+    @property
+    def height_ci_m(self) -> tuple[float, float]:
+        """Interval of :attr:`height_m`, metres."""
+        return self.height.interval
+
+    @property
+    def passed(self) -> bool:
+        """Whether every gate passed."""
+        return all(ok for _, _, ok in self.gates.values())
+
+    @property
+    def offset_sigma_m(self) -> float:
+        """1-sigma of ``plane.offset_m``, metres."""
+        return math.sqrt(max(self.offset_variance_m2, 0.0))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form: degrees and metres for humans."""
+        num = _finite_or_none
+        return {
+            "method": "full_frame",
+            **self.angle.to_dict("angle", "deg", math.degrees),
+            **self.tilt_x.to_dict("tilt_x", "deg", math.degrees),
+            **self.tilt_y.to_dict("tilt_y", "deg", math.degrees),
+            **self.height.to_dict("height", "m", num),
+            "confidence": self.confidence,
+            "plane_cam": {**self.plane.to_dict(), "offset_sigma_m": self.offset_sigma_m},
+            "normal_covariance": self.normal_covariance.tolist(),
+            "valid_fraction": self.valid_fraction,
+            "inlier_fraction": self.inlier_fraction,
+            "residual_rms_m": self.residual_rms_m,
+            "coverage": num(self.coverage),
+            "noise_scale_m": self.noise_scale_m,
+            "n_points": self.n_points,
+            "n_inliers": self.n_inliers,
+            "n_frames": self.n_frames,
+            "gates": {name: {"value": num(v), "threshold": t, "passed": ok}
+                      for name, (v, t, ok) in self.gates.items()},
+            "passed": self.passed,
+        }

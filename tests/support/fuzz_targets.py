@@ -1,0 +1,357 @@
+"""Fuzz targets shared by ``tests/integration/faults/test_fuzz_parsers.py`` (hypothesis, bounded, in CI) and
+``benchmarks/fuzz_parsers.py`` (long seeded runs with counts).
+
+A :class:`Target` is a parser, the one error it documents for bad input, valid seed
+inputs, and a mutator ``(seed bytes, random.Random) -> bytes``. Feeding it anything
+must either succeed or raise the documented error; any other exception is a defect.
+
+* ``pcic`` — ifm O3R PCIC stream: :func:`iter_messages`, :func:`walk_chunks`,
+  :class:`FrameDecoder` (image chunks and TOF_INFO), async errors and notifications;
+  documented error :class:`ProtocolError`.
+* ``xarm`` — UFACTORY xArm serial frames both ways: :class:`FrameSplitter`,
+  :func:`parse_reply` / :func:`parse_request` (whatever parses must re-encode to the
+  same bytes), and the register decoders on the parsed data; :class:`ProtocolError`.
+* ``config`` — the TOML cell configuration: :func:`load_config` on the bytes written
+  to a file, then :func:`build_devices` (backend sections and ``[sim]``);
+  :class:`ConfigError`. Mutations are byte/line edits of the text and structural edits
+  of the parsed document (values of other types, extreme numbers, deleted/added keys).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import json
+import math
+import random
+import struct
+import tempfile
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from xarm_wire_helpers import decode_move_line, encode_reply, parse_request, request_splitter
+
+from cellcal.core.calibration.calibrator import build_devices
+from cellcal.core.calibration.config import load_config
+from cellcal.devices.errors import ConfigError, ProtocolError
+from cellcal.devices.geometry.camera_model import pixel_grid_rays
+from cellcal.devices.types import Frame, Intrinsics
+from cellcal.drivers.o3r.decode import FrameDecoder
+from cellcal.drivers.o3r.pcic import (
+    TICKET_ASYNC_ERROR,
+    TICKET_ASYNC_NOTIFICATION,
+    TICKET_IMAGE,
+    encode_message,
+    iter_messages,
+    parse_async_error,
+    parse_notification,
+    walk_chunks,
+)
+from cellcal.drivers.xarm.protocol import FrameSplitter, encode_request, parse_reply
+from cellcal.drivers.xarm.registers import decode_serials, decode_text, unpack_floats
+from cellcal.sims.o3r.wire import FrameEncoder, message, models_from_intrinsics
+
+Mutator = Callable[[bytes, random.Random], bytes]
+
+
+@dataclass
+class Target:
+    """One parser under fuzz.
+
+    Attributes:
+        name: Short name (``pcic``, ``xarm``, ``config``).
+        documented: The error the parser documents for malformed input.
+        seeds: Valid inputs the mutations start from.
+        run: Parses one input; raises ``documented`` (or nothing).
+        mutate: Makes a new input from a seed.
+        close: Releases what ``run`` needs (temporary files).
+    """
+
+    name: str
+    documented: type[Exception]
+    seeds: list[bytes]
+    run: Callable[[bytes], None]
+    mutate: Mutator
+    close: Callable[[], None] = field(default=lambda: None)
+
+    def check(self, data: bytes) -> bool:
+        """Run one input: True if it parsed, False if rejected with the documented error."""
+        try:
+            self.run(data)
+        except self.documented:
+            return False
+        return True
+
+
+# ---------------------------------------------------------------------- byte mutations
+#: 32-bit values that break length/size/count fields.
+INTERESTING_U32 = (0, 1, 2, 3, 35, 36, 47, 48, 255, 256, 65535, 65536, 0x7FFFFFFF, 0x80000000, 0xFFFFFFFF)
+
+
+def mutate_bytes(seed: bytes, rng: random.Random, *, max_ops: int = 8) -> bytes:
+    """1..max_ops random edits: flip, cut, insert, delete, overwrite a u32/u8, duplicate, truncate."""
+    buf = bytearray(seed)
+    for _ in range(rng.randint(1, max_ops)):
+        op = rng.choice(("flip", "cut", "insert", "delete", "u32", "u8", "dup", "truncate"))
+        pos = rng.randrange(len(buf)) if buf else 0
+        if op == "flip" and buf:
+            buf[pos] ^= rng.randint(1, 255)
+        elif op == "cut":
+            del buf[pos:pos + rng.randint(1, 64)]
+        elif op == "insert":
+            buf[pos:pos] = rng.randbytes(rng.randint(1, 16))
+        elif op == "delete" and buf:
+            del buf[pos]
+        elif op == "u32" and pos + 4 <= len(buf):
+            struct.pack_into("<I", buf, pos, rng.choice(INTERESTING_U32))
+        elif op == "u8" and buf:
+            buf[pos] = rng.choice((0, 1, 2, 0x7F, 0x80, 0xFF))
+        elif op == "dup" and buf:
+            end = min(len(buf), pos + rng.randint(1, 64))
+            buf[end:end] = buf[pos:end]
+        elif op == "truncate":
+            del buf[rng.randint(0, len(buf)):]
+    return bytes(buf)
+
+
+def random_bytes(rng: random.Random, max_size: int = 600) -> bytes:
+    return rng.randbytes(rng.randint(0, max_size))
+
+
+# ---------------------------------------------------------------------- PCIC
+def _plane_frame(intr: Intrinsics, z_m: float = 0.8) -> Frame:
+    rays = pixel_grid_rays(intr)
+    dist = (z_m / rays[..., 2]).astype(np.float32)
+    dist[0, 0] = np.nan
+    valid = np.isfinite(dist)
+    return Frame(distance=dist, xyz=(rays * dist[..., None]).astype(np.float32),
+                 amplitude=np.full(dist.shape, 123.0, np.float32), valid=valid, intrinsics=intr,
+                 timestamp=1700000000.25, sequence=3, confidence=np.where(valid, 0, 1).astype(np.uint16))
+
+
+def pcic_seeds() -> list[bytes]:
+    """Image messages (header versions 1-3, with and without distortion) plus async messages."""
+    plain = Intrinsics(width=16, height=12, fx=20.25, fy=21.5, cx=7.5, cy=5.25)
+    dist = Intrinsics(width=16, height=12, fx=20.25, fy=21.5, cx=7.5, cy=5.25, k1=-0.05, k2=0.01, p1=3e-4,
+                      p2=-2e-4, k3=0.002)
+    seeds = []
+    for intr, version in ((plain, 2), (dist, 3), (plain, 1)):
+        rays = pixel_grid_rays(intr) if intr.has_distortion else None
+        enc = FrameEncoder(models_from_intrinsics(intr, rays), header_version=version)
+        seeds.append(message(TICKET_IMAGE, enc.payload(_plane_frame(intr), 7)))
+    seeds.append(seeds[0] + encode_message(TICKET_ASYNC_ERROR, b"000000042:x")
+                 + encode_message(TICKET_ASYNC_NOTIFICATION, b'000500000:{"a": 1}'))
+    return seeds
+
+
+def parse_pcic(data: bytes) -> None:
+    """Everything the driver does with a received stream (minus the socket)."""
+    for msg in iter_messages(data, max_payload=1 << 20):
+        if msg.ticket == TICKET_IMAGE:
+            FrameDecoder().decode(msg.payload, walk_chunks(msg.payload))
+        elif msg.ticket == TICKET_ASYNC_ERROR:
+            parse_async_error(msg.content)
+        elif msg.ticket == TICKET_ASYNC_NOTIFICATION:
+            parse_notification(msg.content)
+
+
+def mutate_pcic(seed: bytes, rng: random.Random) -> bytes:
+    """Byte edits of a valid stream, or random bytes (bare, or inside a valid image envelope)."""
+    kind = rng.random()
+    if kind < 0.8:
+        return mutate_bytes(seed, rng)
+    raw = random_bytes(rng)
+    if kind < 0.9:
+        return b"0000L%09d\r\n0000star" % (len(raw) + 14) + raw + b"stop\r\n"
+    return raw
+
+
+def pcic_target() -> Target:
+    return Target("pcic", ProtocolError, pcic_seeds(), parse_pcic, mutate_pcic)
+
+
+# ---------------------------------------------------------------------- xArm
+def xarm_seeds() -> list[bytes]:
+    """Replies and requests of typical sizes (empty, pose of 6 floats, 48 data bytes)."""
+    return [encode_reply(0, b""), encode_reply(0x10, struct.pack("<6f", 300, 0, 400, 3.14, 0, 0)),
+            encode_reply(0x40, bytes(range(48))), encode_request(1), encode_request(31, bytes(range(36))),
+            encode_request(12, b"\x01")]
+
+
+def _decode_data(data: bytes) -> None:
+    for decode in (lambda d: unpack_floats(d, len(d) // 4 + (len(d) % 4 > 0)), decode_move_line, decode_text,
+                   decode_serials):
+        with contextlib.suppress(ProtocolError):
+            decode(data)
+
+
+def parse_xarm(data: bytes) -> None:
+    """Both directions: split the stream, parse each frame, decode the data; round-trip what parsed."""
+    for parse, encode, splitter in ((parse_reply, lambda r: encode_reply(r.state, r.data), FrameSplitter.for_replies()),
+                                    (parse_request, lambda r: encode_request(r.register, r.params),
+                                     request_splitter())):
+        for piece in (data, *splitter.feed(data)):
+            try:
+                parsed = parse(piece)
+            except ProtocolError:
+                continue
+            if encode(parsed) != piece:
+                raise AssertionError(f"{parse.__name__} accepted {piece.hex()} but it re-encodes differently")
+            _decode_data(parsed.data if hasattr(parsed, "data") else parsed.params)
+    try:  # the whole input as one frame: the documented error if it is none
+        parse_reply(data)
+    except ProtocolError:
+        parse_request(data)
+
+
+def mutate_xarm(seed: bytes, rng: random.Random) -> bytes:
+    """Byte edits of 1-3 concatenated frames, or random bytes."""
+    if rng.random() < 0.15:
+        return random_bytes(rng, 80)
+    frames = seed + b"".join(rng.choice(xarm_seeds()) for _ in range(rng.randint(0, 2)))
+    return mutate_bytes(frames, rng, max_ops=4)
+
+
+def xarm_target() -> Target:
+    return Target("xarm", ProtocolError, xarm_seeds(), parse_xarm, mutate_xarm)
+
+
+# ---------------------------------------------------------------------- TOML config
+CONFIG_DIR = Path(str(resources.files("cellcal.configs")))
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)  # a JSON string is a valid TOML basic string
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {v!r} as TOML")
+
+
+def dump_toml(doc: dict[str, Any]) -> str:
+    """A TOML document for ``doc`` (top-level values first, then one ``[table]`` each)."""
+    lines = [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
+    for name, table in doc.items():
+        if isinstance(table, dict):
+            lines.append(f"[{json.dumps(name)}]")
+            lines += [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in table.items()]
+    return "\n".join(lines) + "\n"
+
+
+def config_seeds() -> list[bytes]:
+    """Every packaged configuration."""
+    return [p.read_bytes() for p in sorted(CONFIG_DIR.glob("*.toml"))]
+
+
+#: Values a hand-edited file might hold where something else belongs.
+ODD_VALUES: tuple[Any, ...] = (
+    0, 1, -1, 3, 7, 4097, 10**9, -(10**9), 2**63 - 1, -(2**63), 0.0, -0.0, 0.5, -0.5, 1e-300, 1e300, math.inf,
+    -math.inf, math.nan, True, False, "", "x", "sim", "o3r", "xarm", "ur", "oak", "software", "port2", "1.2.3",
+    "\u00e9\u6f22", [], [0], [0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 2.0, 3.0, 4.0], ["a"], [[1.0]], {}, {"a": 1},
+    [{"xyz_m": [0.3, 0.0, 0.5]}], [{}],
+)
+TOML_TOKENS = (b"[", b"]", b"[[", b"]]", b"=", b"\"", b"'", b"\"\"\"", b"\n", b"#", b"{", b"}", b",", b".",
+               b"nan", b"inf", b"-", b"+", b"1e999", b"0x", b"0o7", b"true", b"1979-05-27T07:32:00Z", b"\\u00",
+               b"\x00", b"\xff", b" = [", b"[sim]\n", b"[[plan.poses]]\n")
+
+
+def _paths(node: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
+    out = [prefix] if prefix else []
+    if isinstance(node, dict):
+        for k, v in node.items():
+            out += _paths(v, (*prefix, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            out += _paths(v, (*prefix, i))
+    return out
+
+
+def mutate_document(doc: dict[str, Any], rng: random.Random) -> dict[str, Any]:
+    """1-4 structural edits: replace a value, delete it, add a key, wrap it in a list."""
+    doc = copy.deepcopy(doc)
+    for _ in range(rng.randint(1, 4)):
+        paths = _paths(doc)
+        if not paths:
+            doc = {"x": rng.choice(ODD_VALUES)}
+            continue
+        path = rng.choice(paths)
+        parent = doc
+        for p in path[:-1]:
+            parent = parent[p]
+        last = path[-1]
+        op = rng.choice(("replace", "replace", "delete", "add", "wrap"))
+        if op == "replace":
+            parent[last] = copy.deepcopy(rng.choice(ODD_VALUES))
+        elif op == "delete":
+            del parent[last]
+        elif op == "add" and isinstance(parent, dict):
+            parent[rng.choice(("extra", "backend", "seed", "mount", "x" * 40))] = copy.deepcopy(rng.choice(ODD_VALUES))
+        elif op == "wrap":
+            parent[last] = [parent[last]]
+    return doc
+
+
+def mutate_config(seed: bytes, rng: random.Random) -> bytes:
+    """Structural edits of the parsed document, line edits, or byte/token edits of the text."""
+    kind = rng.random()
+    if kind < 0.45:
+        return dump_toml(mutate_document(tomllib.loads(seed.decode("utf-8")), rng)).encode("utf-8")
+    if kind < 0.7:
+        lines = seed.split(b"\n")
+        for _ in range(rng.randint(1, 3)):
+            i = rng.randrange(len(lines))
+            op = rng.choice(("delete", "dup", "swap", "token"))
+            if op == "delete" and len(lines) > 1:
+                del lines[i]
+            elif op == "dup":
+                lines.insert(i, lines[i])
+            elif op == "swap":
+                j = rng.randrange(len(lines))
+                lines[i], lines[j] = lines[j], lines[i]
+            else:
+                pos = rng.randint(0, len(lines[i]))
+                lines[i] = lines[i][:pos] + rng.choice(TOML_TOKENS) + lines[i][pos:]
+        return b"\n".join(lines)
+    buf = bytearray(mutate_bytes(seed, rng, max_ops=3))
+    for _ in range(rng.randint(0, 3)):
+        pos = rng.randint(0, len(buf))
+        buf[pos:pos] = rng.choice(TOML_TOKENS)
+    return bytes(buf)
+
+
+def config_target(directory: Path | None = None) -> Target:
+    """The loader reads a real file: inputs are written to ``directory`` (default: a temporary one)."""
+    tmp = None
+    if directory is None:
+        shm = Path("/dev/shm")  # a file system in memory: rewriting the file is 4x faster than on disk
+        tmp = tempfile.TemporaryDirectory(prefix="cellcal-fuzz-", dir=shm if shm.is_dir() else None)
+        directory = Path(tmp.name)
+    path = directory / "cell.toml"
+
+    def run(data: bytes) -> None:
+        path.write_bytes(data)
+        build_devices(load_config(path))  # unconnected: nothing opens
+
+    return Target("config", ConfigError, config_seeds(), run, mutate_config,
+                  close=tmp.cleanup if tmp is not None else (lambda: None))
+
+
+def all_targets() -> list[Target]:
+    return [pcic_target(), xarm_target(), config_target()]

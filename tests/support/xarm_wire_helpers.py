@@ -1,0 +1,115 @@
+"""The controller's side of the xArm wire, written on the driver's own framing, for the driver's tests.
+
+Encode replies, decode requests and MOVE_LINE parameters, so the tests can round-trip
+the driver's frames; the emulator (``cellcal.sims.xarm.wire``) keeps its own,
+independent wire code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from cellcal.devices.errors import ProtocolError
+from cellcal.drivers.xarm.protocol import (
+    ARM_ID,
+    HOST_ID,
+    MAX_REPLY_LEN,
+    MAX_REQUEST_LEN,
+    FrameSplitter,
+    check_frame,
+    crc_bytes,
+)
+from cellcal.drivers.xarm.registers import unpack_floats
+
+#: Parameter bytes of MOVE_LINE: legacy layout (9 floats), extended layout (10 floats + 3 bytes).
+MOVE_LINE_LEGACY_PARAMS = 9 * 4
+MOVE_LINE_COMMON_PARAMS = 10 * 4 + 3
+
+
+@dataclass(frozen=True)
+class Request:
+    """One decoded request frame (what the controller receives).
+
+    Attributes:
+        register: Register (command) number.
+        params: Parameter bytes after the register.
+    """
+
+    register: int
+    params: bytes
+
+
+def encode_reply(state: int, data: bytes = b"") -> bytes:
+    """Build a reply frame ``0x55 0xAA LEN STATE data... CRC_lo CRC_hi``.
+
+    Raises:
+        ProtocolError: If the state is not a byte or the data is longer than 48 bytes.
+    """
+    if not 0 <= state <= 255:
+        raise ProtocolError(f"xarm state byte must be 0..255, got {state}")
+    if len(data) + 1 > MAX_REPLY_LEN:
+        raise ProtocolError(f"xarm reply data too long: {len(data)} bytes (max {MAX_REPLY_LEN - 1})")
+    head = bytes([ARM_ID, HOST_ID, len(data) + 1, state]) + bytes(data)
+    return head + crc_bytes(head)
+
+
+def parse_request(frame: bytes | bytearray | memoryview) -> Request:
+    """Decode exactly one request frame.
+
+    Raises:
+        ProtocolError: As :func:`cellcal.drivers.xarm.protocol.parse_reply`.
+    """
+    raw = bytes(frame)
+    length = check_frame(raw, HOST_ID, ARM_ID, MAX_REQUEST_LEN, "request")
+    return Request(register=raw[3], params=raw[4: 3 + length])
+
+
+def request_splitter() -> FrameSplitter:
+    """A splitter for the host -> arm direction."""
+    return FrameSplitter(HOST_ID, ARM_ID, MAX_REQUEST_LEN)
+
+
+@dataclass(frozen=True)
+class MoveLine:
+    """A decoded MOVE_LINE request.
+
+    Attributes:
+        pose: ``[x, y, z]`` mm and ``[roll, pitch, yaw]`` rad, or an axis-angle
+            rotation when :attr:`axis_angle`; ``inf`` means "keep the current value"
+            (sent by the SDK for firmware >= 2.4.101 when a coordinate is omitted).
+        speed_mm_s: Tool speed.
+        acc_mm_s2: Tool acceleration.
+        radius_mm: Blend radius (-1: none); None in the legacy layout.
+        coord: 0 base frame, 1 tool frame.
+        axis_angle: Orientation given as a rotation vector.
+        only_check: Only check reachability, do not move.
+        common: Whether the extended layout was used (its reply carries 3 bytes).
+    """
+
+    pose: tuple[float, ...]
+    speed_mm_s: float
+    acc_mm_s2: float
+    radius_mm: float | None = None
+    coord: int = 0
+    axis_angle: bool = False
+    only_check: int = 0
+    common: bool = False
+
+
+def decode_move_line(params: bytes) -> MoveLine:
+    """Decode MOVE_LINE parameters in either layout.
+
+    Raises:
+        ProtocolError: On a parameter length that matches neither layout.
+    """
+    n = len(params)
+    if n in (MOVE_LINE_LEGACY_PARAMS, MOVE_LINE_LEGACY_PARAMS + 1, MOVE_LINE_LEGACY_PARAMS + 2):
+        f = unpack_floats(params, 9)
+        only = params[36] if n > 36 else 0
+        return MoveLine(tuple(f[:6]), f[6], f[7], only_check=only, common=n > 36)
+    if n in (MOVE_LINE_COMMON_PARAMS, MOVE_LINE_COMMON_PARAMS + 1):
+        f = unpack_floats(params, 10)
+        coord, aa, only = params[40], params[41], params[42]
+        return MoveLine(tuple(f[:6]), f[6], f[7], radius_mm=f[9], coord=coord, axis_angle=bool(aa),
+                        only_check=only, common=True)
+    raise ProtocolError(f"xarm MOVE_LINE with {n} parameter bytes matches no known layout")

@@ -1,0 +1,392 @@
+"""UR backend over ur_rtde, mocked at the library boundary with the real classes' signatures.
+
+A small controller model (:class:`FakeController`) plays the robot: it advances its
+RTDE timestamp, carries out asynchronous ``moveL`` over a few polls, and can be
+protective-stopped mid-motion or lose its receive stream. The RTDE interfaces handed
+to the backend are strict autospecs of the real ``rtde_control.RTDEControlInterface``,
+``rtde_receive.RTDEReceiveInterface`` and ``dashboard_client.DashboardClient``.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import threading
+from typing import Any
+
+import numpy as np
+import pytest
+from repo_paths import REPO_ROOT
+
+pytest.importorskip("rtde_control")
+import dashboard_client
+import rtde_control
+import rtde_receive
+from _vendor_autospec import pybind_signatures, strict_autospec
+from scipy.spatial.transform import Rotation
+
+from cellcal.devices.base import BackendContext
+from cellcal.devices.errors import (
+    ConfigError,
+    DeviceConnectionError,
+    DeviceTimeoutError,
+    MissingDependencyError,
+    SafetyError,
+    VendorError,
+)
+from cellcal.devices.geometry.vendor_poses import pose_from_xarm, pose_to_ur, pose_to_xarm
+from cellcal.devices.pose import Pose
+from cellcal.devices.registry import default_registry
+from cellcal.drivers.ur.arm import URArm
+
+HOST = "192.168.56.101"
+# The real classes, kept before the fixtures patch the module attributes.
+REAL_CONTROL = rtde_control.RTDEControlInterface
+REAL_RECEIVE = rtde_receive.RTDEReceiveInterface
+REAL_DASHBOARD = dashboard_client.DashboardClient
+REAL_ASYNC_STATUS = rtde_control.AsyncOperationStatus
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def sleep(self, dt: float) -> None:
+        self.t += dt
+
+
+class FakeController:
+    """The robot side: state read by the receive mocks, changed by the control mocks."""
+
+    def __init__(self) -> None:
+        self.timestamp = 50.0
+        self.pose = [0.30, -0.10, 0.45, math.pi, 0.0, 0.0]
+        self.q = [0.0, -1.57, 1.2, -1.2, -1.57, 0.3]
+        self.safety = 1
+        self.robot = 7
+        self.program = True
+        self.motion: list[float] | None = None
+        self.polls_left = 0
+        self.pstop_at_poll: int | None = None
+        self.moves: list[tuple[list[float], float, float, bool]] = []
+        self.tcp: list[float] | None = None
+        self.receives: list[Any] = []
+        self.stops: list[float] = []
+
+    # -- receive side
+    def make_receive(self, *args: Any, **kwargs: Any) -> Any:
+        for sig in pybind_signatures(REAL_RECEIVE.__init__):
+            sig.bind(None, *args, **kwargs)  # raises TypeError on a wrong constructor call
+            break
+        r = strict_autospec(REAL_RECEIVE)
+        r.dead = False
+        r.frozen_ts = None
+
+        def timestamp() -> float:
+            if r.dead:
+                return r.frozen_ts
+            self.timestamp += 0.002
+            return self.timestamp
+
+        r.getTimestamp.side_effect = timestamp
+        r.getActualTCPPose.side_effect = lambda: list(self.pose)
+        r.getActualQ.side_effect = lambda: list(self.q)
+        r.getSafetyMode.side_effect = lambda: self.safety
+        r.getRobotMode.side_effect = lambda: self.robot
+        r.getRuntimeState.side_effect = lambda: 2 if self.program else 1
+        r.isProtectiveStopped.side_effect = lambda: self.safety == 3
+        r.isEmergencyStopped.side_effect = lambda: self.safety in (6, 7)
+        r.isConnected.return_value = True  # a stale interface keeps saying True
+        self.receives.append(r)
+        return r
+
+    def kill_stream(self, r: Any) -> None:
+        r.frozen_ts = self.timestamp
+        r.dead = True
+
+    # -- control side
+    def make_control(self, hostname: str, *args: Any, **kwargs: Any) -> Any:
+        assert hostname == HOST
+        c = strict_autospec(REAL_CONTROL)
+        c.isConnected.return_value = True
+
+        def move_l(pose: list[float], speed: float = 0.25, acceleration: float = 1.2,
+                   asynchronous: bool = False) -> bool:
+            self.moves.append((list(pose), speed, acceleration, asynchronous))
+            if not self.program or self.safety != 1 or self.robot != 7:
+                return False
+            self.motion, self.polls_left = list(pose), 3
+            return True
+
+        def progress() -> Any:
+            status = strict_autospec(REAL_ASYNC_STATUS)
+            if self.motion is not None:
+                if self.pstop_at_poll is not None:
+                    self.pstop_at_poll -= 1
+                    if self.pstop_at_poll == 0:  # protective stop: motion halts, script stops
+                        self.safety, self.program, self.motion = 3, False, None
+                        self.pstop_at_poll = None
+                if self.motion is not None:
+                    self.polls_left -= 1
+                    if self.polls_left <= 0:
+                        self.pose, self.motion = self.motion, None
+            status.isAsyncOperationRunning.return_value = self.motion is not None
+            return status
+
+        def set_tcp(offset: list[float]) -> bool:
+            self.tcp = list(offset)
+            return True
+
+        def reupload() -> bool:
+            if self.safety != 1:
+                return False
+            self.program = True
+            return True
+
+        c.moveL.side_effect = move_l
+        c.getAsyncOperationProgressEx.side_effect = progress
+        c.setTcp.side_effect = set_tcp
+        c.isProgramRunning.side_effect = lambda: self.program
+        c.reuploadScript.side_effect = reupload
+        c.stopL.side_effect = lambda a=10.0, asynchronous=False: self.stops.append(a)
+        return c
+
+    # -- dashboard
+    def make_dashboard(self, hostname: str, port: int = 29999, verbose: bool = False) -> Any:
+        d = strict_autospec(REAL_DASHBOARD)
+        d.isConnected.return_value = True
+        d.isInRemoteControl.return_value = True
+        d.getRobotModel.return_value = "UR5"
+        d.getSerialNumber.return_value = "20235500123"
+        d.polyscopeVersion.return_value = "URSoftware 5.15.0"
+
+        def unlock() -> None:
+            if self.safety == 3:
+                self.safety = 1
+
+        d.unlockProtectiveStop.side_effect = unlock
+        return d
+
+
+@pytest.fixture
+def ctl() -> FakeController:
+    return FakeController()
+
+
+@pytest.fixture
+def vendor(mocker: Any, ctl: FakeController) -> FakeController:
+    mocker.patch.object(rtde_receive, "RTDEReceiveInterface", side_effect=ctl.make_receive)
+    mocker.patch.object(rtde_control, "RTDEControlInterface", side_effect=ctl.make_control)
+    mocker.patch.object(dashboard_client, "DashboardClient", side_effect=ctl.make_dashboard)
+    return ctl
+
+
+@pytest.fixture
+def robot(vendor: FakeController) -> Any:
+    arm = URArm.from_config({"backend": "ur", "host": HOST, "stale_after_s": 0.05})
+    clock = FakeClock()
+    arm._clock, arm._sleep = clock, clock.sleep
+    arm.connect(timeout=2.0)
+    yield arm
+    arm.close()
+
+
+def test_connect_sets_tcp_to_flange_and_reads_identity(robot: URArm, ctl: FakeController) -> None:
+    assert ctl.tcp == [0.0] * 6
+    info = robot.info()
+    assert (info.vendor, info.model, info.serial) == ("Universal Robots", "UR5", "20235500123")
+
+
+def test_pose_and_joints_from_the_receive_interface(robot: URArm, ctl: FakeController) -> None:
+    pose = robot.get_pose()
+    np.testing.assert_allclose(pose.translation, [0.30, -0.10, 0.45])
+    assert pose.rotation.magnitude() == pytest.approx(math.pi)
+    np.testing.assert_allclose(robot.joint_positions(), ctl.q)
+
+
+def test_ur_and_xarm_conversions_agree_on_one_physical_pose(robot: URArm, ctl: FakeController) -> None:
+    physical = Pose(Rotation.from_euler("xyz", [0.4, -0.7, 2.1]), np.array([0.412, -0.088, 0.305]))
+    ctl.pose = [float(v) for v in pose_to_ur(physical)]   # what the UR controller reports
+    from_ur = robot.get_pose()
+    xarm_wire = pose_to_xarm(physical)                     # what an xArm would report (mm, rad)
+    from_xarm = pose_from_xarm(xarm_wire)
+    assert from_ur.is_close(physical, atol_m=1e-12, atol_rad=1e-12)
+    assert from_xarm.is_close(from_ur, atol_m=1e-12, atol_rad=1e-12)
+    np.testing.assert_allclose(xarm_wire[:3], np.asarray(ctl.pose[:3]) * 1000.0, atol=1e-9)
+    np.testing.assert_allclose(Rotation.from_rotvec(ctl.pose[3:]).as_matrix(),
+                               Rotation.from_euler("xyz", xarm_wire[3:]).as_matrix(), atol=1e-12)
+    # and the command sent to the arm is the same UR vector
+    robot.move_linear(physical, speed=0.2, acceleration=1.0)
+    np.testing.assert_allclose(ctl.moves[-1][0], pose_to_ur(physical), atol=1e-12)
+    assert ctl.moves[-1][1:] == (0.2, 1.0, True)
+
+
+def test_move_linear_arrives(robot: URArm, ctl: FakeController) -> None:
+    target = Pose.from_xyz_rotvec([0.35, 0.05, 0.40], [math.pi, 0.0, 0.0])
+    robot.move_linear(target, speed=0.25, acceleration=1.2, timeout=5.0)
+    assert robot.get_pose().is_close(target, atol_m=1e-12, atol_rad=1e-12)
+
+
+@pytest.mark.parametrize(("speed", "acc", "what"), [(3.5, 1.0, "speed 3.5 m/s"), (0.2, 151.0, "acceleration 151")])
+def test_limits_beyond_ur_are_rejected_before_moving(robot: URArm, ctl: FakeController,
+                                                      speed: float, acc: float, what: str) -> None:
+    with pytest.raises(SafetyError, match=what):
+        robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=speed, acceleration=acc)
+    assert ctl.moves == []
+
+
+def test_protective_stop_in_the_middle_of_a_plan(robot: URArm, ctl: FakeController) -> None:
+    plan = [Pose.from_xyz_rotvec([0.30 + 0.02 * i, 0.0, 0.40], [math.pi, 0.0, 0.0]) for i in range(4)]
+    robot.move_linear(plan[0], speed=0.2, acceleration=1.0)
+    ctl.pstop_at_poll = 2                               # the arm hits something during move 2
+    with pytest.raises(VendorError, match="protective stop") as err:
+        robot.move_linear(plan[1], speed=0.2, acceleration=1.0)
+    assert err.value.code == 3
+    assert not robot.status().can_move and robot.status().error_code == 3
+    # the next move: moveL returns False; the reason is read from the status calls
+    with pytest.raises(VendorError, match="protective stop"):
+        robot.move_linear(plan[2], speed=0.2, acceleration=1.0)
+    assert len(ctl.moves) == 3
+    robot.clear_errors()                                # unlock + re-upload the control script
+    assert robot.status().ok and ctl.program
+    robot.move_linear(plan[3], speed=0.2, acceleration=1.0)
+    assert robot.get_pose().is_close(plan[3], atol_m=1e-12, atol_rad=1e-12)
+
+
+def test_false_return_explained_when_script_stopped(robot: URArm, ctl: FakeController) -> None:
+    ctl.program = False                                 # someone pressed stop on the pendant
+    with pytest.raises(VendorError, match=r"control script is not running.*STOPPED"):
+        robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=0.1, acceleration=1.0)
+
+
+def test_emergency_stop_cannot_be_cleared_remotely(robot: URArm, ctl: FakeController) -> None:
+    ctl.safety = 7
+    with pytest.raises(VendorError, match="emergency stop") as err:
+        robot.clear_errors()
+    assert err.value.code == 7
+
+
+def test_stale_receive_stream_is_rebuilt(robot: URArm, ctl: FakeController) -> None:
+    first = ctl.receives[-1]
+    robot.get_pose()
+    ctl.kill_stream(first)                              # values freeze, isConnected() stays True
+    ctl.pose = [0.31, -0.1, 0.45, math.pi, 0.0, 0.0]    # the arm has moved meanwhile
+    robot._sleep(0.2)                                   # longer than stale_after_s
+    pose = robot.get_pose()
+    assert robot.receive_rebuilds == 1
+    assert ctl.receives[-1] is not first and first.disconnect.called
+    assert pose.translation[0] == pytest.approx(0.31)
+
+
+def test_fresh_stream_not_rebuilt(robot: URArm) -> None:
+    for _ in range(5):
+        robot._sleep(1.0)
+        robot.get_pose()
+    assert robot.receive_rebuilds == 0
+
+
+def test_motion_timeout_stops_the_arm(robot: URArm, ctl: FakeController) -> None:
+    robot._control.getAsyncOperationProgressEx.side_effect = lambda: _running_status(True)
+    with pytest.raises(DeviceTimeoutError, match="did not finish"):
+        robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=0.1,
+                          acceleration=1.0, timeout=0.5)
+    assert ctl.stops == [10.0]
+
+
+def _running_status(running: bool) -> Any:
+    status = strict_autospec(REAL_ASYNC_STATUS)
+    status.isAsyncOperationRunning.return_value = running
+    return status
+
+
+def test_controller_that_disappears(robot: URArm, ctl: FakeController) -> None:
+    robot._control.isConnected.return_value = False
+    robot._control.moveL.side_effect = None
+    robot._control.moveL.return_value = False
+    with pytest.raises(DeviceConnectionError, match="connection lost"):
+        robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=0.1, acceleration=1.0)
+
+
+def test_remote_control_off_is_reported(vendor: FakeController, mocker: Any) -> None:
+    mocker.patch.object(rtde_control, "RTDEControlInterface",
+                        side_effect=RuntimeError("ur_rtde: Please enable remote control on the robot!"))
+    arm = URArm.from_config({"host": HOST})
+    with pytest.raises(DeviceConnectionError, match="Remote Control"):
+        arm.connect(timeout=2.0)
+    assert not arm.connected
+    assert vendor.receives[0].disconnect.called          # the half-open connection is released
+
+
+def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeController, mocker: Any) -> None:
+    release = threading.Event()
+    late: list[Any] = []
+
+    def slow_control(hostname: str, *args: Any) -> Any:
+        release.wait(5.0)
+        c = vendor.make_control(hostname)
+        late.append(c)
+        return c
+
+    mocker.patch.object(rtde_control, "RTDEControlInterface", side_effect=slow_control)
+    arm = URArm.from_config({"host": HOST})
+    arm._caller.join = lambda timeout: None               # close() must not wait for the worker here
+    with pytest.raises(DeviceTimeoutError, match="did not finish within"):
+        arm.connect(timeout=0.2)
+    release.set()
+    for t in threading.enumerate():
+        if t.name.startswith(f"ur {HOST}"):
+            t.join(5.0)
+    assert len(late) == 1 and late[0].disconnect.called
+
+
+def test_missing_extra_names_it(mocker: Any) -> None:
+    mocker.patch.dict(sys.modules, {"rtde_control": None})
+    arm = URArm.from_config({"host": HOST})            # constructing imports nothing
+    with pytest.raises(MissingDependencyError, match=r"cellcal\[ur\]"):
+        arm.connect(timeout=1.0)
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ConfigError, match="host"):
+        URArm.from_config({})
+    with pytest.raises(ConfigError, match="max_speed_m_s"):
+        URArm.from_config({"host": HOST, "max_speed_m_s": 4.0})
+    with pytest.raises(ConfigError, match="max_acceleration_m_s2"):
+        URArm.from_config({"host": HOST, "max_acceleration_m_s2": 200.0})
+    with pytest.raises(ConfigError, match="unknown key"):
+        URArm.from_config({"host": HOST, "speed": 1.0})
+
+
+def test_registry_builds_unconnected_without_vendor_import(mocker: Any) -> None:
+    mocker.patch.dict(sys.modules, {"rtde_control": None, "rtde_receive": None, "dashboard_client": None})
+    arm = default_registry().create("arm", {"backend": "ur", "host": HOST}, BackendContext(section="arm"))
+    assert isinstance(arm, URArm) and not arm.connected
+
+
+# ---------------------------------------------------------------- example configs
+CONFIGS = REPO_ROOT / "configs"
+
+
+@pytest.mark.parametrize("name", ["ur_oak.toml", "ur_o3r.toml"])
+def test_example_configs_validate_without_touching_hardware(name: str, mocker: Any) -> None:
+    from cellcal.core.calibration.config import load_config
+
+    vendor_modules = ("rtde_control", "rtde_receive", "dashboard_client", "depthai", "usb", "usb.core")
+    mocker.patch.dict(sys.modules, dict.fromkeys(vendor_modules))   # any vendor import would fail
+    cfg = load_config(CONFIGS / name)
+    registry = default_registry()
+    camera_backend = cfg.camera_section["backend"]
+    if camera_backend not in registry.names("camera"):
+        pytest.skip(f"camera backend {camera_backend!r} is not registered in this install")
+    try:
+        registry.get("camera", camera_backend)
+    except Exception as exc:  # the o3r backend may not have landed yet
+        pytest.skip(f"camera backend {camera_backend!r} not importable yet: {exc}")
+    arm = registry.create("arm", cfg.arm_section, BackendContext(source=cfg.source, section="arm"))
+    camera = registry.create("camera", cfg.camera_section, BackendContext(
+        source=cfg.source, section="camera", document=cfg.document, seed=cfg.cell.seed))
+    assert isinstance(arm, URArm) and not arm.connected and not camera.connected
+    assert arm.config.max_speed_m_s <= cfg.safety.max_speed_m_s
