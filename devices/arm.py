@@ -1,4 +1,4 @@
-"""The robot arm interface."""
+"""The robot arm interface, with the arrival check every backend inherits (ADR 0016)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ from abc import abstractmethod
 import numpy as np
 from numpy.typing import NDArray
 
+from .arrival import ArrivalTolerance, arrival_problem, format_pose
 from .base import Device
-from .errors import CellcalError
+from .errors import CellcalError, MotionError
 from .pose import Pose
 from .types import ArmStatus
 
@@ -27,11 +28,65 @@ class RobotArm(Device):
     scipy rotations. The camera hangs off the flange through the hand-eye transform,
     which belongs to the cell configuration, not to the arm.
 
+    A move counts as done only once the arm has arrived: after the backend reports the
+    motion finished, :meth:`move_linear` reads the pose back :attr:`arrival_tolerance`
+    ``.reads`` times; the reads must agree with each other and lie within the tolerance
+    of the target, or the arm is told to stop and :class:`MotionError` is raised.
+
     Attributes:
         default_motion_timeout_s: Timeout for :meth:`move_linear` when given None.
+        verifies_arrival: Whether :meth:`move_linear` checks the arrival itself; false
+            only for arms that delegate every move to another arm which checks it (the
+            forwarding wrappers) or that never move anything (a replay).
     """
 
     default_motion_timeout_s: float = 60.0
+    verifies_arrival: bool = True
+    _arrival_override: ArrivalTolerance | None = None
+
+    # ------------------------------------------------------------------ arrival
+    def default_arrival_tolerance(self) -> ArrivalTolerance:
+        """The tolerance that fits this arm class (1 mm, 0.1 deg, 2 reads unless a backend says otherwise)."""
+        return ArrivalTolerance()
+
+    @property
+    def arrival_tolerance(self) -> ArrivalTolerance:
+        """The tolerance a finished move is checked against (configured, else the backend's default)."""
+        override = self._arrival_override
+        return override if override is not None else self.default_arrival_tolerance()
+
+    @arrival_tolerance.setter
+    def arrival_tolerance(self, value: ArrivalTolerance) -> None:
+        if not isinstance(value, ArrivalTolerance):
+            raise CellcalError(f"arrival_tolerance must be an ArrivalTolerance, got {type(value).__name__}")
+        self._set_arrival_tolerance(value)
+
+    def _set_arrival_tolerance(self, value: ArrivalTolerance) -> None:
+        """Store the configured tolerance (a wrapper also hands it to the arm it wraps)."""
+        self._arrival_override = value
+
+    def _confirm_arrival(self, target: Pose) -> None:
+        """Read the pose back at rest; stop the arm and raise MotionError unless it is steady at ``target``."""
+        tol = self.arrival_tolerance
+        try:
+            readings = [self._get_pose(self.default_timeout_s) for _ in range(tol.reads)]
+        except CellcalError as exc:
+            problem = f"the pose could not be read back ({exc})"
+        else:
+            found = arrival_problem(target, readings, tol)
+            if found is None:
+                return
+            problem = found
+        raise MotionError(f"{self.backend_name}: move to {format_pose(target)} reported done, but {problem}; "
+                          f"{self._stop_after_failure()}")
+
+    def _stop_after_failure(self) -> str:
+        """Tell the arm to stop after a failed move, ignoring errors; says what happened, for messages."""
+        try:
+            self._stop(self.default_timeout_s)
+        except CellcalError as exc:
+            return f"stopping the arm failed too: {exc}"
+        return "the arm was told to stop"
 
     def get_pose(self, timeout: float | None = None) -> Pose:
         """Current flange pose in the base frame.
@@ -51,7 +106,9 @@ class RobotArm(Device):
             speed: Tool speed, m/s.
             acceleration: Tool acceleration, m/s².
             timeout: Seconds to wait for the motion to finish; None uses
-                :attr:`default_motion_timeout_s`.
+                :attr:`default_motion_timeout_s`. The arrival check's pose reads
+                (and a stop after a failure) come on top, each bounded by
+                :attr:`default_timeout_s`.
 
         Raises:
             NotConnectedError: If the arm is not connected.
@@ -59,6 +116,8 @@ class RobotArm(Device):
                 (the arm is told to stop first).
             VendorError: If the controller reports an error during the motion.
             SafetyError: If a safety wrapper rejects the command (nothing moved).
+            MotionError: If the motion cannot be confirmed, or it reported done while the
+                read-back pose is not at the target or not steady (the arm is told to stop).
         """
         self._require_connected("move")
         if not isinstance(pose, Pose):
@@ -67,6 +126,8 @@ class RobotArm(Device):
         acceleration = _positive(acceleration, "acceleration", "m/s^2")
         t = self.default_motion_timeout_s if timeout is None else self._resolve_timeout(timeout)
         self._move_linear(pose, speed, acceleration, float(t))
+        if self.verifies_arrival:
+            self._confirm_arrival(pose)
 
     def stop(self, timeout: float | None = None) -> None:
         """Stop any motion now (controlled stop); safe to call when idle."""

@@ -2,7 +2,10 @@
 
 :func:`parse_section` checks a mapping against a backend's config dataclass and reports
 the first problem as a one-line :class:`~cellcal.devices.errors.ConfigError` naming the
-file, the dotted key and what was expected (ADR 0004).
+file, the dotted key and what was expected (ADR 0004). Besides each field's own range
+(metadata ``gt``, ``ge``, ``lt``, ``le``, ``min_items``, ``max_items``, ``max_len``), every
+value has the limits of :data:`DEFAULT_LIMITS`: integers in TOML's 64-bit range, strings
+without control characters, bounded lengths.
 """
 
 from __future__ import annotations
@@ -10,6 +13,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import operator
+import reprlib
 import types
 import typing
 from collections.abc import Mapping
@@ -20,6 +25,28 @@ from .errors import ConfigError
 T = TypeVar("T")
 
 _TYPE_NAMES = {bool: "a boolean", int: "an integer", float: "a number", str: "a string"}
+
+#: Limits of every value unless its field's metadata sets its own (a path fits in 4096
+#: characters; no table of a cell needs 10,000 items).
+DEFAULT_LIMITS: Mapping[str, int] = {"max_len": 4096, "max_items": 10_000}
+#: TOML's integer range (tomllib itself accepts any size).
+INT_MIN, INT_MAX = -(2**63), 2**63 - 1
+
+_short = reprlib.Repr()
+_short.maxstring = _short.maxother = 60
+_short.maxlong = 24
+_short.maxlist = _short.maxtuple = _short.maxdict = 6
+_short.maxlevel = 3
+
+
+def show(value: Any) -> str:
+    """A short ``repr`` of a value for a message: long strings, numbers, lists and deep nesting elided."""
+    return _short.repr(value)
+
+
+def _control_chars(text: str) -> bool:
+    """Whether ``text`` holds a C0/C1 control character or DEL (which a config string never needs)."""
+    return any(ord(ch) < 0x20 or 0x7F <= ord(ch) < 0xA0 for ch in text)
 
 
 _cached_type_hints = functools.lru_cache(maxsize=256)(get_type_hints)
@@ -67,7 +94,7 @@ def _describe(tp: Any) -> str:
 
 def _fail(value: Any, tp: Any, key: str, source: str | None) -> ConfigError:
     """The error for ``value`` not being of type ``tp``: what was expected and what came."""
-    return ConfigError(f"expected {_describe(tp)}, got {type(value).__name__} {value!r}", source=source, key=key)
+    return ConfigError(f"expected {_describe(tp)}, got {type(value).__name__} {show(value)}", source=source, key=key)
 
 
 def _convert(value: Any, tp: Any, key: str, source: str | None) -> Any:
@@ -132,6 +159,10 @@ def _convert_scalar(value: Any, tp: type, key: str, source: str | None) -> Any:
         if not math.isfinite(value):
             raise ConfigError(f"expected a finite number, got {value!r}", source=source, key=key)
         return float(value)
+    if tp is int and not INT_MIN <= value <= INT_MAX:
+        raise ConfigError(f"expected an integer in TOML's 64-bit range, got {show(value)}", source=source, key=key)
+    if tp is str and _control_chars(value):
+        raise ConfigError(f"expected a string without control characters, got {show(value)}", source=source, key=key)
     return value
 
 
@@ -140,6 +171,9 @@ def _convert_sequence(value: Any, tp: Any, key: str, source: str | None) -> Any:
     origin = get_origin(tp)
     if not isinstance(value, (list, tuple)):
         raise _fail(value, tp, key, source)
+    if len(value) > DEFAULT_LIMITS["max_items"]:  # before converting every item of a huge list
+        raise ConfigError(f"needs at most {DEFAULT_LIMITS['max_items']} items, got {len(value)}",
+                          source=source, key=key)
     args = get_args(tp)
     if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):  # fixed length, one type per item
         if len(value) != len(args):
@@ -151,22 +185,28 @@ def _convert_sequence(value: Any, tp: Any, key: str, source: str | None) -> Any:
 
 
 def _check_range(value: Any, meta: Mapping[str, Any], key: str, source: str | None) -> None:
+    """The field's limits (its metadata over :data:`DEFAULT_LIMITS`) on a converted value."""
     if value is None:
         return
+    meta = {**DEFAULT_LIMITS, **meta}
     values = value if isinstance(value, (list, tuple)) else [value]
     for v in values:
+        if isinstance(v, str) and len(v) > meta["max_len"]:
+            raise ConfigError(f"must be at most {meta['max_len']} characters, got {len(v)}", source=source, key=key)
         if not isinstance(v, (int, float)) or isinstance(v, bool):
             continue
-        if "gt" in meta and not v > meta["gt"]:
-            raise ConfigError(f"must be > {meta['gt']}, got {value!r}", source=source, key=key)
-        if "ge" in meta and not v >= meta["ge"]:
-            raise ConfigError(f"must be >= {meta['ge']}, got {value!r}", source=source, key=key)
-        if "lt" in meta and not v < meta["lt"]:
-            raise ConfigError(f"must be < {meta['lt']}, got {value!r}", source=source, key=key)
-        if "le" in meta and not v <= meta["le"]:
-            raise ConfigError(f"must be <= {meta['le']}, got {value!r}", source=source, key=key)
-    if "min_items" in meta and isinstance(value, (list, tuple)) and len(value) < meta["min_items"]:
-        raise ConfigError(f"needs at least {meta['min_items']} items, got {len(value)}", source=source, key=key)
+        for op, (symbol, holds) in _LIMITS.items():
+            if op in meta and not holds(v, meta[op]):
+                raise ConfigError(f"must be {symbol} {meta[op]}, got {show(value)}", source=source, key=key)
+    if isinstance(value, (list, tuple)):
+        if "min_items" in meta and len(value) < meta["min_items"]:
+            raise ConfigError(f"needs at least {meta['min_items']} items, got {len(value)}", source=source, key=key)
+        if len(value) > meta["max_items"]:
+            raise ConfigError(f"needs at most {meta['max_items']} items, got {len(value)}", source=source, key=key)
+
+
+#: Range limits of the field metadata: (symbol in messages, the test a value must pass).
+_LIMITS = {"gt": (">", operator.gt), "ge": (">=", operator.ge), "lt": ("<", operator.lt), "le": ("<=", operator.le)}
 
 
 def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str = "",
@@ -176,7 +216,9 @@ def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str
     Supported field types: ``bool``, ``int``, ``float``, ``str``, ``Literal[...]``,
     ``tuple[float, ...]`` / ``tuple[float, float, float]`` (and int/str tuples),
     ``list[...]`` of those, ``dict[str, Any]``, nested config dataclasses, and ``X | None``.
-    Range limits come from field metadata (``gt``, ``ge``, ``lt``, ``le``, ``min_items``).
+    Range limits come from field metadata (``gt``, ``ge``, ``lt``, ``le``, ``min_items``,
+    ``max_items``, ``max_len``), over :data:`DEFAULT_LIMITS`; integers must fit TOML's
+    64-bit range and strings hold no control characters.
 
     Args:
         cls: The config dataclass.
@@ -202,7 +244,8 @@ def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str
     for key in section:
         if key not in known and key not in ignore:
             choices = ", ".join(sorted(known)) or "(none)"
-            raise ConfigError(f"unknown key; expected one of: {choices}", source=source, key=_join(where, key))
+            name = key if isinstance(key, str) and key.isprintable() and len(key) <= 60 else show(key)
+            raise ConfigError(f"unknown key; expected one of: {choices}", source=source, key=_join(where, name))
     kwargs: dict[str, Any] = {}
     for name, f in known.items():
         full = _join(where, name)

@@ -9,7 +9,8 @@
     │   ├── DeviceTimeoutError      an I/O call exceeded its timeout
     │   ├── NotConnectedError       device used before connect() / after close()
     │   ├── ProtocolError           malformed bytes on a vendor wire
-    │   └── VendorError             the device reported an error code
+    │   ├── VendorError             the device reported an error code
+    │   └── MotionError             a move unconfirmed, or not arrived (arm stopped)
     ├── UsbBackendMissingError      pyusb found no native USB library (libusb-1.0)
     ├── MonitorError                a monitored camera keeps failing
     ├── SafetyError                 a command outside the safety envelope
@@ -18,7 +19,9 @@
     ├── RecordingError              a recording cannot be written or replayed
     │   ├── RecordingFileError      (also a ConfigError) unreadable or foreign file
     │   ├── ReplayMismatchError     (also a DeviceError) replay asked for something else
-    │   └── ReplayExhaustedError    (also a DeviceError) replay ran out of data
+    │   ├── ReplayExhaustedError    (also a DeviceError) replay ran out of data
+    │   └── RecordingWriteError     (also an OutputError) the recording could not be written
+    ├── OutputError                 an output cannot be written (disk full, I/O error, locked)
     └── ConformanceError            (also an AssertionError) a backend broke a contract rule
 
 Messages are one line and name what was wrong, so the CLI prints ``str(err)`` as-is.
@@ -182,3 +185,42 @@ class ConformanceError(CellcalError, AssertionError):
     def __init__(self, message: str, failures: list[Any]):
         self.failures = failures
         super().__init__(message)
+
+
+class OutputError(CellcalError):
+    """An output (result file, resume journal, recording, output lock) cannot be written.
+
+    Args:
+        message: What failed, naming the path.
+        errno: The operating system's error number, if the cause was an ``OSError``.
+
+    :attr:`bad_path` tells the two kinds apart: the path itself cannot be used (no
+    such directory, not a directory, no permission, read-only file system — the
+    command line must change; exit status 2), or the environment failed while
+    writing (disk full, I/O error, another run holds the output; exit status 1).
+    """
+
+    def __init__(self, message: str, *, errno: int | None = None):
+        self.errno = errno
+        super().__init__(message)
+
+    @property
+    def bad_path(self) -> bool:
+        """Whether the path cannot be used at all (rather than the writing failing)."""
+        import errno as e
+
+        return self.errno in {e.EACCES, e.EPERM, e.EROFS, e.ENOTDIR, e.EISDIR, e.ENOENT, e.ENAMETOOLONG,
+                              e.ELOOP, e.EEXIST, e.EINVAL}
+
+
+class RecordingWriteError(RecordingError, OutputError):
+    """A recording cannot be written (an :class:`OutputError` of the recorder)."""
+
+
+class MotionError(DeviceError):
+    """A motion did not happen as commanded, or cannot be confirmed: the arm may not be where it was sent.
+
+    Raised when a motion command got no valid reply (it is never resent), when contact was
+    lost while the arm moved, or when the read-back pose of a finished move is not at the
+    target or not steady. The arm has been told to stop whenever its state was in doubt.
+    """

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .arm import RobotArm
+from .arrival import ArrivalTolerance
 from .base import Device
 from .camera import Camera3D
 from .pose import Pose
@@ -58,11 +59,23 @@ class ForwardingCamera(ForwardingDevice[Camera3D], Camera3D):
 
 
 class ForwardingArm(ForwardingDevice[RobotArm], RobotArm):
-    """A :class:`RobotArm` that forwards every call to the arm ``inner`` (motion timeout included)."""
+    """A :class:`RobotArm` that forwards every call to the arm ``inner`` (motion timeout included).
+
+    The arrival of a move is checked once, by ``inner`` (its ``move_linear``); a tolerance
+    set on the wrapper is handed down to it.
+    """
+
+    verifies_arrival = False
 
     def __init__(self, inner: RobotArm) -> None:
         super().__init__(inner)
         self.default_motion_timeout_s = inner.default_motion_timeout_s
+
+    def default_arrival_tolerance(self) -> ArrivalTolerance:
+        return self.inner.arrival_tolerance
+
+    def _set_arrival_tolerance(self, value: ArrivalTolerance) -> None:
+        self.inner.arrival_tolerance = value  # the wrapper keeps none of its own: it reads the inner's
 
     def _get_pose(self, timeout: float) -> Pose:
         return self.inner.get_pose(timeout)

@@ -16,20 +16,16 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
 from .arm import RobotArm
+from .arrival import MAX_ANGLE_TOLERANCE_RAD, MAX_POSITION_TOLERANCE_M, format_pose
 from .errors import SafetyError
 from .forwarding import ForwardingArm
 from .pose import Pose
 
+__all__ = ["MIN_PATH_SAMPLES", "PATH_SAMPLES_PER_M", "SafeArm", "SafetyLimits", "format_pose"]
+
 #: Points per metre (and at least this many per move) at which a path is checked.
 PATH_SAMPLES_PER_M = 200
 MIN_PATH_SAMPLES = 16
-
-
-def format_pose(pose: Pose) -> str:
-    """``xyz=(x, y, z) m rpy=(r, p, y) deg`` of a flange pose, for messages."""
-    x, y, z = pose.translation
-    r = np.degrees(pose.rotation.as_euler("xyz"))
-    return f"xyz=({x:.4f}, {y:.4f}, {z:.4f}) m rpy=({r[0]:.2f}, {r[1]:.2f}, {r[2]:.2f}) deg"
 
 
 @dataclass(frozen=True)
@@ -47,6 +43,9 @@ class SafetyLimits:
         plane_normal: Normal of the measuring plane, base frame (need not be unit);
             the camera must stay on the side it points to.
         mount: Camera pose in the flange frame (hand-eye transform).
+        arrival_tolerance_m: How close a finished move must read back to its target, m;
+            None keeps the arm's own default (see :class:`~cellcal.devices.arrival.ArrivalTolerance`).
+        arrival_tolerance_rad: The same for the orientation, rad; None keeps the arm's default.
     """
 
     workspace_min_m: tuple[float, float, float]
@@ -57,6 +56,8 @@ class SafetyLimits:
     plane_point_m: tuple[float, float, float] | None = None
     plane_normal: tuple[float, float, float] | None = None
     mount: Pose = field(default_factory=Pose.identity)
+    arrival_tolerance_m: float | None = None
+    arrival_tolerance_rad: float | None = None
 
     def __post_init__(self) -> None:
         lo, hi = np.asarray(self.workspace_min_m, float), np.asarray(self.workspace_max_m, float)
@@ -74,6 +75,11 @@ class SafetyLimits:
             raise SafetyError("plane_point_m and plane_normal must be given together")
         if self.plane_normal is not None and not np.linalg.norm(self.plane_normal) > 0:
             raise SafetyError("plane_normal must be non-zero")
+        for name, top in (("arrival_tolerance_m", MAX_POSITION_TOLERANCE_M),
+                          ("arrival_tolerance_rad", MAX_ANGLE_TOLERANCE_RAD)):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and 0 < v <= top):
+                raise SafetyError(f"{name} must be in (0, {top:.4g}], got {v!r}")
 
     def _plane(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
         if self.plane_point_m is None or self.plane_normal is None:
@@ -169,6 +175,9 @@ class SafeArm(ForwardingArm):
     speed and acceleration within their maxima, and the camera no closer to the
     measuring plane than the minimum standoff.
 
+    The arrival tolerance of ``limits``, where given, is handed to ``inner``, which checks
+    every move's arrival (ADR 0016).
+
     Args:
         inner: The arm to protect. Its life cycle is driven through this wrapper.
         limits: The envelope.
@@ -177,6 +186,9 @@ class SafeArm(ForwardingArm):
     def __init__(self, inner: RobotArm, limits: SafetyLimits) -> None:
         super().__init__(inner)
         self.limits = limits
+        if limits.arrival_tolerance_m is not None or limits.arrival_tolerance_rad is not None:
+            self.arrival_tolerance = inner.arrival_tolerance.with_overrides(limits.arrival_tolerance_m,
+                                                                            limits.arrival_tolerance_rad)
 
     def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
         start = self.inner.get_pose(min(timeout, self.default_timeout_s))

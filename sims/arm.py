@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from cellcal.devices.arm import RobotArm
+from cellcal.devices.arrival import ArrivalTolerance
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError, DeviceTimeoutError, VendorError
 from cellcal.devices.pose import Pose
@@ -122,7 +123,11 @@ class LinearMotion:
         """Flange pose ``t_s`` simulated seconds after the start."""
         if t_s >= self._duration:
             return self.target
-        s = trapezoid_position(t_s, self.length_m, self.speed, self.acceleration) / self.length_m
+        return self.pose_at_fraction(trapezoid_position(t_s, self.length_m, self.speed, self.acceleration)
+                                     / self.length_m)
+
+    def pose_at_fraction(self, s: float) -> Pose:
+        """Flange pose after the fraction ``s`` (0..1) of the path."""
         rot = self.start.rotation * Rotation.from_rotvec(s * self._drot)
         return Pose(rot, self.start.translation + s * self._dp)
 
@@ -185,11 +190,30 @@ def forward_position(joints: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.array([r * math.cos(j1), r * math.sin(j1), z])
 
 
+@dataclass
+class SimArmFaults:
+    """Switchable misbehaviour of the sim arm, for tests (ADR 0016); everything is off by default.
+
+    Seen the same way through the xArm emulator, which serves this arm on the wire.
+
+    Attributes:
+        stop_short_m: Every motion ends this far before its target along the path
+            (a motion shorter than that does not move), and is reported done, metres.
+        pose_jump_m: Every pose read is off the truth by a random vector of this length, metres.
+        stale_reads: Every pose read returns the one before it (the first read the truth):
+            a read-back lagging one request behind.
+    """
+
+    stop_short_m: float = 0.0
+    pose_jump_m: float = 0.0
+    stale_reads: bool = False
+
+
 @dataclass(frozen=True)
 class SimArmConfig:
     """Config of the ``sim`` arm backend (the ``[arm]`` table)."""
 
-    reach_m: float = field(default=0.70, metadata={"gt": 0.0, "le": 5.0, "doc": "max flange radius from base axis, m"})
+    reach_m: float = field(default=0.70, metadata={"ge": 0.05, "le": 5.0, "doc": "max flange radius from base axis, m"})
     min_radius_m: float = field(default=0.10, metadata={"ge": 0.0, "le": 5.0,
                                                         "doc": "min flange radius from the base axis, m"})
     z_min_m: float = field(default=-0.10, metadata={"ge": -5.0, "le": 5.0, "doc": "lowest flange z, m"})
@@ -237,6 +261,12 @@ class SimArm(RobotArm):
     latch a controller error (:meth:`set_error`, e.g. 31, the protective stop after a
     collision), freeze the motion (:meth:`freeze_motion`, a blocked arm that never
     arrives) or raise. :attr:`stops` counts the stop commands received.
+    :attr:`faults` (:class:`SimArmFaults`) switches on an arm that stops short, a pose
+    read-back that jumps or one that lags a read behind.
+
+    **Arrival** (checked by :class:`RobotArm` after every move): the default tolerance is
+    1 mm / 0.1 deg, widened to twice ``repeatability_m`` when that is larger, so two noisy
+    reads at rest still agree.
 
     Thread-safe: the non-blocking API (:meth:`begin_move_linear`, :meth:`is_moving`,
     :meth:`motion_progress`, :meth:`current_error`, :meth:`set_error`) may be driven
@@ -270,6 +300,14 @@ class SimArm(RobotArm):
         self.moves_started = 0
         self.connects = 0
         self.stops = 0
+        #: Switchable misbehaviour (tests), see :class:`SimArmFaults`.
+        self.faults = SimArmFaults()
+        self._fault_rng = self.world.rng("arm.faults", self.config.seed)
+        self._last_read: Pose | None = None
+
+    def default_arrival_tolerance(self) -> ArrivalTolerance:
+        """1 mm / 0.1 deg, or twice the read-back repeatability when that is larger."""
+        return ArrivalTolerance(position_m=max(1e-3, 2.0 * self.config.repeatability_m))
 
     # ------------------------------------------------------------------ workspace
     def workspace_violation(self, pose: Pose) -> str | None:
@@ -302,13 +340,21 @@ class SimArm(RobotArm):
             v = min(float(speed_m_s), MAX_SPEED_M_S)
             acc = min(float(acceleration_m_s2), MAX_ACCELERATION_M_S2)
             model = self.world.arm
-            motion = LinearMotion(model.flange_pose(), pose, v, acc)
+            motion = self._faulty(LinearMotion(model.flange_pose(), pose, v, acc))
             self.last_motion_duration_s = motion.duration_s
             model.start_motion(motion, self.config.time_scale)
             self._motion = motion
             self.moves_started += 1
             if self.fault_hook is not None:
                 self.fault_hook("move", self.moves_started)
+
+    def _faulty(self, motion: LinearMotion) -> LinearMotion:
+        """``motion``, ending :attr:`SimArmFaults.stop_short_m` early when that fault is on."""
+        short = self.faults.stop_short_m
+        if short <= 0.0:
+            return motion
+        s = max(0.0, 1.0 - short / motion.length_m) if motion.length_m > 0 else 0.0  # fraction of the path made
+        return LinearMotion(motion.start, motion.pose_at_fraction(s), motion.speed, motion.acceleration)
 
     def freeze_motion(self) -> None:
         """Fault injection: the motion under way stops progressing (a blocked arm).
@@ -381,7 +427,16 @@ class SimArm(RobotArm):
         true = self.world.arm.flange_pose()
         with self._lock:
             noise = self._rng.standard_normal(3) * (self.config.repeatability_m / 4.0)
-        return Pose(true.rotation, true.translation + noise)
+            reading = Pose(true.rotation, true.translation + noise)
+            previous, self._last_read = self._last_read, reading
+            faults = self.faults
+            if faults.stale_reads and previous is not None:
+                reading = previous
+            if faults.pose_jump_m > 0.0:
+                direction = self._fault_rng.standard_normal(3)
+                reading = Pose(reading.rotation, reading.translation
+                               + faults.pose_jump_m * direction / np.linalg.norm(direction))
+            return reading
 
     def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
         self.begin_move_linear(pose, speed, acceleration)

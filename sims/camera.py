@@ -1,21 +1,23 @@
 """The ``sim`` camera: a simulated ifm O3R222-like 3D time-of-flight camera (:class:`SimCamera`).
 
 224 x 172 px, 60° x 45° field of view, pinhole + Brown–Conrady distortion (OpenCV
-conventions); it renders the shared simulated world from the arm's true camera pose.
-The noise, validity and confidence model is documented on :meth:`SimCamera.render`;
-why the sim is built this way: docs/adr/0014-simulated-cell.md.
+conventions); it renders the shared simulated world from the arm's true camera pose,
+with the ToF artefacts of ``[sim.artefacts]`` (:mod:`cellcal.sims.tof`). The pipeline is
+documented on :meth:`SimCamera.render`; why the sim is built this way and where its
+levels come from: docs/adr/0014-simulated-cell.md.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
@@ -24,43 +26,42 @@ from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
+from .mixed_pixels import PixelReturns, blend_edges
+from .multipath import SurfacePoints, second_bounce
+from .tof import (
+    SIGMA_AT_1M_M,
+    SIGMA_DISTANCE_EXPONENT,
+    amplitude_sigma_m,
+    datasheet_sigma_m,
+    drift_offset_m,
+    noise_sigma_m,
+    relative_amplitude,
+)
 from .world import SimWorld, world_from_context
 
-#: Distance-noise sigma at 1 m, normal incidence, metres.
-SIGMA_AT_1M_M = 0.0032
-#: Exponent of the distance in the noise model.
-SIGMA_DISTANCE_EXPONENT = 1.5
+__all__ = ["CONF_INVALID", "CONF_LOW_AMPLITUDE", "CONF_OUT_OF_RANGE", "CONF_SATURATED", "REPEATABILITY_SIGMAS",
+           "SIGMA_AT_1M_M", "SIGMA_DISTANCE_EXPONENT", "SimCamera", "SimCameraConfig", "datasheet_sigma_m",
+           "noise_sigma_m", "o3r222_intrinsics"]
+
 #: Repeatability figures are read as this many sigma.
 REPEATABILITY_SIGMAS = 2.0
 
 #: Confidence bits (O3R meaning).
 CONF_INVALID = 1
+CONF_SATURATED = 2
 CONF_LOW_AMPLITUDE = 8
 CONF_OUT_OF_RANGE = 64
 
 
-def noise_sigma_m(distance_m: ArrayLike, cos_incidence: ArrayLike = 1.0, noise_scale: float = 1.0
-                  ) -> NDArray[np.float64]:
-    """Standard deviation (m) of the simulated radial-distance noise.
+class _Cast(NamedTuple):
+    """Centre-ray geometry of a frame, flattened (H*W,)."""
 
-    ``sigma = noise_scale * 3.2 mm * (d / 1 m)**1.5 / sqrt(cos θ)``, θ the angle between
-    the ray and the surface normal. Reading ifm's quoted repeatability as **2 sigma** at
-    normal incidence, this gives 2.3 mm at 0.6 m, 6.4 mm at 1 m (quoted < 7 mm under
-    1 m), 11.8 mm at 1.5 m and 18.1 mm at 2 m (quoted ~15 mm at 1–2 m) and 51 mm at 4 m
-    (quoted up to 51 mm beyond 4 m).
-
-    Args:
-        distance_m: True radial distance, metres.
-        cos_incidence: Cosine of the angle between ray and surface normal (0..1].
-        noise_scale: Multiplier (0 = noise-free).
-    """
-    d = np.asarray(distance_m, dtype=np.float64)
-    c = np.clip(np.asarray(cos_incidence, dtype=np.float64), 1e-6, 1.0)
-    if SIGMA_DISTANCE_EXPONENT == 1.5:  # d**1.5 via sqrt: several times faster than pow
-        out: NDArray[np.float64] = (noise_scale * SIGMA_AT_1M_M) * d * np.sqrt(d / c)
-    else:  # pragma: no cover - kept for anyone changing the exponent
-        out = noise_scale * SIGMA_AT_1M_M * d**SIGMA_DISTANCE_EXPONENT / np.sqrt(c)
-    return out
+    range_m: NDArray[np.float64]  # true radial distance, NaN where nothing is hit
+    cos_incidence: NDArray[np.float64]  # 0 where nothing is hit
+    hit: NDArray[np.bool_]
+    surface: NDArray[np.int32]
+    normals: NDArray[np.float64]  # world frame, NaN where nothing is hit
+    dirs: NDArray[np.float64]  # unit rays, world frame
 
 
 def o3r222_intrinsics(width: int = 224, height: int = 172, fov_x_deg: float = 60.0, fov_y_deg: float = 45.0,
@@ -109,7 +110,8 @@ class SimCameraConfig:
     quantisation_m: float = field(default=0.001, metadata={"ge": 0.0, "le": 0.1,
                                                            "doc": "distance step, m (0 = none)"})
     frame_rate_hz: float = field(default=20.0, metadata={"gt": 0.0, "le": 1000.0, "doc": "frame rate, Hz"})
-    amplitude_at_1m: float = field(default=1000.0, metadata={"gt": 0.0, "doc": "amplitude at 1 m, normal"})
+    amplitude_at_1m: float = field(default=1000.0, metadata={
+        "gt": 0.0, "doc": "amplitude of the reference target (reflectivity 0.5) at 1 m, normal"})
     seed: int | None = field(default=None, metadata={"ge": 0, "doc": "noise seed; default: the world's seed"})
 
     def __post_init__(self) -> None:
@@ -160,6 +162,8 @@ class SimCamera(Camera3D):
         self._rays_cam = rays.reshape(-1, 3)
         self._ray_ok = np.all(np.isfinite(self._rays_cam), axis=1)
         self._rays_safe = np.where(self._ray_ok[:, None], self._rays_cam, np.array([0.0, 0.0, 1.0]))
+        # Solid angle of each pixel, sr: cos^3 (angle to the optical axis) / (fx fy) (pinhole).
+        self._solid_angle = np.where(self._ray_ok, self._rays_safe[:, 2] ** 3, 0.0) / (self._intr.fx * self._intr.fy)
         self._rng = self.world.rng("camera", self.config.seed)
         self._lock = threading.Lock()
         self._sequence = 0
@@ -175,17 +179,26 @@ class SimCamera(Camera3D):
 
         Draws noise from this camera's generator (so successive calls differ unless
         the noise is off). Usable before :meth:`connect`. The rays are rotated into the
-        world by ``camera_pose``, cast against the scene, and then:
+        world by ``camera_pose``, cast against the scene, and then, with the world's
+        ``[sim.artefacts]`` (:class:`~cellcal.sims.tof.ArtefactsConfig`):
 
-        * **noise**: the measured radial distance is the true one plus Gaussian noise
-          of :func:`noise_sigma_m` (scaled by ``noise_scale``);
+        * **return**: relative amplitude ``(rho / 0.5) cos θ / d²`` of the surface hit;
+        * **multipath** (``multipath``): a second bounce off the other surfaces in view
+          lengthens the range and changes the amplitude (:mod:`cellcal.sims.multipath`);
+        * **mixed pixels** (``mixed_pixels``): a pixel near a depth edge returns the phasor
+          blend of its (lens-blurred) footprint (:mod:`cellcal.sims.mixed_pixels`);
+        * **drift** (``temperature_drift``): a range offset decaying with warm-up time;
+        * **noise**: Gaussian range noise of :func:`~cellcal.sims.tof.amplitude_sigma_m` of
+          the return's amplitude (``amplitude_noise``; else the data-sheet law
+          :func:`~cellcal.sims.tof.datasheet_sigma_m`), scaled by ``noise_scale``;
         * **quantisation**: the noisy distance is rounded to ``quantisation_m`` (1 mm);
-        * **invalid pixels** (distance and XYZ NaN, ``valid`` False): no surface hit,
-          angle between ray and surface normal above ``grazing_limit_deg``, measured
-          distance outside ``[min_range_m, max_range_m]``;
-        * **amplitude**: ``amplitude_at_1m · cos θ / d²`` (0 where nothing was hit);
-        * **confidence**: an O3R-like uint16 image: bit 0 invalid, 8 low amplitude
-          (grazing), 64 outside range.
+        * **invalid pixels** (distance and XYZ NaN, ``valid`` False): no surface hit or no
+          return, angle between ray and surface normal above ``grazing_limit_deg``,
+          measured distance outside ``[min_range_m, max_range_m]``, and with
+          ``amplitude_noise`` an amplitude below ``min_amplitude`` or above ``saturation_amplitude``;
+        * **amplitude**: ``amplitude_at_1m`` times the relative amplitude (0 where no return);
+        * **confidence**: an O3R-like uint16 image: bit 0 invalid, 2 saturated, 8 low
+          amplitude (or grazing), 64 outside range.
 
         Args:
             camera_pose: Camera pose in the world/base frame.
@@ -193,12 +206,14 @@ class SimCamera(Camera3D):
             sequence: Sequence number to stamp.
         """
         h, w = self._intr.height, self._intr.width
-        t_true, cos_inc, hit = self._cast(camera_pose)
-        d = self._measure(t_true, cos_inc, hit)
-        valid, conf = self._validity(d, cos_inc, hit)
-        # Amplitude falls off as cos θ / d²; 0 where nothing was hit.
-        with np.errstate(divide="ignore", invalid="ignore"):
-            amp = np.where(hit, self.config.amplitude_at_1m * cos_inc / np.square(t_true), 0.0)
+        cast = self._cast(camera_pose)
+        ret = self._returns(camera_pose, cast)
+        d = self._measure(ret, cast)
+        valid, conf = self._validity(d, ret.amplitude, cast)
+        arte = self.world.artefacts
+        # amplitude image; a saturated pixel reads the saturation level
+        ceiling = arte.saturation_amplitude if arte.amplitude_noise else np.inf
+        amp = np.minimum(ret.amplitude, ceiling) * self.config.amplitude_at_1m
         # Invalid pixels read NaN; XYZ is the exact pixel ray times the measured distance.
         dist = np.where(valid, d, np.nan)
         xyz = self._rays_cam * dist[:, None]
@@ -213,46 +228,82 @@ class SimCamera(Camera3D):
             confidence=conf.reshape(h, w),
         )
 
-    def _cast(self, camera_pose: Pose) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
-        """True radial distance (m, NaN where no hit), cos θ (0 where no hit) and hit mask per pixel, (H*W,)."""
+    def _cast(self, camera_pose: Pose) -> _Cast:
+        """Centre-ray geometry per pixel, (H*W,)."""
         # Pixel rays, camera frame -> world frame.
         r_wc = camera_pose.rotation.as_matrix()
         dirs = self._rays_safe @ r_wc.T
-        t, normal, hit = self.world.scene.raycast(camera_pose.translation, dirs)
+        t, normal, hit, surface = self.world.scene.raycast_surfaces(camera_pose.translation, dirs)
         # Pixels without a defined ray never hit.
         hit &= self._ray_ok
+        surface[~hit] = -1
         # cos θ between the ray and the surface normal (normals face the ray, rays are unit).
         cos_inc = np.where(hit, -np.einsum("ij,ij->i", normal, dirs), 0.0)
-        t_true = np.where(hit, t, np.nan)
-        return t_true, cos_inc, hit
+        return _Cast(np.where(hit, t, np.nan), cos_inc, hit, surface, normal, dirs)
 
-    def _measure(self, t_true: NDArray[np.float64], cos_inc: NDArray[np.float64], hit: NDArray[np.bool_]
-                 ) -> NDArray[np.float64]:
-        """Measured radial distance, metres: truth + noise, quantised."""
-        cfg = self.config
-        noise_draw = self._rng.standard_normal(t_true.shape[0])  # drawn every frame: the stream stays aligned
+    def _returns(self, camera_pose: Pose, cast: _Cast) -> PixelReturns:
+        """Effective range (m) and relative amplitude of each pixel's return, before noise."""
+        arte, scene = self.world.artefacts, self.world.scene
+        # A lone plane has one surface: no depth edge (its horizon is beyond the grazing limit), no multipath.
+        edges = bool(scene.boxes)
+        rho = scene.reflectivity(cast.surface) if edges else scene.plane_reflectivity
+        t_safe = np.where(cast.hit, cast.range_m, 1.0)
+        ret = PixelReturns(cast.range_m, np.where(cast.hit, relative_amplitude(t_safe, cast.cos_incidence, rho), 0.0))
+        z = None
+        if arte.multipath and edges:
+            origin = np.asarray(camera_pose.translation, dtype=np.float64)
+            seen = SurfacePoints(origin + cast.dirs * t_safe[:, None], np.where(cast.hit[:, None], cast.normals, 0.0),
+                                 t_safe, cast.cos_incidence, np.broadcast_to(rho, t_safe.shape), self._solid_angle,
+                                 cast.surface)
+            z = second_bounce(seen, (self._intr.height, self._intr.width), arte)
+        if arte.mixed_pixels and edges:
+            h, w = self._intr.height, self._intr.width
+            ret = blend_edges(ret, scene, camera_pose.translation, cast.dirs.reshape(h, w, 3),
+                              cast.surface.reshape(h, w), arte)
+        rng, amp = ret.range_m, ret.amplitude
+        if z is not None and np.any(z):
+            # the second bounce: phase of (direct + indirect) relative to the direct return
+            rng = rng + np.angle(1.0 + z) / arte.wavenumber_rad_m
+            amp = amp * np.abs(1.0 + z)
+        offset = drift_offset_m(arte, self.world.clock.elapsed_s)
+        return PixelReturns(rng + offset if offset else rng, amp)
+
+    def _measure(self, ret: PixelReturns, cast: _Cast) -> NDArray[np.float64]:
+        """Measured radial distance, metres: effective range + noise, quantised."""
+        cfg, arte = self.config, self.world.artefacts
+        noise_draw = self._rng.standard_normal(ret.range_m.shape[0])  # drawn every frame: the stream stays aligned
         if cfg.noise and cfg.noise_scale > 0:
-            # sigma from the true distance and incidence (1 m, normal where nothing was hit: unused)
-            sigma = noise_sigma_m(np.where(hit, t_true, 1.0), np.where(hit, cos_inc, 1.0), cfg.noise_scale)
-            d = t_true + sigma * noise_draw
+            if arte.amplitude_noise:
+                sigma = amplitude_sigma_m(np.where(ret.amplitude > 0, ret.amplitude, 1.0), arte.noise_floor,
+                                          cfg.noise_scale)
+            else:  # the data-sheet law of the true distance and incidence (1 m, normal where nothing was hit)
+                sigma = datasheet_sigma_m(np.where(cast.hit, cast.range_m, 1.0),
+                                          np.where(cast.hit, cast.cos_incidence, 1.0), cfg.noise_scale)
+            d = ret.range_m + sigma * noise_draw
         else:
-            d = t_true
+            d = ret.range_m
         if cfg.quantisation_m > 0:
             # round to the distance step
             d = np.round(d / cfg.quantisation_m) * cfg.quantisation_m
         return d
 
-    def _validity(self, d: NDArray[np.float64], cos_inc: NDArray[np.float64], hit: NDArray[np.bool_]
+    def _validity(self, d: NDArray[np.float64], amplitude: NDArray[np.float64], cast: _Cast
                   ) -> tuple[NDArray[np.bool_], NDArray[np.uint16]]:
         """Validity mask and O3R-like confidence bits per pixel from the measured distance ``d`` (m)."""
-        cfg = self.config
+        cfg, arte = self.config, self.world.artefacts
+        hit = cast.hit & (amplitude > 0)  # a pixel whose footprint returned no light has no measurement
         # Grazing: angle between ray and normal above the limit (cos below its cosine).
-        grazing = hit & (cos_inc < self._cos_grazing)
+        low = hit & (cast.cos_incidence < self._cos_grazing)
+        saturated = np.zeros_like(hit)
+        if arte.amplitude_noise:
+            low |= hit & (amplitude < arte.min_amplitude)
+            saturated = hit & (amplitude > arte.saturation_amplitude)
         with np.errstate(invalid="ignore"):
             out_of_range = ~hit | (d < cfg.min_range_m) | (d > cfg.max_range_m)
-        valid = hit & ~grazing & ~out_of_range
+        valid = hit & ~low & ~saturated & ~out_of_range
         conf = np.zeros(d.shape[0], dtype=np.uint16)
-        conf[grazing] |= CONF_LOW_AMPLITUDE
+        conf[low] |= CONF_LOW_AMPLITUDE
+        conf[saturated] |= CONF_SATURATED
         conf[out_of_range] |= CONF_OUT_OF_RANGE
         conf[~valid] |= CONF_INVALID
         return valid, conf
@@ -310,4 +361,5 @@ class SimCamera(Camera3D):
     def describe(self) -> dict[str, Any]:
         """Model parameters for reports."""
         return {"intrinsics": self._intr.to_dict(), "sigma_at_1m_m": SIGMA_AT_1M_M * self.config.noise_scale,
-                "sigma_distance_exponent": SIGMA_DISTANCE_EXPONENT, "repeatability_sigmas": REPEATABILITY_SIGMAS}
+                "sigma_distance_exponent": SIGMA_DISTANCE_EXPONENT, "repeatability_sigmas": REPEATABILITY_SIGMAS,
+                "artefacts": dataclasses.asdict(self.world.artefacts)}

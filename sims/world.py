@@ -21,7 +21,8 @@ from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 
-from .scene import Box, Scene
+from .scene import DEFAULT_REFLECTIVITY, MAX_REFLECTIVITY, Box, Scene
+from .tof import ArtefactsConfig
 
 #: Key of the shared world in ``BackendContext.shared``.
 SHARED_KEY = "sim.world"
@@ -56,27 +57,34 @@ class BoxConfig:
     size_m: tuple[float, float, float] = field(metadata={"gt": 0.0, "le": 5.0, "doc": "edge lengths, m"})
     yaw_deg: float = field(default=0.0, metadata={"ge": -360.0, "le": 360.0,
                                                   "doc": "rotation about the plane normal, degrees"})
+    reflectivity: float = field(default=DEFAULT_REFLECTIVITY, metadata={
+        "gt": 0.0, "le": MAX_REFLECTIVITY, "doc": "near-infrared reflectivity (1 = white, > 1 retro-reflective)"})
 
     def box(self) -> Box:
         """The scene object."""
-        return Box(self.center_xy_m, self.size_m, float(np.radians(self.yaw_deg)))
+        return Box(self.center_xy_m, self.size_m, float(np.radians(self.yaw_deg)), self.reflectivity)
 
 
 @dataclass(frozen=True)
 class SimConfig:
     """The ``[sim]`` table: the simulated cell's ground truth.
 
-    It sets the plane, the boxes, the initial flange pose, the seed and optionally a
-    mount that overrides the document's ``[mount]`` table: the calibrator reads
-    ``[mount]`` as its *nominal* mount, the sim uses it as the *true* one unless
-    ``[sim.mount]`` says otherwise, which is how a mount error is simulated.
+    It sets the plane, the boxes, the initial flange pose, the seed, the ToF camera's
+    artefacts (``[sim.artefacts]``, all on by default) and optionally a mount that
+    overrides the document's ``[mount]`` table: the calibrator reads ``[mount]`` as its
+    *nominal* mount, the sim uses it as the *true* one unless ``[sim.mount]`` says
+    otherwise, which is how a mount error is simulated.
     """
 
     plane_point_m: tuple[float, float, float] = field(
         default=(0.0, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0, "doc": "a point on the plane, base frame, m"})
     plane_normal: tuple[float, float, float] = field(
         default=(0.0, 0.0, 1.0), metadata={"ge": -1e6, "le": 1e6, "doc": "plane normal, base frame (normalised)"})
+    plane_reflectivity: float = field(default=DEFAULT_REFLECTIVITY, metadata={
+        "gt": 0.0, "le": MAX_REFLECTIVITY, "doc": "near-infrared reflectivity of the plane"})
     boxes: list[BoxConfig] = field(default_factory=list, metadata={"doc": "work objects on the plane"})
+    artefacts: ArtefactsConfig = field(default_factory=ArtefactsConfig, metadata={
+        "doc": "the ToF camera's artefacts (mixed pixels, multipath, amplitude noise, drift)"})
     mount: MountConfig | None = field(default=None, metadata={
         "doc": "true flange->camera mount; default: the document's [mount] table"})
     initial_flange_translation_m: tuple[float, float, float] = field(
@@ -94,7 +102,7 @@ class SimConfig:
         """The scene this config describes."""
         return Scene(np.asarray(self.plane_point_m, dtype=np.float64),
                      np.asarray(self.plane_normal, dtype=np.float64),
-                     tuple(b.box() for b in self.boxes))
+                     tuple(b.box() for b in self.boxes), self.plane_reflectivity)
 
     def initial_flange_pose(self) -> Pose:
         """``T_base_flange`` at start."""
@@ -258,7 +266,7 @@ class SimArmModel:
 
 # ---------------------------------------------------------------------- the world
 class SimWorld:
-    """Scene + true mount + true arm state + clock + seed.
+    """Scene + true mount + true arm state + clock + seed + the camera's artefacts.
 
     The camera renders from :meth:`camera_pose` = true flange pose @ true mount.
 
@@ -268,22 +276,24 @@ class SimWorld:
         arm: True arm state.
         clock: Simulated clock shared by every simulated device.
         seed: Root seed; devices derive their own streams with :meth:`rng`.
+        artefacts: The simulated ToF camera's artefacts (default: all on).
     """
 
     def __init__(self, scene: Scene, mount: Pose, flange_pose: Pose | None = None, seed: int = 0,
-                 clock: SimClock | None = None) -> None:
+                 clock: SimClock | None = None, artefacts: ArtefactsConfig | None = None) -> None:
         self.scene = scene
         self.mount = mount
         self.clock = clock or SimClock()
         self.arm = SimArmModel(flange_pose or SimConfig().initial_flange_pose(), self.clock)
         self.seed = int(seed)
+        self.artefacts = artefacts or ArtefactsConfig()
 
     @classmethod
     def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
         """Build from a ``[sim]`` config; ``config.mount`` beats ``mount``, ``config.seed`` beats ``seed``."""
         m = config.mount or mount or MountConfig()
         return cls(config.scene(), m.pose(), config.initial_flange_pose(),
-                   seed if config.seed is None else config.seed)
+                   seed if config.seed is None else config.seed, artefacts=config.artefacts)
 
     def camera_pose(self) -> Pose:
         """True camera pose in the base frame, ``T_base_camera = T_base_flange @ T_flange_camera``."""

@@ -5,11 +5,19 @@ unconnected arm — and :class:`ArmOptions`. The arm must start at rest, free of
 errors, with room for a small move: the round trip goes ``step_m`` (base frame)
 away from the start pose, turned ``step_rotation_rad`` about the flange z axis, and
 back. Run it against a simulator or emulator, or on a real arm with a clear cell.
+
+The arrival rule (ADR 0016) also fakes a move that stops short: for one move it shifts
+what the backend's ``_get_pose`` hook reads back by :data:`FAKE_SHORTFALL_M` and requires
+``move_linear`` to raise :class:`~cellcal.devices.errors.MotionError` and to tell the arm
+to stop (the arm really moves by the round-trip step only). For a wrapper
+(``verifies_arrival`` false) the hooks of the arm it wraps are shifted; an arm that
+checks nothing and wraps nothing (a replay) moves nothing, and skips this part.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -18,13 +26,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cellcal.devices.arm import RobotArm
-from cellcal.devices.errors import CellcalError, DeviceTimeoutError
+from cellcal.devices.errors import CellcalError, DeviceTimeoutError, MotionError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus
 
 from ._runner import (
     Check,
     ConformanceReport,
+    Violation,
     check_bad_connect_timeouts,
     check_bad_timeouts,
     connected,
@@ -36,6 +45,11 @@ from ._runner import (
 from .lifecycle import CommonOptions, lifecycle_checks
 
 Factory = Callable[[], RobotArm]
+
+#: How far the arrival rule shifts the read-back of one move to fake an arm that stopped short, metres.
+FAKE_SHORTFALL_M = 0.07
+#: Pose reads the arrival rule takes at rest after a move.
+ARRIVAL_READS = 3
 
 
 @dataclass(frozen=True)
@@ -164,6 +178,66 @@ def _pose_round_trip(factory: Factory, o: ArmOptions) -> None:
         expect(_near(back, start, o), f"after moving back, get_pose is {_pose_error(back, start)} from the start")
 
 
+def _arrival(factory: Factory, o: ArmOptions) -> None:
+    with connected(factory, RobotArm, o.connect_timeout_s) as arm:
+        start = arm.get_pose(o.io_timeout_s)
+        target = o.target(start)
+        try:
+            arm.move_linear(target, speed=o.speed_m_s, acceleration=o.acceleration_m_s2, timeout=o.motion_timeout_s)
+        except MotionError as exc:
+            raise Violation(f"move_linear to a reachable target raised MotionError: {exc}") from None
+        reads = [arm.get_pose(o.io_timeout_s) for _ in range(ARRIVAL_READS)]
+        for i, (a, b) in enumerate(itertools.pairwise(reads), 1):
+            expect(_near(a, b, o), f"pose reads {i} and {i + 1} at rest after a move differ by {_pose_error(a, b)}")
+        for i, reading in enumerate(reads, 1):
+            expect(_near(reading, target, o), f"move_linear returned, but pose read {i} is "
+                                              f"{_pose_error(reading, target)} from the target: it reported an "
+                                              "arrival that did not happen")
+        arm.move_linear(start, speed=o.speed_m_s, acceleration=o.acceleration_m_s2, timeout=o.motion_timeout_s)
+        _misreported_arrival(arm, start, o)
+
+
+def _arrival_checker(arm: RobotArm) -> RobotArm | None:
+    """The arm that checks arrivals: ``arm``, or the one a wrapper delegates to (None for a replay)."""
+    while not arm.verifies_arrival:
+        inner = getattr(arm, "inner", None)
+        if not isinstance(inner, RobotArm):
+            return None
+        arm = inner
+    return arm
+
+
+def _misreported_arrival(arm: RobotArm, start: Pose, o: ArmOptions) -> None:
+    """One move whose read-back is shifted by FAKE_SHORTFALL_M must end in MotionError and a stop."""
+    checker = _arrival_checker(arm)
+    if checker is None:  # declares it moves nothing (verifies_arrival False, wraps no arm): nothing to fake
+        return
+    real_get_pose, real_stop = checker._get_pose, checker._stop
+    stops: list[float] = []
+
+    def short_pose(timeout: float) -> Pose:
+        p = real_get_pose(timeout)
+        return Pose(p.rotation, p.translation + np.array([FAKE_SHORTFALL_M, 0.0, 0.0]))
+
+    def counted_stop(timeout: float) -> None:
+        stops.append(timeout)
+        real_stop(timeout)
+
+    target = o.target(start)
+    hooks = vars(checker)  # instance attributes shadow the backend's hooks for this one move
+    hooks["_get_pose"], hooks["_stop"] = short_pose, counted_stop
+    try:
+        raises(MotionError, lambda: arm.move_linear(target, speed=o.speed_m_s, acceleration=o.acceleration_m_s2,
+                                                    timeout=o.motion_timeout_s),
+               f"move_linear whose pose reads back {FAKE_SHORTFALL_M * 1000:g} mm off the target")
+    finally:
+        hooks.pop("_get_pose", None)
+        hooks.pop("_stop", None)
+    expect(stops, "move_linear raised MotionError for a move that did not arrive but never told the arm to stop")
+    arm.clear_errors(o.io_timeout_s)
+    arm.move_linear(start, speed=o.speed_m_s, acceleration=o.acceleration_m_s2, timeout=o.motion_timeout_s)
+
+
 def _stop_idempotent(factory: Factory, o: ArmOptions) -> None:
     with connected(factory, RobotArm, o.connect_timeout_s) as arm:
         start = arm.get_pose(o.io_timeout_s)
@@ -238,6 +312,9 @@ ARM_CHECKS: tuple[Check[RobotArm, ArmOptions], ...] = (
           _argument_validation),
     Check("arm.pose-round-trip", "move_linear then get_pose agree within tolerance (metres, radians)",
           _pose_round_trip),
+    Check("arm.arrival", "move_linear returns only once the arm is at the target (steady read-back within "
+                         "tolerance); a move that reads back elsewhere raises MotionError and stops the arm",
+          _arrival),
     Check("arm.stop-idempotent", "stop() on an idle arm, twice, is harmless", _stop_idempotent),
     Check("arm.timeout-validation", "a non-positive, NaN, infinite or non-number timeout is a clear CellcalError "
                                     "and nothing moves", _timeout_validation),

@@ -1,4 +1,4 @@
-"""The calibration workflow: cell config, calibrator, journal, dry run, report."""
+"""The calibration workflow: cell config, calibrator, journal, output lock, dry run, report."""
 
 from cellcal.core.calibration.calibrator import (
     Calibrator,
@@ -21,6 +21,7 @@ from cellcal.core.calibration.config import (
     look_at_pose,
     parse_config,
     plan_flange_poses,
+    read_config_text,
 )
 from cellcal.core.calibration.dryrun import (
     MoveCheck,
@@ -38,11 +39,13 @@ from cellcal.core.calibration.journal import (
     read_journal,
     remove_journal,
 )
+from cellcal.core.calibration.outlock import LOCK_NAME, OutputLock
 from cellcal.core.calibration.replay import (
     compare_with_recording,
     exact_part,
     record,
     replay_session,
+    run_recorded,
 )
 from cellcal.core.calibration.report import (
     format_full_frame,
@@ -57,6 +60,7 @@ from cellcal.core.calibration.report import (
 __all__ = [
     "JOURNAL_SCHEMA",
     "JOURNAL_SUFFIX",
+    "LOCK_NAME",
     "Calibrator",
     "CellConfig",
     "CellSection",
@@ -65,6 +69,7 @@ __all__ = [
     "MonitorSection",
     "MountSection",
     "MoveCheck",
+    "OutputLock",
     "PlanPose",
     "PlanSection",
     "PoseRecord",
@@ -87,10 +92,12 @@ __all__ = [
     "plan_flange_poses",
     "plane_summary",
     "poses_saved",
+    "read_config_text",
     "read_journal",
     "record",
     "remove_journal",
     "replay_session",
+    "run_recorded",
     "run_to_file",
     "summarize",
     "summarize_poses",

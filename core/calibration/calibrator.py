@@ -29,6 +29,7 @@ from cellcal.core.calibration.journal import (
     read_journal,
     remove_journal,
 )
+from cellcal.core.calibration.outlock import OutputLock
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.measure import (
@@ -46,7 +47,6 @@ from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import (
     CalibrationError,
     CalibrationQualityError,
-    CellcalError,
     VendorError,
 )
 from cellcal.devices.pose import Pose
@@ -253,7 +253,7 @@ class Calibrator:
         fingerprint = plan_fingerprint(self.config.document, self.poses)
         done = self._journal_entries(journal, fingerprint) if resume else []
         self.journal_writer = None if journal is None else JournalWriter(journal, fingerprint, len(self.poses),
-                                                                         append=resume)
+                                                                         append=resume, resumed=len(done))
         started = time.perf_counter()
         created = datetime.now(UTC).isoformat(timespec="seconds")
         measured: dict[int, tuple[PoseRecord, dict[str, Any]]] = {
@@ -433,27 +433,28 @@ class Calibrator:
 def run_to_file(calibrator: Calibrator, out: str | Path, *, resume: bool = False) -> dict[str, Any]:
     """Run with a resume journal beside ``out``, write the result atomically, drop the journal.
 
-    On failure an earlier ``out`` is untouched; the journal stays (if any pose was
-    measured) so ``resume=True`` can continue the run.
+    The output directory is locked for the whole run (:class:`OutputLock`): a second run
+    on it is refused. On failure an earlier ``out`` is untouched; the journal stays (if
+    any pose was measured) so ``resume=True`` can continue the run.
 
     Raises:
-        CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`; CalibrationError if
-            the result cannot be written.
+        CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`; OutputError if another
+            run holds the directory, or the journal or result cannot be written.
     """
     out = Path(out)
     journal = journal_path(out)
-    document = calibrator.run(journal=journal, resume=resume)
-    write_json_atomic(out, document)
-    remove_journal(journal)
+    with OutputLock.for_directory(out.parent):
+        document = calibrator.run(journal=journal, resume=resume)
+        write_json_atomic(out, document)
+        remove_journal(journal)
     return document
 
 
 def poses_saved(calibrator: Calibrator) -> int:
-    """Poses of the current run's journal on disk (after a failure: what --resume would skip)."""
+    """Poses the current run has in its journal (after a failure: what --resume would skip).
+
+    Counted by the run itself (resumed + appended), so the journal of an earlier run that
+    this one has not replaced yet is not counted.
+    """
     writer = calibrator.journal_writer
-    if writer is None or not writer.path.exists():
-        return 0
-    try:
-        return len(read_journal(writer.path, writer.fingerprint))
-    except CellcalError:
-        return 0
+    return 0 if writer is None else writer.saved

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import stat
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -33,18 +35,22 @@ TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "pl
                     "full_frame")
 #: Backends built on the simulated world, the only readers of ``[sim]`` (tests/unit/core/calibration/test_config.py
 #: checks this against the registered backends that live in ``cellcal.sims``).
-SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated"})
+SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated", "ur-emulated"})
 
 log = logging.getLogger(__name__)
 DEFAULT_CONFIG_NAME = "sim.toml"
+#: Largest configuration file read, bytes (a cell's configuration is a few KB).
+MAX_CONFIG_BYTES = 1 << 20
+#: Most poses a plan may have.
+MAX_POSES = 1000
 
 
 @dataclass(frozen=True)
 class CellSection:
     """``[cell]``: identity of the cell and the seed of all simulated randomness."""
 
-    name: str = "cell"
-    seed: int = field(default=0, metadata={"ge": 0})
+    name: str = field(default="cell", metadata={"max_len": 100})
+    seed: int = field(default=0, metadata={"ge": 0, "le": 2**32 - 1})  # what every random generator takes
 
 
 @dataclass(frozen=True)
@@ -63,7 +69,7 @@ class MountSection:
 class ReferenceSection:
     """``[reference]``: the measuring plane as the cell believes it, base frame."""
 
-    plane_point_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -100.0, "le": 100.0})
+    plane_point_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0})
     plane_normal: Vec3 = field(default=(0.0, 0.0, 1.0), metadata={"ge": -1e6, "le": 1e6})  # norm cannot overflow
 
     def __post_init__(self) -> None:
@@ -73,13 +79,20 @@ class ReferenceSection:
 
 @dataclass(frozen=True)
 class SafetySection:
-    """``[safety]``: the motion envelope every arm command is checked against."""
+    """``[safety]``: the motion envelope every arm command is checked against, and how a move must arrive.
 
-    workspace_min_m: Vec3 = (-0.7, -0.7, 0.0)
-    workspace_max_m: Vec3 = (0.7, 0.7, 1.0)
-    max_speed_m_s: float = field(default=0.25, metadata={"gt": 0, "le": 3.0})
-    max_acceleration_m_s2: float = field(default=2.0, metadata={"gt": 0, "le": 150.0})
-    min_standoff_m: float = field(default=0.15, metadata={"ge": 0})
+    Ranges are those of a real cell (ADR 0016): a workspace within 10 m of the base, speeds
+    from 0.1 mm/s, an arrival tolerance of at most 100 mm / 10 deg (unset: the arm's own
+    default, 1 mm / 0.1 deg for an industrial arm).
+    """
+
+    workspace_min_m: Vec3 = field(default=(-0.7, -0.7, 0.0), metadata={"ge": -10.0, "le": 10.0})
+    workspace_max_m: Vec3 = field(default=(0.7, 0.7, 1.0), metadata={"ge": -10.0, "le": 10.0})
+    max_speed_m_s: float = field(default=0.25, metadata={"ge": 1e-4, "le": 3.0})
+    max_acceleration_m_s2: float = field(default=2.0, metadata={"ge": 1e-3, "le": 150.0})
+    min_standoff_m: float = field(default=0.15, metadata={"ge": 0, "le": 10.0})
+    arrival_tolerance_m: float | None = field(default=None, metadata={"ge": 1e-6, "le": 0.1})
+    arrival_tolerance_deg: float | None = field(default=None, metadata={"ge": 1e-4, "le": 10.0})
 
     def __post_init__(self) -> None:
         for axis, lo, hi in zip("xyz", self.workspace_min_m, self.workspace_max_m, strict=True):
@@ -91,7 +104,7 @@ class SafetySection:
 class PlanPose:
     """One explicit flange pose of ``[[plan.poses]]``, base frame."""
 
-    xyz_m: Vec3
+    xyz_m: Vec3 = field(metadata={"ge": -10.0, "le": 10.0})
     rpy_deg: Vec3 = field(default=(180.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
 
     def pose(self) -> Pose:
@@ -116,24 +129,31 @@ class PlanSection:
     paper's plan.
     """
 
-    heights_m: tuple[float, ...] = field(default=(0.46, 0.59, 0.61), metadata={"gt": 0, "min_items": 1})
-    inclination_deg: float = field(default=80.0, metadata={"gt": 0, "le": 90})
+    heights_m: tuple[float, ...] = field(default=(0.46, 0.59, 0.61),
+                                         metadata={"ge": 0.01, "le": 10.0, "min_items": 1, "max_items": 100})
+    inclination_deg: float = field(default=80.0, metadata={"ge": 1, "le": 90})
     tilt_axis: Literal["x", "y"] = "x"
-    azimuths_deg: tuple[float, ...] = field(default=(0.0,), metadata={"ge": -360, "le": 360, "min_items": 1})
-    target_m: Vec3 = (0.3, 0.0, 0.0)
-    poses: tuple[PlanPose, ...] = ()
-    perimeters_px: tuple[int, ...] = field(default=(20, 30, 40, 50), metadata={"gt": 0, "min_items": 1})
+    azimuths_deg: tuple[float, ...] = field(default=(0.0,),
+                                            metadata={"ge": -360, "le": 360, "min_items": 1, "max_items": 360})
+    target_m: Vec3 = field(default=(0.3, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0})
+    poses: tuple[PlanPose, ...] = field(default=(), metadata={"max_items": MAX_POSES})
+    perimeters_px: tuple[int, ...] = field(default=(20, 30, 40, 50),
+                                           metadata={"ge": 1, "le": 10000, "min_items": 1, "max_items": 100})
     methods: tuple[MethodName, ...] = field(default=ALL_METHODS, metadata={"min_items": 1})
     frames_per_pose: int = field(default=1, metadata={"ge": 1, "le": 100})
     window_px: int = field(default=3, metadata={"ge": 1, "le": 15})
     settle_s: float = field(default=0.0, metadata={"ge": 0, "le": 60})
-    speed_m_s: float = field(default=0.2, metadata={"gt": 0})
-    acceleration_m_s2: float = field(default=1.0, metadata={"gt": 0})
-    move_timeout_s: float = field(default=60.0, metadata={"gt": 0})
-    capture_timeout_s: float = field(default=2.0, metadata={"gt": 0})
+    # a collaborative arm's slowest useful and fastest possible tool motion (the envelope's own caps)
+    speed_m_s: float = field(default=0.2, metadata={"ge": 0.001, "le": 3.0})
+    acceleration_m_s2: float = field(default=1.0, metadata={"ge": 0.01, "le": 150.0})
+    move_timeout_s: float = field(default=60.0, metadata={"ge": 0.1, "le": 3600})
+    capture_timeout_s: float = field(default=2.0, metadata={"ge": 0.01, "le": 600})
     nominal_fov_deg: tuple[float, float] | None = field(default=None, metadata={"gt": 0, "lt": 180})
 
     def __post_init__(self) -> None:
+        n_poses = len(self.poses) or len(self.heights_m) * len(self.azimuths_deg)
+        if n_poses > MAX_POSES:
+            raise ValueError(f"plan has {n_poses} poses (heights x azimuths); at most {MAX_POSES}")
         if self.window_px % 2 != 1:
             raise ValueError(f"plan.window_px must be odd, got {self.window_px}")
         if len(set(self.methods)) != len(self.methods):
@@ -154,17 +174,18 @@ class MonitorSection:
     """
 
     period_s: float = field(default=0.1, metadata={"ge": 0, "le": 3600, "doc": "min. wall time between captures, s"})
-    capture_timeout_s: float = field(default=2.0, metadata={"gt": 0, "le": 600, "doc": "per-capture timeout, s"})
-    connect_timeout_s: float = field(default=10.0, metadata={"gt": 0, "le": 600, "doc": "per-camera connect, s"})
+    capture_timeout_s: float = field(default=2.0, metadata={"ge": 0.01, "le": 600, "doc": "per-capture timeout, s"})
+    connect_timeout_s: float = field(default=10.0, metadata={"ge": 0.1, "le": 600, "doc": "per-camera connect, s"})
     baseline_frames: int = field(default=20, metadata={"ge": 2, "le": 100000, "doc": "frames for baseline/noise"})
-    tilt_threshold_deg: float = field(default=0.2, metadata={"gt": 0, "le": 90, "doc": "tilt drift threshold, deg"})
-    height_threshold_m: float = field(default=0.002, metadata={"gt": 0, "le": 10, "doc": "height drift threshold, m"})
+    tilt_threshold_deg: float = field(default=0.2, metadata={"ge": 0.001, "le": 90, "doc": "tilt drift threshold, deg"})
+    height_threshold_m: float = field(default=0.002, metadata={"ge": 1e-5, "le": 10,
+                                                              "doc": "height drift threshold, m"})
     noise_sigmas: float = field(default=6.0, metadata={"ge": 0, "le": 1000,
                                                        "doc": "thresholds >= this many measured noise sigmas"})
     window_frames: int = field(default=5, metadata={"ge": 1, "le": 10000, "doc": "median window, frames"})
-    hysteresis_ratio: float = field(default=0.5, metadata={"gt": 0, "le": 1, "doc": "clear level / threshold"})
+    hysteresis_ratio: float = field(default=0.5, metadata={"ge": 0.01, "le": 1, "doc": "clear level / threshold"})
     clear_s: float = field(default=1.0, metadata={"ge": 0, "le": 86400, "doc": "time below the clear level, s"})
-    status_every_s: float = field(default=1.0, metadata={"gt": 0, "le": 86400, "doc": "CLI status line period, s"})
+    status_every_s: float = field(default=1.0, metadata={"ge": 0.01, "le": 86400, "doc": "CLI status line period, s"})
 
     @property
     def tilt_threshold_rad(self) -> float:
@@ -213,6 +234,9 @@ class CellConfig:
             plane_point_m=ref.plane_point_m if ref else None,
             plane_normal=ref.plane_normal if ref else None,
             mount=self.mount.pose(),
+            arrival_tolerance_m=self.safety.arrival_tolerance_m,
+            arrival_tolerance_rad=None if self.safety.arrival_tolerance_deg is None
+            else math.radians(self.safety.arrival_tolerance_deg),
         )
 
 
@@ -236,7 +260,7 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
         if not isinstance(document[required].get("backend"), str):
             raise ConfigError("missing or non-string 'backend'", source=source, key=f"{required}.backend")
     if "sim" in document and not {document["camera"]["backend"], document["arm"]["backend"]} & SIM_BACKENDS:
-        log.warning("%s: [sim] has no effect: camera backend '%s' and arm backend '%s' are not simulated "
+        log.warning("%s: [sim] has no effect: camera backend %r and arm backend %r are not simulated "
                     "(only %s read it)", source, document["camera"]["backend"], document["arm"]["backend"],
                     ", ".join(sorted(SIM_BACKENDS)))
     ref = document.get("reference")
@@ -257,28 +281,75 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
     )
 
 
+def read_config_text(path: str | Path | None) -> tuple[str, str]:
+    """The text of a configuration file and its source name; None reads the packaged ``sim.toml``.
+
+    Only a regular file of at most :data:`MAX_CONFIG_BYTES` is read: a FIFO, a device or
+    a directory is refused before any read (a FIFO would block, ``/dev/zero`` never end).
+
+    Raises:
+        ConfigError: If the file is missing, not a regular file, too large, unreadable or not UTF-8.
+    """
+    if path is None:
+        text = resources.files("cellcal.configs").joinpath(DEFAULT_CONFIG_NAME).read_text(encoding="utf-8")
+        return text, f"<packaged {DEFAULT_CONFIG_NAME}>"
+    source = str(path)
+    if not source:
+        raise ConfigError("empty path; expected a configuration file (TOML)")
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # O_NONBLOCK: a FIFO opens at once
+    except FileNotFoundError:
+        raise ConfigError("file not found", source=source) from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
+        raise ConfigError(f"cannot read: {getattr(exc, 'strerror', None) or exc}", source=source) from None
+    try:
+        kind = os.fstat(fd).st_mode
+        if stat.S_ISDIR(kind):
+            raise ConfigError("is a directory; expected a configuration file (TOML)", source=source)
+        if not stat.S_ISREG(kind):
+            raise ConfigError("not a regular file (a FIFO, device or socket is no configuration file)",
+                              source=source)
+        data = _read_at_most(fd, MAX_CONFIG_BYTES + 1)
+    except OSError as exc:
+        raise ConfigError(f"cannot read: {exc.strerror or exc}", source=source) from None
+    finally:
+        os.close(fd)
+    if len(data) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"larger than {MAX_CONFIG_BYTES} bytes; not a cell configuration", source=source)
+    try:
+        return data.decode("utf-8"), source
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"not UTF-8 text: byte 0x{data[exc.start]:02x} at offset {exc.start}",
+                          source=source) from None
+
+
+def _read_at_most(fd: int, limit: int) -> bytes:
+    """Up to ``limit`` bytes of the open file ``fd`` (fewer at its end)."""
+    chunks: list[bytes] = []
+    size = 0
+    while size < limit:
+        chunk = os.read(fd, limit - size)
+        if not chunk:
+            break
+        chunks.append(chunk)
+        size += len(chunk)
+    return b"".join(chunks)
+
+
 def load_config(path: str | Path | None = None) -> CellConfig:
     """Read and validate a configuration file; None loads the packaged ``sim.toml``.
 
     Raises:
-        ConfigError: If the file is missing, not valid TOML, or fails validation.
+        ConfigError: If the file is missing, unreadable (:func:`read_config_text`), not
+            valid TOML, or fails validation.
     """
-    if path is None:
-        text = resources.files("cellcal.configs").joinpath(DEFAULT_CONFIG_NAME).read_text(encoding="utf-8")
-        source = f"<packaged {DEFAULT_CONFIG_NAME}>"
-    else:
-        p = Path(path)
-        source = str(p)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise ConfigError("file not found", source=source) from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"cannot read: {exc}", source=source) from None
+    text, source = read_config_text(path)
     try:
         document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"invalid TOML: {exc}", source=source) from None
+    except RecursionError:  # tomllib parses nested arrays and inline tables recursively
+        raise ConfigError("invalid TOML: arrays or inline tables nested too deeply", source=source) from None
     return parse_config(document, source)
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.core.calibration.report import write_bytes_atomic
-from cellcal.devices.errors import CalibrationError, ConfigError
+from cellcal.devices.errors import CalibrationError, ConfigError, OutputError
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
 
@@ -65,17 +65,28 @@ class JournalWriter:
         fingerprint: :func:`plan_fingerprint` of the run.
         n_poses: Number of poses in the plan.
         append: Continue an existing journal (resume) instead of starting a new one.
+        resumed: Poses the continued journal already holds (with ``append``).
 
     A new journal is created only when the first pose is appended, so a run that
     fails before measuring anything leaves no journal (and keeps an older one).
     """
 
-    def __init__(self, path: str | Path, fingerprint: str, n_poses: int, *, append: bool = False):
+    def __init__(self, path: str | Path, fingerprint: str, n_poses: int, *, append: bool = False,
+                 resumed: int = 0):
         self.path = Path(path)
         self.fingerprint = fingerprint
         self.n_poses = n_poses
         self._started = append and self.path.exists()
+        self.resumed = resumed if self._started else 0
         self.appended = 0
+
+    @property
+    def saved(self) -> int:
+        """Poses of this run in the journal: those it resumed from plus those it appended.
+
+        An older journal left by another run (this one has not appended yet) does not count.
+        """
+        return self.resumed + self.appended
 
     @staticmethod
     def _line(obj: Mapping[str, Any]) -> str:
@@ -85,7 +96,7 @@ class JournalWriter:
         """Record one measured pose (flushed and fsync'd before returning).
 
         Raises:
-            CalibrationError: If the journal cannot be written.
+            OutputError: If the journal cannot be written (disk full, no permission ...).
         """
         line = {"kind": "pose", "index": int(index), "fingerprint": self.fingerprint, "pose": pose,
                 "device_state": device_state}
@@ -94,8 +105,8 @@ class JournalWriter:
                       "poses": self.n_poses}
             try:
                 write_bytes_atomic(self.path, (self._line(header) + self._line(line)).encode("utf-8"), fsync_dir=True)
-            except CalibrationError as exc:
-                raise CalibrationError(f"resume journal: {exc}") from None
+            except OutputError as exc:
+                raise OutputError(f"resume journal: {exc}", errno=exc.errno) from None
             self._started = True
         else:
             try:
@@ -104,7 +115,8 @@ class JournalWriter:
                     fh.flush()
                     os.fsync(fh.fileno())
             except OSError as exc:
-                raise CalibrationError(f"cannot write the resume journal {self.path}: {exc.strerror or exc}") from None
+                raise OutputError(f"cannot write the resume journal {self.path}: {exc.strerror or exc}",
+                                  errno=exc.errno) from None
         self.appended += 1
 
 

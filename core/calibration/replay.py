@@ -12,6 +12,7 @@ from typing import Any
 
 from cellcal.core.calibration.calibrator import Calibrator, ProgressFactory, build_devices
 from cellcal.core.calibration.config import CellConfig, parse_config
+from cellcal.core.calibration.outlock import OutputLock
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import RecordingFileError
 from cellcal.devices.jsonsafe import json_safe
@@ -20,7 +21,7 @@ from cellcal.devices.registry import Registry
 from cellcal.devices.safety import SafeArm
 
 __all__ = ["REPLAY_BACKEND", "VOLATILE_KEYS", "VOLATILE_POSE_KEYS", "compare_with_recording", "exact_part",
-           "record", "replay_session"]
+           "record", "replay_session", "run_recorded"]
 
 #: Backend name of the replay camera and arm.
 REPLAY_BACKEND = "replay"
@@ -36,7 +37,8 @@ def record(config: CellConfig, out: str | Path, *, config_text: str | None = Non
     """Run the plan of ``config`` with its devices behind a recorder writing ``out``.
 
     The backend arm is recorded inside the safety wrapper, so the file holds exactly
-    what the backend was asked and answered.
+    what the backend was asked and answered. ``out`` is locked for the run
+    (:meth:`OutputLock.for_file`): a second recording to the same file is refused.
 
     Args:
         config: The validated configuration.
@@ -51,15 +53,35 @@ def record(config: CellConfig, out: str | Path, *, config_text: str | None = Non
 
     Raises:
         CellcalError: As :meth:`Calibrator.run`; the recording is then discarded, or
-            finished with the error logged when ``keep_failed``.
+            finished with the error logged when ``keep_failed``. OutputError if another
+            run holds ``out``.
+        KeyboardInterrupt: The recording is finished with what was recorded (see
+            :class:`SessionRecorder`).
     """
     camera, safe_arm = build_devices(config, registry)
-    with SessionRecorder(out, config_document=config.document, config_source=config.source,
-                         config_text=config_text, keep_on_error=keep_failed) as recorder:
-        arm = SafeArm(recorder.arm(safe_arm.inner), safe_arm.limits)
-        document = Calibrator(config, recorder.camera(camera), arm, progress=progress).run()
-        recorder.log_result(document)
+    with OutputLock.for_file(out):
+        recorder = SessionRecorder(out, config_document=config.document, config_source=config.source,
+                                   config_text=config_text, keep_on_error=keep_failed)
+        with recorder:
+            document = run_recorded(config, recorder, camera, safe_arm, progress=progress)
     return document, recorder
+
+
+def run_recorded(config: CellConfig, recorder: SessionRecorder, camera: Camera3D, safe_arm: SafeArm, *,
+                 progress: ProgressFactory | None = None) -> dict[str, Any]:
+    """Run the plan of ``config`` on ``camera`` and ``safe_arm`` (:func:`build_devices`) behind ``recorder``.
+
+    The backend arm is recorded inside the safety wrapper; the result is logged. The
+    caller owns ``recorder`` (its ``with`` block decides what becomes of the file when
+    this raises).
+
+    Raises:
+        CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`.
+    """
+    arm = SafeArm(recorder.arm(safe_arm.inner), safe_arm.limits)
+    document = Calibrator(config, recorder.camera(camera), arm, progress=progress).run()
+    recorder.log_result(document)
+    return document
 
 
 def replay_session(path: str | Path, registry: Registry | None = None, *, strict: bool = True

@@ -19,7 +19,7 @@ import numpy as np
 
 from cellcal.core.geometry.consistency import PosePlane, plane_consistency
 from cellcal.core.geometry.planes import Plane
-from cellcal.devices.errors import CalibrationError
+from cellcal.devices.errors import CalibrationError, OutputError
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
 
@@ -32,7 +32,7 @@ def write_json_atomic(path: str | Path, document: Mapping[str, Any]) -> Path:
     """Write JSON to ``path`` atomically (see :func:`write_bytes_atomic`), cleaned by :func:`json_safe`.
 
     Raises:
-        CalibrationError: If the directory cannot be created or written.
+        OutputError: If the directory cannot be created or written.
         TypeError: If ``document`` holds an object that is not JSON data (nothing is written).
     """
     text = json.dumps(json_safe(document), indent=2, allow_nan=False) + "\n"
@@ -53,14 +53,14 @@ def write_bytes_atomic(path: str | Path, data: bytes, *, fsync_dir: bool = False
             filesystem that cannot fsync a directory is tolerated).
 
     Raises:
-        CalibrationError: If the directory cannot be created or written.
+        OutputError: If the directory cannot be created or written (disk full, no permission ...).
     """
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     except OSError as exc:
-        raise CalibrationError(f"cannot write {path}: {exc.strerror or exc}") from None
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc}", errno=exc.errno) from None
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -71,7 +71,7 @@ def write_bytes_atomic(path: str | Path, data: bytes, *, fsync_dir: bool = False
     except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
         if isinstance(exc, OSError):
-            raise CalibrationError(f"cannot write {path}: {exc.strerror or exc}") from None
+            raise OutputError(f"cannot write {path}: {exc.strerror or exc}", errno=exc.errno) from None
         raise
     if fsync_dir:
         _fsync_dir(path.parent)

@@ -2,6 +2,6 @@
 
 import sys
 
-from cellcal.core.cli.main import main
+from cellcal.core.cli import main
 
 sys.exit(main())

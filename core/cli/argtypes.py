@@ -1,4 +1,4 @@
-"""argparse ``type=`` checkers for numeric options: a bad number is a one-line usage error (exit 2).
+"""argparse ``type=`` checkers: a bad number or path is a one-line usage error (exit 2).
 
 Example: ``p.add_argument("--timeout", type=real(gt=0), default=2.0)``.
 """
@@ -10,7 +10,7 @@ import math
 from collections.abc import Callable
 from typing import TypeVar
 
-__all__ = ["integer", "real"]
+__all__ = ["integer", "path_arg", "real"]
 
 T = TypeVar("T", int, float)
 
@@ -45,6 +45,13 @@ def real(*, gt: float | None = None, ge: float | None = None, lt: float | None =
          le: float | None = None) -> Callable[[str], float]:
     """A checker for a finite float within the given limits (unit as the option says)."""
     return _checker(float, "a finite number", gt, ge, lt, le)
+
+
+def path_arg(text: str) -> str:
+    """A file or directory path: not empty (an empty path would silently mean the current directory)."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+    return text
 
 
 def integer(*, gt: int | None = None, ge: int | None = None, lt: int | None = None,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,7 @@ from cellcal.core.calibration.dryrun import dry_run
 from cellcal.core.calibration.journal import journal_path
 from cellcal.core.calibration.replay import compare_with_recording, replay_session
 from cellcal.core.calibration.report import RESULT_FILENAME, format_full_frame, format_table
+from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_INTERRUPTED, EXIT_OK
 from cellcal.core.cli.options import add_config_option
 from cellcal.core.cli.progress import progress_factory
@@ -29,7 +31,8 @@ def register(sub: Any) -> None:
                        "compute the measuring plane and report the camera's pose relative to it. "
                        "With no --config, runs the built-in simulated cell (the paper's experiment).")
     add_config_option(p)
-    p.add_argument("--out", metavar="DIR", default="cellcal-out", help="output directory (default: %(default)s)")
+    p.add_argument("--out", metavar="DIR", default="cellcal-out", type=path_arg,
+                   help="output directory (default: %(default)s); one run at a time")
     p.add_argument("--check", action="store_true",
                    help="validate the configuration and show what would connect to what; touch no device")
     p.add_argument("--quiet", action="store_true", help="no progress bar or table; only the result path")
@@ -38,7 +41,7 @@ def register(sub: Any) -> None:
                    "moved to or captured again (the configuration must be unchanged)")
     p.add_argument("--dry-run", action="store_true",
                    help="print every move of the plan with its safety checks; connect and move nothing")
-    p.add_argument("--replay", metavar="FILE.mcap",
+    p.add_argument("--replay", metavar="FILE.mcap", type=path_arg,
                    help="re-run a session recorded with 'cellcal record' from the file alone (its recorded "
                    "configuration, replay camera and arm); reports whether the result is identical")
     p.set_defaults(func=run)
@@ -84,9 +87,10 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
-    config = f" --config {args.config}" if args.config else ""
+    """Where this run's measured poses are, and the command that continues it."""
+    config = f" --config {shlex.quote(args.config)}" if args.config else ""
     return (f"{saved} of {total} poses are saved in {journal_path(Path(args.out) / RESULT_FILENAME)}; "
-            f"'cellcal calibrate{config} --out {args.out} --resume' continues the run")
+            f"'cellcal calibrate{config} --out {shlex.quote(args.out)} --resume' continues the run")
 
 
 def _print_report(document: dict[str, Any]) -> None:

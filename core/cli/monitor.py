@@ -14,8 +14,9 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.core.calibration.config import CellConfig, load_config
-from cellcal.core.cli.argtypes import integer, real
+from cellcal.core.cli.argtypes import integer, path_arg, real
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.options import check_input_file
 from cellcal.core.monitor import (
     Baseline,
     DriftEvent,
@@ -26,6 +27,8 @@ from cellcal.core.monitor import (
     write_baselines,
 )
 
+#: Largest baseline file read (a --save-baseline file or a result.json), bytes.
+MAX_BASELINE_BYTES = 50 << 20
 EPILOG = ("exit status: 0 no drift flagged during the run; 1 drift flagged (or a device failed); "
           "2 bad configuration, baseline file or usage; 130 stopped with Ctrl-C (after the summary).")
 
@@ -37,16 +40,17 @@ def register(sub: Any) -> None:
                        "plane in every frame and report drift of its tilt or height beyond the [monitor] "
                        "thresholds, with hysteresis. The arm is never moved. With no --config, watches the "
                        "built-in simulated cell. Stop with Ctrl-C.", epilog=EPILOG)
-    p.add_argument("--config", metavar="PATH", action="append",
+    p.add_argument("--config", metavar="PATH", action="append", type=path_arg,
                    help="cell configuration (TOML), one camera each; repeat for several cameras "
                    "(default: packaged sim.toml)")
     p.add_argument("--duration", metavar="S", type=real(gt=0), help="stop after S seconds (scripted runs)")
     p.add_argument("--frames", metavar="N", type=integer(ge=1), help="stop after N frames per camera (scripted runs)")
-    p.add_argument("--baseline", metavar="FILE",
+    p.add_argument("--baseline", metavar="FILE", type=path_arg,
                    help="expected plane: a --save-baseline file, or a calibrate result.json (its plane in the "
                    "base frame, seen from the arm's current pose; the arm is connected only to read that pose). "
                    "Default: the mean of the first frames")
-    p.add_argument("--save-baseline", metavar="FILE", help="write the baselines in use at the end of the run")
+    p.add_argument("--save-baseline", metavar="FILE", type=path_arg,
+                   help="write the baselines in use at the end of the run")
     p.add_argument("--quiet", action="store_true", help="print only drift events and the summary")
     p.set_defaults(func=run)
 
@@ -141,6 +145,8 @@ def _label(path: str | None, taken: set[str]) -> str:
 # ---------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal monitor``; returns the exit status."""
+    if args.baseline:
+        check_input_file(args.baseline, MAX_BASELINE_BYTES)
     paths: list[str | None] = list(args.config) if args.config else [None]
     taken: set[str] = set()
     configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]

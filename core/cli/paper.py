@@ -14,12 +14,16 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from cellcal.core.cli.argtypes import integer, real
+from cellcal.core.cli.options import check_input_file
 from cellcal.core.methods.paper import error_pct, paper_methods
 from cellcal.core.methods.paper_data import PaperDataSet, load_paper_table
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.geometry.camera_model import NominalFovModel
 
 __all__ = ["evaluate", "register", "run"]
+
+#: Largest measurement table read, bytes (the paper's Table 2 is about 6 KB).
+MAX_TABLE_BYTES = 50 << 20
 
 
 def register(subparsers: Any) -> None:
@@ -118,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     width, height = (int(v) for v in args.image_size)
     if width <= 0 or height <= 0:
         raise CalibrationError(f"--image-size must be positive, got {width} {height}")
+    check_input_file(args.table, MAX_TABLE_BYTES)
     model = NominalFovModel(width, height, math.radians(fov_x), math.radians(fov_y))
     rows = evaluate(load_paper_table(args.table), true_angle, model)
     if args.json:

@@ -15,6 +15,7 @@ from cellcal.core.study.table import (
     COLUMNS,
     Headline,
     headline,
+    headline_level,
     read_csv,
     rows_to_csv,
     select,
@@ -23,6 +24,9 @@ from cellcal.core.study.table import (
     write_text_atomic,
 )
 from cellcal.core.study.trials import (
+    ARTEFACT_LEVELS,
+    ARTEFACT_TABLES,
+    BASE_ARTEFACTS,
     FULL_FRAME,
     GRID_METHODS,
     METHODS,
@@ -31,6 +35,7 @@ from cellcal.core.study.trials import (
     PAPER_PERIMETERS_PX,
     TARGET_CLUTTER,
     TARGET_COVERAGE,
+    TARGET_COVERAGE_CLUTTER,
     TARGET_ERROR_CLUTTER_DEG,
     TARGET_ERROR_DEG,
     Condition,
@@ -48,6 +53,9 @@ from cellcal.core.study.trials import (
 )
 
 __all__ = [
+    "ARTEFACT_LEVELS",
+    "ARTEFACT_TABLES",
+    "BASE_ARTEFACTS",
     "COLUMNS",
     "FULL_FRAME",
     "GRID_METHODS",
@@ -58,6 +66,7 @@ __all__ = [
     "PAPER_PERIMETERS_PX",
     "TARGET_CLUTTER",
     "TARGET_COVERAGE",
+    "TARGET_COVERAGE_CLUTTER",
     "TARGET_ERROR_CLUTTER_DEG",
     "TARGET_ERROR_DEG",
     "BoxSpec",
@@ -73,6 +82,7 @@ __all__ = [
     "full_frame_row",
     "grid_rows",
     "headline",
+    "headline_level",
     "observed_clutter",
     "occluded",
     "place_boxes",

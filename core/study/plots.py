@@ -1,7 +1,8 @@
 """Pictures of the accuracy study (matplotlib on the headless Agg backend; extra ``plots``).
 
-Error against perimeter, clutter, noise and inclination, and the full-frame plane over one
-cluttered frame (the paper's Figure 14 shows its nine-point plane). matplotlib is imported
+Error against perimeter, clutter, noise and inclination (at the headline's ToF artefact
+level), the full frame's error and interval coverage per artefact level, and the full-frame
+plane over one cluttered frame (the paper's Figure 14 shows its nine-point plane). matplotlib is imported
 inside the functions, so this module imports without it; each PNG is written atomically.
 """
 
@@ -17,12 +18,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.calibration.report import write_bytes_atomic
-from cellcal.core.study.table import select
+from cellcal.core.study.table import headline_level, select
 from cellcal.core.study.trials import (
+    ARTEFACT_LEVELS,
     FULL_FRAME,
     METHODS,
     PAPER_HEIGHTS_M,
     PAPER_INCLINATION_DEG,
+    TARGET_COVERAGE,
     StudyResult,
     TrialData,
 )
@@ -35,6 +38,7 @@ PLOT_FILES: dict[str, str] = {
     "perimeter": "study_error_vs_perimeter.png",
     "clutter": "study_error_vs_clutter.png",
     "conditions": "study_error_vs_noise_inclination.png",
+    "artefacts": "study_artefacts.png",
     "plane": "study_plane_fit.png",
 }
 
@@ -202,6 +206,41 @@ def plot_error_vs_conditions(rows: Rows, path: str | Path) -> Path:
     return save_figure(fig, path)
 
 
+def _mean_or_nan(values: NDArray[np.float64]) -> float:
+    return float(np.mean(values)) if values.size else math.nan
+
+
+def plot_artefacts(rows: Rows, path: str | Path) -> Path:
+    """Full frame per ToF artefact level vs clutter (paper settings, all heights): mean |tilt
+    error| (left) and the 95 % intervals' coverage of the tilt and the height (right)."""
+    plt = _pyplot()
+    sel = _paper(rows, method=FULL_FRAME)
+    levels = [a for a in ARTEFACT_LEVELS if select(sel, artefacts=a)]
+    fig, (ax_e, ax_c) = plt.subplots(1, 2, figsize=(11.0, 4.2))
+    for k, level in enumerate(levels):
+        at = select(sel, artefacts=level)
+        clutter = sorted({r["clutter_target"] for r in at})
+        err = [_mean_or_nan(_errors(select(at, clutter_target=c))) for c in clutter]
+        x = [c * 100 for c in clutter]
+        color = f"C{k}"
+        ax_e.plot(x, err, "o-", color=color, label=level)
+        for col, style in (("ci_contains", "o-"), ("height_ci_contains", "s--")):
+            cov = [_mean_or_nan(np.array([bool(r[col]) for r in select(at, clutter_target=c)
+                                          if r["ok"] and r[col] is not None], dtype=float)) * 100 for c in clutter]
+            ax_c.plot(x, cov, style, color=color, label=f"{level}, {'tilt' if col == 'ci_contains' else 'height'}")
+    ax_c.axhspan(TARGET_COVERAGE[0] * 100, TARGET_COVERAGE[1] * 100, color="#2ca02c", alpha=0.15, label="target")
+    ax_e.set_yscale("log")
+    ax_e.set_ylabel("mean |tilt error|, deg")
+    ax_c.set_ylabel("95 % interval coverage, %")
+    for ax in (ax_e, ax_c):
+        ax.set_xlabel("plane pixels hidden by boxes, %")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle("Full frame per ToF artefact level (heights 0.46-0.61 m, 80 deg, default noise)", fontsize=11)
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    return save_figure(fig, path)
+
+
 def inlier_image(trial: TrialData) -> NDArray[np.bool_] | None:
     """The full-frame inlier mask of a trial as an (H, W) image, or None."""
     res = trial.full_frame
@@ -312,16 +351,19 @@ def write_plots(result: StudyResult, out_dir: str | Path) -> dict[str, Path]:
         MissingDependencyError: If matplotlib is not installed (extra ``plots``).
     """
     out = Path(out_dir)
-    rows = result.rows
+    all_rows = result.rows
+    rows = select(all_rows, artefacts=headline_level(all_rows))  # one artefact level in the other plots
     paths = {"perimeter": plot_error_vs_perimeter(rows, out / PLOT_FILES["perimeter"])}
     if len({r["clutter_target"] for r in rows}) > 1:
         paths["clutter"] = plot_error_vs_clutter(rows, out / PLOT_FILES["clutter"])
     if len({r["noise_scale"] for r in rows}) > 1 or len({r["inclination_deg"] for r in rows}) > 1:
         paths["conditions"] = plot_error_vs_conditions(rows, out / PLOT_FILES["conditions"])
+    if len({r.get("artefacts") for r in all_rows}) > 1:
+        paths["artefacts"] = plot_artefacts(all_rows, out / PLOT_FILES["artefacts"])
     if result.example is not None:
         paths["plane"] = plot_plane_fit(result.example, out / PLOT_FILES["plane"])
     return paths
 
 
-__all__ = ["PLOT_FILES", "inlier_image", "plot_error_vs_clutter", "plot_error_vs_conditions",
+__all__ = ["PLOT_FILES", "inlier_image", "plot_artefacts", "plot_error_vs_clutter", "plot_error_vs_conditions",
            "plot_error_vs_perimeter", "plot_plane_fit", "save_figure", "write_plots"]

@@ -205,9 +205,11 @@ def observed_clutter(frame: Frame, rays: PlaneRays, camera_in_base: Pose) -> flo
 
 
 def trial_document(camera_in_base: Pose, boxes: Sequence[BoxSpec], seed: int, noise_scale: float,
-                   camera: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                   camera: Mapping[str, Any] | None = None, artefacts: Mapping[str, Any] | None = None
+                   ) -> dict[str, Any]:
     """The configuration document of one trial: a ``sim`` camera whose (identity-mounted)
-    flange starts at the camera pose, over the plane ``z = 0`` with the boxes."""
+    flange starts at the camera pose, over the plane ``z = 0`` with the boxes, with the
+    ``[sim.artefacts]`` table ``artefacts`` (None: the sim's defaults, every artefact on)."""
     xyz_rpy = camera_in_base.as_xyz_rpy()
     section = {"backend": "sim", **dict(camera or {}), "noise_scale": float(noise_scale),
                "noise": bool(noise_scale > 0)}
@@ -219,7 +221,8 @@ def trial_document(camera_in_base: Pose, boxes: Sequence[BoxSpec], seed: int, no
         "sim": {"plane_point_m": [0.0, 0.0, 0.0], "plane_normal": [0.0, 0.0, 1.0],
                 "boxes": [b.to_table() for b in boxes],
                 "initial_flange_translation_m": [float(v) for v in xyz_rpy[:3]],
-                "initial_flange_rpy_deg": [math.degrees(float(v)) for v in xyz_rpy[3:]]},
+                "initial_flange_rpy_deg": [math.degrees(float(v)) for v in xyz_rpy[3:]],
+                "artefacts": dict(artefacts or {})},
     }
 
 

@@ -17,12 +17,15 @@ import numpy as np
 
 from cellcal.core.calibration.report import write_bytes_atomic
 from cellcal.core.study.trials import (
+    ARTEFACT_LEVELS,
+    BASE_ARTEFACTS,
     FULL_FRAME,
     METHODS,
     PAPER_HEIGHTS_M,
     PAPER_INCLINATION_DEG,
     TARGET_CLUTTER,
     TARGET_COVERAGE,
+    TARGET_COVERAGE_CLUTTER,
     TARGET_ERROR_CLUTTER_DEG,
     TARGET_ERROR_DEG,
 )
@@ -32,6 +35,7 @@ __all__ = [
     "COLUMNS",
     "Headline",
     "headline",
+    "headline_level",
     "read_csv",
     "rows_to_csv",
     "select",
@@ -42,7 +46,7 @@ __all__ = [
 
 #: CSV columns, in order (one row per trial x method x perimeter; full frame has no perimeter).
 COLUMNS: tuple[str, ...] = (
-    "trial", "seed", "height_m", "inclination_deg", "noise_scale", "clutter_target", "clutter_achieved",
+    "trial", "seed", "height_m", "inclination_deg", "noise_scale", "clutter_target", "artefacts", "clutter_achieved",
     "clutter_observed", "n_boxes", "method", "perimeter_px", "ok", "true_angle_deg", "est_angle_deg",
     "angle_error_deg", "true_tilt_deg", "est_tilt_deg", "tilt_error_deg", "abs_tilt_error_deg",
     "normal_error_deg", "true_height_m", "est_height_m", "height_error_m", "sigma_tilt_deg",
@@ -86,12 +90,13 @@ def write_csv(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> Path:
 
 
 _BOOL_COLUMNS = ("ci_contains", "height_ci_contains", "gates_passed")
+_TEXT_COLUMNS = ("method", "message", "artefacts")
 
 
 def _parse_cell(column: str, text: str) -> Any:
     if text == "":
-        return None if column in _BOOL_COLUMNS else (math.nan if column not in ("method", "message") else "")
-    if column in ("method", "message"):
+        return None if column in _BOOL_COLUMNS else (math.nan if column not in _TEXT_COLUMNS else "")
+    if column in _TEXT_COLUMNS:
         return text
     if column in _BOOL_COLUMNS or column == "ok":
         return text == "true"
@@ -144,14 +149,16 @@ def _same(a: Any, b: Any) -> bool:
 
 @dataclass(frozen=True)
 class Headline:
-    """The issue's figures at the paper's settings (heights 0.46/0.59/0.61 m, 80 deg, default noise).
+    """The issues' figures at the paper's settings (heights 0.46/0.59/0.61 m, 80 deg, default
+    noise) and one ToF artefact level (:data:`~cellcal.core.study.trials.BASE_ARTEFACTS`).
 
     Errors are mean absolute tilt errors in degrees over all trials (and, for the
     paper's methods, all perimeters); a failed estimate counts as missing and is
     reported in the ``*_failures`` counts. Coverage is the fraction of full-frame
     fits whose 95 % interval holds the truth. The height figures are for the
-    full frame without clutter (mean |error| in metres, interval coverage). None
-    where the run had no such trials.
+    full frame without clutter (mean |error| in metres, interval coverage).
+    ``coverage_by_clutter`` holds ``(clutter, tilt coverage, height coverage)`` of the
+    full frame at each clutter level of 0-40 %. None where the run had no such trials.
     """
 
     n_trials: int
@@ -169,6 +176,8 @@ class Headline:
     clutter_achieved_mean: float | None
     full_frame_height_error_m: float | None = None
     full_frame_height_coverage: float | None = None
+    artefacts: str = BASE_ARTEFACTS
+    coverage_by_clutter: tuple[tuple[float, float | None, float | None], ...] = ()
 
     @property
     def meets_error(self) -> bool | None:
@@ -188,11 +197,20 @@ class Headline:
         c = self.full_frame_coverage
         return None if c is None else TARGET_COVERAGE[0] <= c <= TARGET_COVERAGE[1]
 
+    @property
+    def meets_coverage_clutter(self) -> bool | None:
+        """Tilt and height interval coverage within 93-97 % at every clutter level of 0-40 %."""
+        vals = [v for _, tilt, height in self.coverage_by_clutter for v in (tilt, height)]
+        if not vals or any(v is None for v in vals):
+            return None
+        return all(TARGET_COVERAGE[0] <= v <= TARGET_COVERAGE[1] for v in vals if v is not None)
+
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (with the target checks)."""
         out = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        out["coverage_by_clutter"] = [list(c) for c in self.coverage_by_clutter]
         out.update(meets_error=self.meets_error, meets_error_clutter=self.meets_error_clutter,
-                   meets_coverage=self.meets_coverage)
+                   meets_coverage=self.meets_coverage, meets_coverage_clutter=self.meets_coverage_clutter)
         return out
 
 
@@ -205,14 +223,36 @@ def _mean_abs(rows: Sequence[Mapping[str, Any]]) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
-def _coverage(rows: Sequence[Mapping[str, Any]]) -> float | None:
-    vals = [bool(r["ci_contains"]) for r in rows if r.get("ok") and r.get("ci_contains") is not None]
+def _coverage(rows: Sequence[Mapping[str, Any]], column: str = "ci_contains") -> float | None:
+    vals = [bool(r[column]) for r in rows if r.get("ok") and r.get(column) is not None]
     return float(np.mean(vals)) if vals else None
 
 
-def headline(rows: Sequence[Mapping[str, Any]]) -> Headline:
-    """The issue's headline figures from study rows (see :class:`Headline`)."""
-    paper = select(rows, height_m=PAPER_HEIGHTS_M, inclination_deg=PAPER_INCLINATION_DEG, noise_scale=1.0)
+def headline_level(rows: Sequence[Mapping[str, Any]]) -> str:
+    """The artefact level of the headline: the base level if the rows have it, else the first they have."""
+    levels = [r.get("artefacts") for r in rows]
+    if BASE_ARTEFACTS in levels or not levels:
+        return BASE_ARTEFACTS
+    return next((a for a in ARTEFACT_LEVELS if a in levels), str(levels[0]))
+
+
+def _coverage_by_clutter(ff: Sequence[Mapping[str, Any]]) -> tuple[tuple[float, float | None, float | None], ...]:
+    lo, hi = TARGET_COVERAGE_CLUTTER
+    levels = sorted({float(r["clutter_target"]) for r in ff if lo - 1e-9 <= r["clutter_target"] <= hi + 1e-9})
+    return tuple((c, _coverage(select(ff, clutter_target=c)),
+                  _coverage(select(ff, clutter_target=c), "height_ci_contains")) for c in levels)
+
+
+def headline(rows: Sequence[Mapping[str, Any]], artefacts: str | None = None) -> Headline:
+    """The issues' headline figures from study rows (see :class:`Headline`).
+
+    Args:
+        rows: Study rows.
+        artefacts: Artefact level to report; None: :func:`headline_level`.
+    """
+    level = artefacts or headline_level(rows)
+    paper = select(rows, height_m=PAPER_HEIGHTS_M, inclination_deg=PAPER_INCLINATION_DEG, noise_scale=1.0,
+                   artefacts=level)
     clean = select(paper, clutter_target=0.0)
     clut = select(paper, clutter_target=TARGET_CLUTTER)
     ff, ffc = select(clean, method=FULL_FRAME), select(clut, method=FULL_FRAME)
@@ -231,27 +271,34 @@ def headline(rows: Sequence[Mapping[str, Any]]) -> Headline:
         nominal_error_clutter_deg=_mean_abs(select(clut, method="plane_fit_nominal")),
         clutter_achieved_mean=float(np.mean(achieved)) if achieved else None,
         full_frame_height_error_m=_mean_of([abs(r["height_error_m"]) for r in ff if r["ok"]]),
-        full_frame_height_coverage=_mean_of([bool(r["height_ci_contains"]) for r in ff
-                                             if r["ok"] and r["height_ci_contains"] is not None]),
+        full_frame_height_coverage=_coverage(ff, "height_ci_contains"),
+        artefacts=level, coverage_by_clutter=_coverage_by_clutter(select(paper, method=FULL_FRAME)),
     )
 
 
 def summary_table(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Per method and clutter level at the paper's settings: n, failures, mean/median/p95 |error| (deg),
-    interval coverage and the fraction of fits passing the quality gates (full frame)."""
+    """Per artefact level, clutter level and method at the paper's settings: n, failures,
+    mean/median/p95 |tilt error| (deg), mean |height error| (m), tilt and height interval
+    coverage and the fraction of fits passing the quality gates (full frame)."""
     paper = select(rows, height_m=PAPER_HEIGHTS_M, inclination_deg=PAPER_INCLINATION_DEG, noise_scale=1.0)
+    present = {r.get("artefacts") for r in paper}
     out = []
-    for clutter in sorted({r["clutter_target"] for r in paper}):
-        for method in METHODS:
-            sel = select(paper, method=method, clutter_target=clutter)
-            if not sel:
-                continue
-            err = np.array([r["abs_tilt_error_deg"] for r in sel if r["ok"]])
-            out.append({"method": method, "clutter": clutter, "n": len(sel), "failed": len(sel) - err.size,
-                        "mean_deg": float(err.mean()) if err.size else math.nan,
-                        "median_deg": float(np.median(err)) if err.size else math.nan,
-                        "p95_deg": float(np.percentile(err, 95)) if err.size else math.nan,
-                        "coverage": _coverage(sel),
-                        "gates_passed": _mean_of([bool(r["gates_passed"]) for r in sel
-                                                  if r["ok"] and r.get("gates_passed") is not None])})
+    for level in [a for a in ARTEFACT_LEVELS if a in present] + sorted(str(a) for a in present - set(ARTEFACT_LEVELS)):
+        for clutter in sorted({r["clutter_target"] for r in paper}):
+            for method in METHODS:
+                sel = select(paper, method=method, clutter_target=clutter, artefacts=level)
+                if sel:
+                    out.append({"artefacts": level, **_summary_row(sel, method, clutter)})
     return out
+
+
+def _summary_row(sel: Sequence[Mapping[str, Any]], method: str, clutter: float) -> dict[str, Any]:
+    err = np.array([r["abs_tilt_error_deg"] for r in sel if r["ok"]])
+    return {"method": method, "clutter": clutter, "n": len(sel), "failed": len(sel) - err.size,
+            "mean_deg": float(err.mean()) if err.size else math.nan,
+            "median_deg": float(np.median(err)) if err.size else math.nan,
+            "p95_deg": float(np.percentile(err, 95)) if err.size else math.nan,
+            "mean_height_error_m": _mean_of([abs(r["height_error_m"]) for r in sel if r["ok"]]),
+            "coverage": _coverage(sel), "height_coverage": _coverage(sel, "height_ci_contains"),
+            "gates_passed": _mean_of([bool(r["gates_passed"]) for r in sel
+                                      if r["ok"] and r.get("gates_passed") is not None])}

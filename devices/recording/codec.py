@@ -113,8 +113,14 @@ def decode_pose(data: Mapping[str, Any]) -> Pose:
         raise RecordingError(f"recorded pose is malformed: {exc}") from None
 
 
-def encode_error(exc: CellcalError) -> dict[str, Any]:
-    """JSON form of a typed error: class name, message and simple attributes."""
+#: The JSON form of a Ctrl-C (KeyboardInterrupt) that cut a call or the whole session short.
+INTERRUPTED: Mapping[str, Any] = {"type": "KeyboardInterrupt", "message": "interrupted (Ctrl-C)", "attrs": {}}
+
+
+def encode_error(exc: CellcalError | KeyboardInterrupt) -> dict[str, Any]:
+    """JSON form of a typed error (class name, message and simple attributes), or of a Ctrl-C."""
+    if isinstance(exc, KeyboardInterrupt):
+        return {**INTERRUPTED, "attrs": {}}
     attrs = {k: v for k, v in vars(exc).items() if isinstance(v, (str, int, float, bool)) or v is None}
     return {"type": type(exc).__name__, "message": str(exc), "attrs": attrs}
 
@@ -122,7 +128,7 @@ def encode_error(exc: CellcalError) -> dict[str, Any]:
 def decode_error(data: Mapping[str, Any]) -> CellcalError:
     """Rebuild a recorded error with its class (from :mod:`cellcal.devices.errors`), message and attributes.
 
-    An unknown class becomes a :class:`DeviceError` whose message names it.
+    An unknown class (and a recorded Ctrl-C) becomes a :class:`DeviceError` whose message names it.
     """
     name, message = str(data.get("type", "")), str(data.get("message", ""))
     cls = getattr(_errors, name, None)

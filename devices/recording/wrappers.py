@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import partial
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -35,6 +36,16 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 
 
+@contextlib.contextmanager
+def _unless_interrupted(exc: BaseException) -> Iterator[None]:
+    """Logging a failed call: its own failure propagates, unless a Ctrl-C is on its way already."""
+    if not isinstance(exc, KeyboardInterrupt):
+        yield
+        return
+    with contextlib.suppress(Exception):
+        yield
+
+
 class RecordingCamera(ForwardingCamera):
     """A :class:`Camera3D` that forwards to ``inner`` and logs identity, intrinsics and every capture.
 
@@ -62,9 +73,10 @@ class RecordingCamera(ForwardingCamera):
         event = self.recorder.next_event()  # the capture's place in the replay order is when it was asked for
         try:
             frame = super()._capture(timeout)
-        except CellcalError as exc:
-            self.recorder.log(TOPIC_CAPTURE, {**record, "duration_s": time.perf_counter() - started,
-                                              "frame": None, "error": encode_error(exc)}, event=event)
+        except (CellcalError, KeyboardInterrupt) as exc:
+            with _unless_interrupted(exc):
+                self.recorder.log(TOPIC_CAPTURE, {**record, "duration_s": time.perf_counter() - started,
+                                                  "frame": None, "error": encode_error(exc)}, event=event)
             raise
         self.recorder.log(TOPIC_CAPTURE, {**record, "duration_s": time.perf_counter() - started,
                                           "frame": encode_frame(frame), "error": None},
@@ -97,9 +109,10 @@ class RecordingArm(ForwardingArm):
         record: dict[str, Any] = {"call": index, "method": method, "args": args}
         try:
             result = fn()
-        except CellcalError as exc:
-            self.recorder.log(TOPIC_ARM_CALL, {**record, "result": None, "error": encode_error(exc),
-                                               "duration_s": time.perf_counter() - started}, event=event)
+        except (CellcalError, KeyboardInterrupt) as exc:  # a move cut short by Ctrl-C was still sent: log it
+            with _unless_interrupted(exc):
+                self.recorder.log(TOPIC_ARM_CALL, {**record, "result": None, "error": encode_error(exc),
+                                                   "duration_s": time.perf_counter() - started}, event=event)
             raise
         self.recorder.log(TOPIC_ARM_CALL, {**record, "result": encode_result(result), "error": None,
                                            "duration_s": time.perf_counter() - started}, event=event)

@@ -5,17 +5,18 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import tempfile
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import CellcalError, RecordingError
+from cellcal.devices.errors import CellcalError, RecordingError, RecordingWriteError
 from cellcal.devices.version import cellcal_version
 
 from .codec import dumps, encode_error, seconds_to_ns
@@ -36,7 +37,11 @@ class SessionRecorder:
 
     The file is written under a temporary name in the destination directory and
     renamed to ``path`` by :meth:`close`; :meth:`abort` (and leaving the ``with``
-    block on an exception) deletes it, so ``path`` never holds a partial recording.
+    block on an exception) deletes it, so ``path`` never holds a torn recording.
+    An interrupted session (KeyboardInterrupt) is the exception: the file is finished
+    with what was recorded and an ``ok = false`` result naming the interruption, and
+    :attr:`finished` says whether that worked (ADR 0009). Ctrl-C is held back while a
+    message or the file's end is being written, so it never tears a record.
 
     Args:
         path: Destination ``.mcap`` file.
@@ -50,7 +55,7 @@ class SessionRecorder:
 
     Raises:
         MissingDependencyError: If ``mcap`` (extra ``record``) is not installed.
-        RecordingError: If the file cannot be created.
+        RecordingWriteError: If the file cannot be created.
     """
 
     def __init__(self, path: str | Path, *, config_document: Mapping[str, Any] | None = None,
@@ -66,12 +71,16 @@ class SessionRecorder:
         self._lock = threading.RLock()
         self._event = 0
         self._result_logged = False
+        #: Whether the file was finished and moved to :attr:`path`.
+        self.finished = False
+        #: Why finishing an interrupted session's file failed, if it did.
+        self.finish_error: BaseException | None = None
         self.message_counts: dict[str, int] = dict.fromkeys(CHANNELS, 0)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         except OSError as exc:
-            raise RecordingError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+            raise RecordingWriteError(f"cannot write {self.path}: {exc.strerror or exc}", errno=exc.errno) from None
         self._tmp: Path | None = Path(tmp)
         self._fh = os.fdopen(fd, "wb")
         try:
@@ -127,7 +136,8 @@ class SessionRecorder:
         """Write one JSON message on ``topic`` (log time: now).
 
         Raises:
-            RecordingError: If the recorder is closed or the write fails.
+            RecordingError: If the recorder is closed.
+            RecordingWriteError: If the write fails (disk full ...).
         """
         now = time.time_ns()
         publish = seconds_to_ns(publish_time_s) or now
@@ -138,11 +148,12 @@ class SessionRecorder:
             data = dumps({**payload, "event": seq} if "event" in SCHEMAS[CHANNELS[topic]]["properties"]
                           else payload)
             try:
-                self._writer.add_message(channel_id=self._channels[topic], log_time=now, data=data,
-                                         publish_time=publish, sequence=seq)
+                with _interrupts_held():
+                    self._writer.add_message(channel_id=self._channels[topic], log_time=now, data=data,
+                                             publish_time=publish, sequence=seq)
+                    self.message_counts[topic] += 1
             except OSError as exc:
-                raise RecordingError(f"cannot write {self.path}: {exc.strerror or exc}") from None
-            self.message_counts[topic] += 1
+                raise RecordingWriteError(f"cannot write {self.path}: {exc.strerror or exc}", errno=exc.errno) from None
 
     def log_result(self, document: Mapping[str, Any] | None, error: CellcalError | None = None) -> None:
         """Store the run's outcome: the calibration result document, or the error it ended with."""
@@ -150,31 +161,39 @@ class SessionRecorder:
                                 "error": None if error is None else encode_error(error)})
         self._result_logged = True
 
+    def log_interrupted(self) -> None:
+        """Store that the run was interrupted (Ctrl-C) before it had a result."""
+        self.log(TOPIC_RESULT, {"ok": False, "result": None, "error": encode_error(KeyboardInterrupt())})
+        self._result_logged = True
+
     # ------------------------------------------------------------ finishing
     def close(self) -> Path:
         """Finish the file and move it to :attr:`path`; returns the path. Idempotent.
 
         Raises:
-            RecordingError: If finishing or renaming fails (the temporary file is removed).
+            RecordingWriteError: If finishing or renaming fails (the temporary file is removed).
         """
         with self._lock:
             if self._tmp is None:
                 return self.path
             try:
-                self._writer.finish()
-                self._fh.flush()
-                os.fsync(self._fh.fileno())
-                self._fh.close()
-                umask = os.umask(0)
-                os.umask(umask)
-                os.chmod(self._tmp, 0o666 & ~umask)  # mkstemp made it private; give it normal permissions
-                os.replace(self._tmp, self.path)
+                with _interrupts_held():
+                    self._writer.finish()
+                    self._fh.flush()
+                    os.fsync(self._fh.fileno())
+                    self._fh.close()
+                    umask = os.umask(0)
+                    os.umask(umask)
+                    os.chmod(self._tmp, 0o666 & ~umask)  # mkstemp made it private; give it normal permissions
+                    os.replace(self._tmp, self.path)
+                    self._tmp = None
+                    self.finished = True
             except BaseException as exc:
                 self.abort()
                 if isinstance(exc, OSError):
-                    raise RecordingError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+                    raise RecordingWriteError(f"cannot write {self.path}: {exc.strerror or exc}",
+                                              errno=exc.errno) from None
                 raise
-            self._tmp = None
         return self.path
 
     def abort(self) -> None:
@@ -194,6 +213,8 @@ class SessionRecorder:
                  tb: TracebackType | None) -> None:
         if exc is None:
             self.close()
+        elif isinstance(exc, KeyboardInterrupt):
+            self._finish_interrupted()
         elif self.keep_on_error and isinstance(exc, CellcalError) and not isinstance(exc, RecordingError):
             try:
                 if not self._result_logged:
@@ -204,3 +225,39 @@ class SessionRecorder:
                 raise
         else:
             self.abort()
+
+    def _finish_interrupted(self) -> None:
+        """Finish the file of an interrupted session; a failure is kept in :attr:`finish_error`, not raised.
+
+        The interruption goes on propagating either way (the caller reports both).
+        """
+        try:
+            if not self._result_logged:
+                self.log_interrupted()
+            self.close()
+        except Exception as exc:  # reported through finish_error: the Ctrl-C goes on regardless
+            self.finish_error = exc
+            self.abort()
+
+
+@contextlib.contextmanager
+def _interrupts_held() -> Iterator[None]:
+    """Hold back Ctrl-C (SIGINT) while the MCAP writer changes state, and deliver it right after.
+
+    A KeyboardInterrupt raised half-way through a record would leave the writer's
+    chunk and index state torn, and the file unreadable. Python runs signal handlers
+    in the main thread only, so elsewhere there is nothing to hold back; a handler
+    installed outside Python cannot be restored, so it is left alone.
+    """
+    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
+    if previous is None:
+        yield
+        return
+    held: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if held:
+            signal.raise_signal(signal.SIGINT)  # now, to the handler it was meant for

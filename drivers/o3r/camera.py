@@ -12,7 +12,7 @@ from typing import Literal
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import ConfigError, DeviceConnectionError
+from cellcal.devices.errors import ConfigError, DeviceConnectionError, ProtocolError
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
 from .client import PcicStream
@@ -33,14 +33,19 @@ class O3RConfig:
     trigger: Literal["free_run", "software"] = field(default="free_run",
                                                      metadata={"doc": "RUN (free_run) or IDLE + PCIC t (software)"})
     set_state: bool = field(default=True, metadata={"doc": "switch the port between RUN and IDLE as needed"})
-    connect_timeout_s: float = field(default=3.0, metadata={"gt": 0.0, "le": 600.0, "doc": "TCP connect, s"})
-    io_timeout_s: float = field(default=2.0, metadata={"gt": 0.0, "le": 600.0,
-                                                        "doc": "XML-RPC call / mid-message stall timeout, s"})
-    reconnect_backoff_s: float = field(default=0.1, metadata={"gt": 0.0, "le": 60.0, "doc": "first retry delay, s"})
-    reconnect_backoff_max_s: float = field(default=2.0, metadata={"gt": 0.0, "le": 600.0,
+    connect_timeout_s: float = field(default=3.0, metadata={"ge": 0.01, "le": 120.0, "doc": "TCP connect, s"})
+    io_timeout_s: float = field(default=2.0, metadata={"ge": 0.01, "le": 120.0,
+                                                        "doc": "whole XML-RPC call / mid-message stall timeout, s"})
+    reconnect_backoff_s: float = field(default=0.1, metadata={"ge": 0.001, "le": 10.0,
+                                                              "doc": "first retry delay, s"})
+    reconnect_backoff_max_s: float = field(default=2.0, metadata={"ge": 0.001, "le": 120.0,
                                                                   "doc": "longest retry delay, s"})
-    max_frame_bytes: int = field(default=32 * 1024 * 1024, metadata={"ge": 4096, "le": 1 << 30,
+    max_frame_bytes: int = field(default=32 * 1024 * 1024, metadata={"ge": 4096, "le": 256 * 1024 * 1024,
                                                                       "doc": "cap on one PCIC message, bytes"})
+    max_buffered_bytes: int = field(default=1024 * 1024, metadata={
+        "ge": 4096, "le": 256 * 1024 * 1024, "doc": "cap on PCIC replies + notifications held at once, bytes"})
+    max_rpc_reply_bytes: int = field(default=4 * 1024 * 1024, metadata={
+        "ge": 4096, "le": 256 * 1024 * 1024, "doc": "cap on one XML-RPC reply, bytes"})
     xyz_frame: Literal["optical", "user"] = field(default="optical",
                                                   metadata={"doc": "XYZ in the optical frame or ifm's user frame"})
 
@@ -49,6 +54,9 @@ class O3RConfig:
             raise ValueError("give a VPU port name ('port') or a PCIC port ('pcic_port')")
         if self.reconnect_backoff_max_s < self.reconnect_backoff_s:
             raise ValueError("reconnect_backoff_max_s must be >= reconnect_backoff_s")
+        if self.port and self.pcic_port == self.xmlrpc_port:
+            raise ConfigError(f"{self.pcic_port} is also the XML-RPC port, which does not answer as PCIC "
+                              f"(the VPU's PCIC ports are 50010 and up)", key="pcic_port")
 
 
 class O3RCamera(Camera3D):
@@ -93,31 +101,40 @@ class O3RCamera(Camera3D):
         deadline = time.monotonic() + timeout
         pcic_port = cfg.pcic_port
         if cfg.port:
-            rpc = O3RConfigClient(cfg.host, cfg.xmlrpc_port, min(cfg.io_timeout_s, timeout))
-            info = rpc.port_info(cfg.port)
-            if info.type != "3D":
-                raise ConfigError(f"O3R {cfg.host} {cfg.port} is a {info.type} port; the o3r backend needs a 3D port",
-                                  key="camera.port")
-            if info.state == "CONF":
-                raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in state CONF (sends no data); "
-                                            f"set it to RUN or IDLE")
-            want = "RUN" if cfg.trigger == "free_run" else "IDLE"
-            if info.state != want:
-                if not cfg.set_state:
-                    raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in {info.state}, trigger "
-                                                f"'{cfg.trigger}' needs {want} (or set_state = true)")
-                rpc.set_state(cfg.port, want)
-            self._port_info = info
-            self._firmware = rpc.firmware()
-            self._rpc = rpc
+            info = self._set_up_port(deadline)
             pcic_port = pcic_port or info.pcic_port
         stream = PcicStream(cfg.host, pcic_port, io_timeout_s=cfg.io_timeout_s,
                             connect_timeout_s=min(cfg.connect_timeout_s, timeout),
                             backoff_s=cfg.reconnect_backoff_s, backoff_max_s=cfg.reconnect_backoff_max_s,
-                            max_payload=cfg.max_frame_bytes)
+                            max_payload=cfg.max_frame_bytes, max_buffered_bytes=cfg.max_buffered_bytes)
         self._stream = stream
         stream.start(max(deadline - time.monotonic(), 0.001))
         self._last_mono = 0.0
+
+    def _set_up_port(self, deadline: float) -> PortInfo:
+        """Read (and check) the port's configuration, switch its state if needed; all before ``deadline``."""
+        cfg = self.config
+        rpc = O3RConfigClient(cfg.host, cfg.xmlrpc_port, cfg.io_timeout_s, cfg.max_rpc_reply_bytes)
+        info = rpc.port_info(cfg.port, timeout=deadline - time.monotonic())
+        if info.type != "3D":
+            raise ConfigError(f"O3R {cfg.host} {cfg.port} is a {info.type} port; the o3r backend needs a 3D port",
+                              key="camera.port")
+        if not cfg.pcic_port and info.pcic_port == cfg.xmlrpc_port:
+            raise ProtocolError(f"O3R {cfg.host}: /ports/{cfg.port}/data/pcicTCPPort is {info.pcic_port}, the "
+                                f"XML-RPC port; it does not answer as PCIC")
+        if info.state == "CONF":
+            raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in state CONF (sends no data); "
+                                        f"set it to RUN or IDLE")
+        want = "RUN" if cfg.trigger == "free_run" else "IDLE"
+        if info.state != want:
+            if not cfg.set_state:
+                raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in {info.state}, trigger "
+                                            f"'{cfg.trigger}' needs {want} (or set_state = true)")
+            rpc.set_state(cfg.port, want, timeout=deadline - time.monotonic())
+        self._port_info = info
+        self._firmware = rpc.firmware(timeout=deadline - time.monotonic())
+        self._rpc = rpc
+        return info
 
     def _close(self) -> None:
         if self._stream is not None:

@@ -6,12 +6,14 @@ import collections
 import contextlib
 import json
 import socket
+import sys
 import threading
 import time
 from dataclasses import dataclass
 
 from cellcal.devices.errors import (
     CellcalError,
+    ConfigError,
     DeviceConnectionError,
     DeviceError,
     DeviceTimeoutError,
@@ -19,6 +21,9 @@ from cellcal.devices.errors import (
     VendorError,
 )
 
+from .config_values import clip, show
+from .inbox import DropLog, Inbox
+from .link import Receiver, connect
 from .pcic import (
     DEFAULT_MAX_PAYLOAD,
     HEADER_LEN,
@@ -42,8 +47,12 @@ from .pcic import (
 DEFAULT_BLOBS = ("RADIAL_DISTANCE_COMPRESSED", "AMPLITUDE_COMPRESSED", "CONFIDENCE", "TOF_INFO")
 #: Output mask: result data + async errors + notifications.
 DEFAULT_MASK = 0x7
+#: Default budget for replies and notifications held at once, bytes.
+DEFAULT_MAX_BUFFERED = 1024 * 1024
 #: Poll interval of the reader (how soon it notices close()), seconds.
 _POLL_S = 0.05
+#: Bytes kept of a message too large to hold (enough for a ticket, a code and a short text).
+_KEEP_OF_SKIPPED = 512
 
 
 def make_schema(blobs: tuple[str, ...] = DEFAULT_BLOBS) -> str:
@@ -76,42 +85,50 @@ class RawFrame:
     generation: int
 
 
-class _StallError(Exception):
-    pass
-
-
 class PcicStream:
     """A PCIC connection to one O3R port with a background reader.
 
-    One reader thread owns the receiving side of the socket. It reads whole messages
+    One reader thread owns the receiving side of the socket. It reads image messages
     into freshly allocated buffers of the (checked, capped) announced length, the only
-    copy of the pixel data, validates image payloads (:func:`walk_chunks`) and keeps
-    the newest one; command replies are matched by ticket; async errors (ticket 0001)
-    and protocol violations are queued and raised by the next call that waits for
-    data; notifications (0010) are kept in a bounded list.
+    copy of the pixel data, validates them (:func:`walk_chunks`) and keeps the newest
+    one. Everything else is bounded by ``max_buffered_bytes``: command replies are kept
+    (their first bytes) only for the tickets this client sends, notifications FIFO
+    within the budget, and a message larger than the budget is read through a fixed
+    buffer and dropped; drops are counted (:attr:`drops`) and logged. Async errors
+    (ticket 0001) and protocol violations are queued and raised by the next call that
+    waits for data.
 
     Link faults: a dropped connection, or a message that stops arriving for longer than
     ``io_timeout_s`` (a stall), closes the socket and the reader reconnects with
     exponential backoff, re-sending the schema (``c``) and output mask (``p``). A
     protocol violation is reported once (``ProtocolError`` naming the stream offset)
     and the reader reconnects, because a byte stream cannot be re-synchronised safely.
+    An unexpected exception in the reader is reported the same way as a ``DeviceError``;
+    if the reader itself ends on one, every later call raises it.
 
     Args:
         host: VPU address.
-        port: PCIC TCP port.
+        port: PCIC TCP port (1..65535).
         io_timeout_s: A message that makes no progress for this long is a stall; also
-            the reply timeout of commands sent during setup.
+            the timeout of a send.
         connect_timeout_s: TCP connect timeout per attempt.
         backoff_s: First reconnect delay; doubles up to ``backoff_max_s``.
         backoff_max_s: Longest reconnect delay.
         max_payload: Cap on an announced payload length, bytes.
+        max_buffered_bytes: Budget for replies and notifications together, bytes.
         schema: PCIC schema JSON sent with ``c`` after each connect.
         mask: Output mask sent with ``p``.
+
+    Raises:
+        ConfigError: If ``port`` is not an integer in 1..65535.
     """
 
     def __init__(self, host: str, port: int, *, io_timeout_s: float = 2.0, connect_timeout_s: float = 2.0,
                  backoff_s: float = 0.1, backoff_max_s: float = 2.0, max_payload: int = DEFAULT_MAX_PAYLOAD,
-                 schema: str | None = None, mask: int = DEFAULT_MASK) -> None:
+                 max_buffered_bytes: int = DEFAULT_MAX_BUFFERED, schema: str | None = None,
+                 mask: int = DEFAULT_MASK) -> None:
+        if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
+            raise ConfigError(f"O3R PCIC port must be an integer in 1..65535, got {show(port)}")
         self.host = host
         self.port = port
         self.io_timeout_s = io_timeout_s
@@ -121,18 +138,20 @@ class PcicStream:
         self.max_payload = max_payload
         self.schema = make_schema() if schema is None else schema
         self.mask = mask
+        self.where = f"O3R PCIC {host}:{port}"
+        self.drops = DropLog(self.where)
+        self._inbox = Inbox(max_buffered_bytes, (TICKET_C, TICKET_T, TICKET_P), self.drops)
         self._cond = threading.Condition()
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
+        self._receiver = Receiver(self._stop, io_timeout_s)
         self._sock: socket.socket | None = None
         self._generation = 0
         self._ready_generation = 0
         self._newest: RawFrame | None = None
         self._frames_received = 0
-        self._replies: dict[str, tuple[int, bytes]] = {}
-        self._reply_counter = 0
         self._pending: collections.deque[CellcalError] = collections.deque(maxlen=16)
-        self.notifications: collections.deque[tuple[str, str]] = collections.deque(maxlen=100)
+        self._fatal: CellcalError | None = None
         self._link_error = "not connected yet"
         self._thread: threading.Thread | None = None
         self._stream_pos = 0
@@ -144,6 +163,8 @@ class PcicStream:
 
         Raises:
             DeviceConnectionError: If no connection is set up within ``timeout``.
+            ProtocolError: If the port answers, but not as PCIC.
+            DeviceError: If the device refuses the schema or output mask.
         """
         self._thread = threading.Thread(target=self._run, name=f"o3r-pcic-{self.port}", daemon=True)
         self._thread.start()
@@ -151,13 +172,13 @@ class PcicStream:
         error: CellcalError | None = None
         with self._cond:
             while self._ready_generation == 0:
-                if self._pending:
-                    error = self._pending.popleft()
+                if self._fatal is not None or self._pending:
+                    error = self._fatal or self._pending.popleft()
                     break
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    error = DeviceConnectionError(f"O3R PCIC {self.host}:{self.port}: not set up within "
-                                                  f"{timeout:g} s ({self._link_error})")
+                    error = DeviceConnectionError(f"{self.where}: not set up within {timeout:.3g} s "
+                                                  f"({self._link_error})")
                     break
                 self._cond.wait(remaining)
         if error is not None:
@@ -190,8 +211,31 @@ class PcicStream:
         """Image messages received so far."""
         return self._frames_received
 
+    @property
+    def notifications(self) -> list[tuple[str, str]]:
+        """Notifications held (oldest first, within the byte budget) as (9-digit id, JSON text)."""
+        with self._cond:
+            return self._inbox.notifications
+
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes held for replies and notifications now."""
+        with self._cond:
+            return self._inbox.used_bytes
+
     # ------------------------------------------------------------------ reader
     def _run(self) -> None:
+        try:
+            self._loop()
+        except Exception as exc:  # the reader must not end silently: every later call raises this
+            error = DeviceError(f"{self.where}: the reader stopped on {type(exc).__name__}: {show(str(exc))}")
+            with self._cond:
+                self._fatal = error
+                self._cond.notify_all()
+        finally:
+            self._drop("closed", None, final=True)
+
+    def _loop(self) -> None:
         backoff = self.backoff_s
         while not self._stop.is_set():
             if self._sock is None:
@@ -207,23 +251,26 @@ class PcicStream:
                 self._read_one()
             except ProtocolError as exc:
                 self._drop(f"protocol error: {exc}", exc)
-            except _StallError as exc:
+            except DeviceTimeoutError as exc:  # a stall mid-message
                 self._drop(str(exc))
             except OSError as exc:
                 if not self._stop.is_set():
                     self._drop(f"connection lost: {exc.strerror or exc}")
             except EOFError:
                 self._drop("connection closed by the device")
-        self._drop("closed", None, final=True)
+            except Exception as exc:  # an input nobody foresaw: typed, reported once, then reconnect
+                self._drop(f"unexpected {type(exc).__name__}", DeviceError(
+                    f"{self.where}: unexpected {type(exc).__name__} at stream offset {self._stream_pos}: "
+                    f"{show(str(exc))}"))
 
     def _open(self) -> None:
-        sock = socket.create_connection((self.host, self.port), timeout=self.connect_timeout_s)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sock.settimeout(_POLL_S)
+        sock = connect(self.host, self.port, self.connect_timeout_s, self._stop, _POLL_S)
         with self._cond:
             self._sock = sock
             self._generation += 1
             self._stream_pos = 0
+            self._link_error = ("the port accepted the TCP connection but gave no PCIC reply to the schema and "
+                                "output mask (is it a PCIC port?)")
         if self._generation > 1:
             self.reconnects += 1
         self._send(TICKET_C, b"c%09d%s" % (len(self.schema.encode()), self.schema.encode()))
@@ -243,72 +290,83 @@ class PcicStream:
         if not final and not self._stop.is_set():
             self._stop.wait(self.backoff_s)
 
-    def _recv_into(self, sock: socket.socket, view: memoryview, *, at_boundary: bool) -> bool:
-        """Fill ``view``; False if nothing arrived at a message boundary (idle)."""
-        got = 0
-        last_progress = time.monotonic()
-        while got < len(view):
-            if self._stop.is_set():
-                raise OSError("closing")
-            try:
-                n = sock.recv_into(view[got:])
-            except TimeoutError:
-                if at_boundary and got == 0:
-                    return False
-                if time.monotonic() - last_progress > self.io_timeout_s:
-                    raise _StallError(f"stalled mid-message for {self.io_timeout_s:g} s at stream offset "
-                                 f"{self._stream_pos + got}") from None
-                continue
-            if n == 0:
-                raise EOFError
-            got += n
-            last_progress = time.monotonic()
-            at_boundary = False
-        return True
+    def _not_pcic(self, header: bytes) -> ProtocolError:
+        """The error for a port whose first answer is not a PCIC header."""
+        hint = "; that is HTTP: does the PCIC port point at the XML-RPC server?" if header[:5] == b"HTTP/" else ""
+        return ProtocolError(f"{self.where} does not answer as PCIC: its first bytes are {show(header)}{hint}",
+                             offset=0)
+
+    def _read_header(self, sock: socket.socket) -> tuple[str, int] | None:
+        header = bytearray(HEADER_LEN)
+        if not self._receiver.fill(sock, memoryview(header), at_boundary=True, stream_pos=self._stream_pos):
+            return None
+        try:
+            return parse_header(header, offset=self._stream_pos, max_payload=self.max_payload)
+        except ProtocolError:
+            if self._stream_pos == 0 and self._ready_generation != self._generation:
+                raise self._not_pcic(bytes(header)) from None
+            raise
 
     def _read_one(self) -> None:
         sock = self._sock
         assert sock is not None
-        header = bytearray(HEADER_LEN)
-        if not self._recv_into(sock, memoryview(header), at_boundary=True):
+        parsed = self._read_header(sock)
+        if parsed is None:
             return
-        pos = self._stream_pos
-        ticket, length = parse_header(header, offset=pos, max_payload=self.max_payload)
-        payload = bytearray(length)
-        self._recv_into(sock, memoryview(payload), at_boundary=False)
-        self._stream_pos = pos + HEADER_LEN + length
-        start = pos + HEADER_LEN
-        check_payload(payload, ticket, offset=start)
-        if ticket in (TICKET_IMAGE, TICKET_ALGO_DEBUG):
-            if ticket == TICKET_ALGO_DEBUG:
-                return
-            chunks = walk_chunks(payload, offset=start)
-            raw = RawFrame(payload, chunks, start, time.monotonic(), time.time(), self._generation)
-            with self._cond:
-                self._newest = raw
-                self._frames_received += 1
-                self._cond.notify_all()
-        elif ticket == TICKET_ASYNC_ERROR:
-            code, text = parse_async_error(payload[4:-2], offset=start + 4)
-            with self._cond:
-                self._pending.append(VendorError("o3r", code, text or "async error"))
-                self._cond.notify_all()
-        elif ticket == TICKET_ASYNC_NOTIFICATION:
-            self.notifications.append(parse_notification(payload[4:-2], offset=start + 4))
+        ticket, length = parsed
+        start = self._stream_pos + HEADER_LEN
+        if ticket == TICKET_IMAGE or length <= self._inbox.max_bytes:
+            payload = bytearray(length)
+            self._receiver.fill(sock, memoryview(payload), at_boundary=False, stream_pos=start)
+            self._stream_pos = start + length
+            check_payload(payload, ticket, offset=start)
+            head, whole = bytes(payload[:_KEEP_OF_SKIPPED]), True
+        else:  # larger than everything we may hold: read it through a fixed buffer, keep its head
+            head, tail = self._receiver.skip(sock, length, _KEEP_OF_SKIPPED, start)
+            self._stream_pos = start + length
+            check_payload(head[:4] + tail, ticket, offset=start)
+            payload, whole = bytearray(), False
+        if ticket == TICKET_IMAGE:
+            self._keep_frame(payload, start)
         else:
-            with self._cond:
-                self._reply_counter += 1
-                self._replies[ticket] = (self._reply_counter, bytes(payload[4:-2]))
-                if ticket == TICKET_P:
-                    reply_code = bytes(payload[4:5])
-                    if reply_code == b"*":
-                        self._ready_generation = self._generation
-                    else:
-                        self._pending.append(DeviceError(f"O3R rejected output mask 'p{self.mask:X}' "
-                                                         f"with {reply_code!r}"))
-                elif ticket == TICKET_C and payload[4:5] != b"*":
-                    self._pending.append(DeviceError(f"O3R rejected the PCIC schema with {bytes(payload[4:5])!r}"))
-                self._cond.notify_all()
+            self._dispatch(ticket, payload if whole else None, head, length, start)
+
+    def _keep_frame(self, payload: bytearray, start: int) -> None:
+        chunks = walk_chunks(payload, offset=start)
+        raw = RawFrame(payload, chunks, start, time.monotonic(), time.time(), self._generation)
+        with self._cond:
+            self._newest = raw
+            self._frames_received += 1
+            self._cond.notify_all()
+
+    def _dispatch(self, ticket: str, payload: bytearray | None, head: bytes, length: int, start: int) -> None:
+        """Handle a non-image message; ``payload`` is None when it was too large to hold (``head`` has its start)."""
+        content = head[4:] if payload is None else payload[4:-2]
+        with self._cond:
+            if ticket == TICKET_ASYNC_ERROR:
+                code, text = parse_async_error(content[:_KEEP_OF_SKIPPED], offset=start + 4)
+                self._pending.append(VendorError("o3r", code, clip(text) or "async error"))
+            elif ticket == TICKET_ASYNC_NOTIFICATION:
+                if payload is None:
+                    self.drops.drop("notification", length, "larger than the whole buffer budget")
+                else:
+                    ident, text = parse_notification(content, offset=start + 4)
+                    self._inbox.notification(ident, text, sys.getsizeof(text) + len(ident))
+            elif ticket == TICKET_ALGO_DEBUG:
+                self.drops.drop("algo-debug message", length)
+            elif self._inbox.reply(ticket, content, length):
+                self._on_reply(ticket, bytes(content[:1]))
+            self._cond.notify_all()
+
+    def _on_reply(self, ticket: str, code: bytes) -> None:
+        """React to the reply code of the setup commands (called with the lock held)."""
+        if ticket == TICKET_P:
+            if code == b"*":
+                self._ready_generation = self._generation
+            else:
+                self._pending.append(DeviceError(f"O3R rejected output mask 'p{self.mask:X}' with {code!r}"))
+        elif ticket == TICKET_C and code != b"*":
+            self._pending.append(DeviceError(f"O3R rejected the PCIC schema with {code!r}"))
 
     # ------------------------------------------------------------------ sending
     def _send(self, ticket: str, content: bytes) -> None:
@@ -324,6 +382,8 @@ class PcicStream:
                 sock.settimeout(_POLL_S)
 
     def _raise_pending(self) -> None:
+        if self._fatal is not None:
+            raise self._fatal
         if self._pending:
             raise self._pending.popleft()
 
@@ -375,7 +435,7 @@ class PcicStream:
                     self._cond.wait(deadline - now)
                     continue
                 gen = self._generation
-                mark = self._reply_counter
+                mark = self._inbox.reply_counter
                 sent_at = time.monotonic()
                 try:
                     self._send(TICKET_T, b"t")
@@ -385,7 +445,7 @@ class PcicStream:
                 replied = False
                 while True:
                     self._raise_pending()
-                    reply = self._replies.get(TICKET_T)
+                    reply = self._inbox.replies.get(TICKET_T)
                     if not replied and reply is not None and reply[0] > mark:
                         replied = True
                         if reply[1][:1] != b"*":

@@ -94,7 +94,7 @@ class FrameDecoder:
             received_at: Epoch seconds used when the chunks carry no timestamp.
 
         Raises:
-            ProtocolError: Missing distance or TOF_INFO chunk, mismatching image sizes,
+            ProtocolError: Missing distance or TOF_INFO chunk, mismatching image sizes (TOF_INFO header included),
                 wrong pixel formats, or any framing fault of the payload.
         """
         if chunks is None:
@@ -121,6 +121,10 @@ class FrameDecoder:
         """
         raw = image_view(payload, dist_c, offset=offset, expect_format=(2,))
         h, w = raw.shape
+        info_c = by_type[CHUNK_TOF_INFO]
+        if (info_c.width, info_c.height) != (w, h):  # on the O3R, TOF_INFO's header carries the image size
+            raise ProtocolError(f"distance image is {w}x{h} but its TOF_INFO says {info_c.width}x{info_c.height}",
+                                offset=offset + info_c.offset + 16)
         # uint16 counts -> float32 metres in one ufunc
         distance = np.multiply(raw, np.float32(info.distance_resolution_m), dtype=np.float32)
         # raw 0 = no measurement

@@ -1,59 +1,120 @@
-"""The O3R configuration channel: JSON over XML-RPC (stdlib ``xmlrpc.client`` with timeouts).
+"""The O3R configuration channel: JSON over XML-RPC, each call bounded in time and size, parsed by defusedxml.
 
 ``get([json pointers]) -> JSON text`` and ``set(JSON text)`` at
-``http://<host>:<port>/api/rpc/v1/com.ifm.efector/`` (protocols.md A1).
+``http://<host>:<port>/api/rpc/v1/com.ifm.efector/`` (protocols.md A1). Why not
+``xmlrpc.client.ServerProxy``: see ADR 0015.
 """
 
 from __future__ import annotations
 
-import http.client
 import json
 import xmlrpc.client
-from dataclasses import dataclass
 from typing import Any
+from xml.parsers.expat import ExpatError
+
+from defusedxml.xmlrpc import DefusedExpatParser
 
 from cellcal.devices.errors import (
-    ConfigError,
     DeviceConnectionError,
     DeviceTimeoutError,
     ProtocolError,
     VendorError,
 )
 
+from . import config_values
+from .config_values import PortInfo
+from .rpc_http import post
+
 RPC_PATH = "/api/rpc/v1/com.ifm.efector/"
+#: Default cap on one XML-RPC reply, bytes (a whole VPU tree is tens of kB).
+DEFAULT_MAX_REPLY = 4 * 1024 * 1024
+#: Deepest nesting of XML-RPC arrays/structs accepted (O3R replies are one string).
+MAX_DEPTH = 32
+#: Longest fault text kept in an error message, characters.
+_MAX_FAULT_TEXT = 200
+#: What a malformed reply can raise inside the XML, XML-RPC and JSON parsers.
+_PARSE_ERRORS = (ExpatError, ValueError, TypeError, LookupError, ArithmeticError, RecursionError,
+                 xmlrpc.client.Error)
+
+__all__ = ["DEFAULT_MAX_REPLY", "RPC_PATH", "O3RConfigClient", "PortInfo", "parse_reply"]
 
 
-class _TimeoutTransport(xmlrpc.client.Transport):
-    """An XML-RPC transport whose HTTP connection has a socket timeout."""
+class _ShallowUnmarshaller(xmlrpc.client.Unmarshaller):
+    """The stdlib unmarshaller, refusing arrays and structs nested deeper than :data:`MAX_DEPTH`."""
 
-    def __init__(self, timeout_s: float) -> None:
-        super().__init__()
-        self.timeout_s = timeout_s
-
-    def make_connection(self, host: Any) -> http.client.HTTPConnection:
-        conn = super().make_connection(host)
-        conn.timeout = self.timeout_s
-        return conn
+    def start(self, tag: str, attrs: Any) -> None:
+        if tag in ("array", "struct") and len(self._marks) >= MAX_DEPTH:
+            raise xmlrpc.client.ResponseError(f"arrays/structs nested deeper than {MAX_DEPTH}")
+        super().start(tag, attrs)
 
 
-@dataclass(frozen=True)
-class PortInfo:
-    """One VPU port as the configuration reports it.
+def _show_param(param: Any) -> str:
+    """A request parameter for messages: pointer lists in full (shortened), other values as :func:`show`."""
+    if isinstance(param, list) and all(isinstance(p, str) for p in param):
+        text = "[" + ", ".join(repr(p) for p in param) + "]"
+        return text if len(text) <= 80 else text[:77] + "..."
+    return config_values.show(param)
 
-    Attributes:
-        name: Port name, e.g. ``"port2"``.
-        pcic_port: Its PCIC TCP port.
-        type: ``"2D"`` or ``"3D"`` (``/info/features/type``).
-        state: ``RUN``, ``IDLE`` or ``CONF``.
-        width, height: Resolution from ``/info/features/resolution`` (0 if absent).
+
+def _reason(exc: BaseException) -> str:
+    """An exception's own words, escaped and cut for a one-line message."""
+    text = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
+    return config_values.clip(text, 120)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")
+
+
+def parse_reply(body: bytes, what: str) -> Any:
+    """The single value of an XML-RPC ``methodResponse``, parsed without entities or DTDs.
+
+    Args:
+        body: The HTTP response body.
+        what: Names the call, e.g. ``"O3R 10.0.0.1:80 get(['/ports'])"``.
+
+    Raises:
+        VendorError: A well-formed fault (integer faultCode, string faultString).
+        ProtocolError: Anything else that is not one well-formed value.
     """
+    unmarshaller = _ShallowUnmarshaller()
+    try:
+        parser = DefusedExpatParser(unmarshaller, forbid_dtd=True)
+        parser.feed(body)
+        parser.close()
+        values = unmarshaller.close()
+    except xmlrpc.client.Fault as fault:
+        code, text = fault.faultCode, fault.faultString
+        if not isinstance(code, int) or isinstance(code, bool) or not isinstance(text, str):
+            raise ProtocolError(f"{what}: fault reply with faultCode {config_values.show(code)} and "
+                                f"faultString {config_values.show(text)} (expected an integer and a string)"
+                                ) from None
+        shown = text.encode("unicode_escape").decode("ascii")[:_MAX_FAULT_TEXT]
+        raise VendorError("o3r", code, f"{what}: {shown}") from None
+    except _PARSE_ERRORS as exc:
+        raise ProtocolError(f"{what}: malformed XML-RPC reply ({type(exc).__name__}: {_reason(exc)})") from None
+    if len(values) != 1:
+        raise ProtocolError(f"{what}: XML-RPC reply holds {len(values)} values, expected 1")
+    return values[0]
 
-    name: str
-    pcic_port: int
-    type: str
-    state: str
-    width: int = 0
-    height: int = 0
+
+def parse_json_object(text: Any, what: str) -> dict[str, Any]:
+    """A JSON object from a reply string (depth, size and constants checked).
+
+    Raises:
+        ProtocolError: Not a string, not JSON (incl. NaN/Infinity, nesting too deep), or not an object.
+    """
+    if not isinstance(text, str):
+        raise ProtocolError(f"{what}: answered {config_values.show(text)}, expected a JSON string")
+    try:
+        doc = json.loads(text, parse_constant=_no_constant)
+    except RecursionError:
+        raise ProtocolError(f"{what}: the JSON answer is nested too deeply") from None
+    except ValueError as exc:
+        raise ProtocolError(f"{what}: the answer is not JSON ({_reason(exc)})") from None
+    if not isinstance(doc, dict):
+        raise ProtocolError(f"{what}: the JSON answer is {config_values.show(doc)}, expected an object")
+    return doc
 
 
 class O3RConfigClient:
@@ -62,87 +123,68 @@ class O3RConfigClient:
     Args:
         host: VPU address.
         port: XML-RPC TCP port (80 on a real VPU).
-        timeout_s: Socket timeout of every call, seconds.
+        timeout_s: Deadline of one whole call (connect + request + full reply), seconds.
+        max_reply_bytes: Cap on one reply body, bytes.
     """
 
-    def __init__(self, host: str, port: int = 80, timeout_s: float = 2.0) -> None:
+    def __init__(self, host: str, port: int = 80, timeout_s: float = 2.0,
+                 max_reply_bytes: int = DEFAULT_MAX_REPLY) -> None:
         self.host = host
         self.port = port
         self.timeout_s = timeout_s
-        self._url = f"http://{host}:{port}{RPC_PATH}"
+        self.max_reply_bytes = max_reply_bytes
 
-    def _proxy(self) -> xmlrpc.client.ServerProxy:
-        return xmlrpc.client.ServerProxy(self._url, transport=_TimeoutTransport(self.timeout_s), allow_none=True)
+    def _where(self, method: str, params: tuple[Any, ...]) -> str:
+        shown = ", ".join(_show_param(p) for p in params)
+        return f"O3R XML-RPC {self.host}:{self.port} {method}({shown})"
 
-    def call(self, method: str, *params: Any) -> Any:
-        """Call one XML-RPC method, translating failures into cellcal errors.
+    def call(self, method: str, *params: Any, timeout: float | None = None) -> Any:
+        """Call one XML-RPC method within ``min(timeout_s, timeout)`` seconds.
 
         Raises:
-            DeviceTimeoutError: No answer within the timeout.
-            DeviceConnectionError: Connection refused / reset / host unreachable.
+            DeviceTimeoutError: The whole call did not finish in time.
+            DeviceConnectionError: Connection refused / reset / unreachable, or an HTTP error status.
             VendorError: The device answered with an XML-RPC fault.
-            ProtocolError: The answer is not valid XML-RPC.
+            ProtocolError: The answer is not one well-formed XML-RPC value, or exceeds the size cap.
         """
-        where = f"O3R XML-RPC {self.host}:{self.port}"
-        try:
-            with self._proxy() as proxy:
-                return getattr(proxy, method)(*params)
-        except xmlrpc.client.Fault as exc:
-            raise VendorError("o3r", int(exc.faultCode), f"{method}: {exc.faultString}") from None
-        except TimeoutError:
-            raise DeviceTimeoutError(f"{where}: no answer to '{method}' within {self.timeout_s:g} s") from None
-        except xmlrpc.client.ProtocolError as exc:
-            raise DeviceConnectionError(f"{where}: HTTP {exc.errcode} {exc.errmsg} for '{method}'") from None
-        except (xmlrpc.client.ResponseError, http.client.HTTPException, ValueError) as exc:
-            raise ProtocolError(f"{where}: malformed answer to '{method}': {exc}") from None
-        except OSError as exc:
-            raise DeviceConnectionError(f"{where}: cannot reach the device ({exc.strerror or exc})") from None
+        limit = self.timeout_s if timeout is None else min(self.timeout_s, timeout)
+        where = self._where(method, params)
+        if limit <= 0:
+            raise DeviceTimeoutError(f"{where}: no time left for the call")
+        request = xmlrpc.client.dumps(params, method, encoding="utf-8", allow_none=True).encode("utf-8")
+        status, reason, body = post(self.host, self.port, RPC_PATH, request, timeout_s=limit,
+                                    max_bytes=self.max_reply_bytes, where=where)
+        if status != 200:
+            raise DeviceConnectionError(f"{where}: HTTP {status} {config_values.show(reason)}")
+        return parse_reply(body, where)
 
-    def get(self, pointers: list[str]) -> dict[str, Any]:
+    def get(self, pointers: list[str], *, timeout: float | None = None) -> dict[str, Any]:
         """The configuration sub-tree holding ``pointers`` (everything when empty)."""
-        text = self.call("get", list(pointers))
-        try:
-            doc = json.loads(text)
-        except (TypeError, ValueError):
-            raise ProtocolError(f"O3R get({pointers}) returned non-JSON text") from None
-        if not isinstance(doc, dict):
-            raise ProtocolError(f"O3R get({pointers}) returned {type(doc).__name__}, not an object")
-        return doc
+        text = self.call("get", list(pointers), timeout=timeout)
+        return parse_json_object(text, self._where("get", (list(pointers),)))
 
-    def set(self, patch: dict[str, Any]) -> None:
+    def set(self, patch: dict[str, Any], *, timeout: float | None = None) -> None:
         """Merge a partial configuration."""
-        self.call("set", json.dumps(patch))
+        self.call("set", json.dumps(patch), timeout=timeout)
 
-    def port_info(self, port: str) -> PortInfo:
-        """Read a port's PCIC port, type, state and resolution.
+    def port_info(self, port: str, *, timeout: float | None = None) -> PortInfo:
+        """Read and check a port's PCIC port, type, state and resolution.
 
         Raises:
             ConfigError: If the VPU has no such port.
-            ProtocolError: If the answer lacks the expected fields.
+            ProtocolError: If a value is missing, of the wrong type or out of range (naming its JSON pointer).
         """
-        doc = self.get(["/ports"])
-        ports = doc.get("ports", {})
-        if not isinstance(ports, dict) or port not in ports:
-            names = ", ".join(sorted(ports)) if isinstance(ports, dict) else "none"
-            raise ConfigError(f"O3R at {self.host} has no port {port!r} (ports: {names})", key="camera.port")
-        p = ports[port]
-        try:
-            res = p.get("info", {}).get("features", {}).get("resolution", {}) or {}
-            return PortInfo(name=port, pcic_port=int(p["data"]["pcicTCPPort"]),
-                            type=str(p["info"]["features"]["type"]), state=str(p["state"]),
-                            width=int(res.get("width", 0)), height=int(res.get("height", 0)))
-        except (KeyError, TypeError, ValueError, AttributeError):
-            raise ProtocolError(f"O3R port {port!r}: configuration lacks data/pcicTCPPort, "
-                                f"info/features/type or state") from None
+        doc = self.get(["/ports"], timeout=timeout)
+        return config_values.port_info(doc, port, host=self.host, where=self._where("get", (["/ports"],)))
 
-    def set_state(self, port: str, state: str) -> None:
+    def set_state(self, port: str, state: str, *, timeout: float | None = None) -> None:
         """Set ``/ports/<port>/state`` (RUN / IDLE / CONF)."""
-        self.set({"ports": {port: {"state": state}}})
+        self.set({"ports": {port: {"state": state}}}, timeout=timeout)
 
-    def firmware(self) -> str:
-        """Firmware version string ('' if the device does not say)."""
+    def firmware(self, *, timeout: float | None = None) -> str:
+        """Firmware version string ('' if the device does not say, or says something malformed)."""
         try:
-            doc = self.get(["/device/swVersion"])
-            return str(doc.get("device", {}).get("swVersion", {}).get("firmware", ""))
+            doc = self.get(["/device/swVersion"], timeout=timeout)
+            return config_values.firmware(doc, self._where("get", (["/device/swVersion"],)))
         except (VendorError, ProtocolError):
             return ""

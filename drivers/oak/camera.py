@@ -55,16 +55,16 @@ class OakConfig:
         queue_size: Host queue length, frames (oldest dropped when full).
     """
 
-    device_id: str = ""
+    device_id: str = field(default="", metadata={"max_len": 256})
     depth_source: Literal["stereo", "tof"] = "stereo"
     align_socket: Socket = "CAM_A"
-    width: int = field(default=640, metadata={"gt": 0, "le": 4096})
-    height: int = field(default=400, metadata={"gt": 0, "le": 4096})
-    fps: float = field(default=15.0, metadata={"gt": 0, "le": 120})
+    width: int = field(default=640, metadata={"ge": 16, "le": 4096})
+    height: int = field(default=400, metadata={"ge": 16, "le": 4096})
+    fps: float = field(default=15.0, metadata={"ge": 0.1, "le": 120})
     stereo_preset: Literal["DEFAULT", "ROBOTICS", "HIGH_DETAIL", "FAST_ACCURACY", "FAST_DENSITY",
                            "DENSITY", "ACCURACY", "FACE"] = "DEFAULT"
     distortion: Literal["device", "none"] = "device"
-    timeout_s: float = field(default=10.0, metadata={"gt": 0})
+    timeout_s: float = field(default=10.0, metadata={"ge": 0.01, "le": 600})
     queue_size: int = field(default=4, metadata={"ge": 1, "le": 64})
 
     def __post_init__(self) -> None:

@@ -53,6 +53,7 @@ class ReplayArm(RobotArm):
 
     backend_name = "replay"
     Config = ReplayArmConfig
+    verifies_arrival = False  # moves nothing; the recorded arm checked each arrival (ADR 0016)
 
     def __init__(self, config: ReplayArmConfig, context: BackendContext | None = None) -> None:
         super().__init__()

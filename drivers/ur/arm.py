@@ -2,7 +2,8 @@
 
 Poses are flange poses in the base frame (metres, radians). ``ur_rtde`` is imported
 only in :meth:`URArm._connect`; every False it returns becomes a typed error
-(:meth:`URArm._raise_failure`). Design: docs/adr/0015-vendor-drivers.md.
+(:meth:`URArm._raise_failure`). Design: docs/adr/0015-vendor-drivers.md; what the real
+conversation with ur_rtde 1.6.5 taught (GIL, script start, reconnects): docs/adr/0017-ur-emulator.md.
 """
 
 from __future__ import annotations
@@ -10,7 +11,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import sys
+import threading
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NoReturn
@@ -21,9 +25,11 @@ from numpy.typing import NDArray
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import (
+    CellcalError,
     DeviceConnectionError,
     DeviceTimeoutError,
     MissingDependencyError,
+    MotionError,
     ProtocolError,
     SafetyError,
     VendorError,
@@ -33,34 +39,50 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 from cellcal.drivers._blocking import BoundedCaller
 
+from .codes import (
+    FLAG_NO_WAIT,
+    ROBOT_MODE_RUNNING,
+    ROBOT_MODES,
+    RUNTIME_STATES,
+    SAFETY_MODES,
+    SAFETY_OK,
+    SAFETY_REDUCED,
+    STATUS_PROGRAM_RUNNING,
+    name,
+)
+from .dashboard import DashboardLink
+from .rtde_probe import probe_stream
+
 log = logging.getLogger(__name__)
 
 #: UR's own limits on Cartesian tool motion (URScript ``movel``).
 UR_MAX_TOOL_SPEED_M_S = 3.0
 UR_MAX_TOOL_ACCELERATION_M_S2 = 150.0
-
-#: RTDE ``safety_mode`` codes (UR RTDE guide).
-SAFETY_MODES: dict[int, str] = {
-    1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP",
-    6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT",
-    10: "VALIDATE_JOINT_ID", 11: "UNDEFINED_SAFETY_MODE", 12: "AUTOMATIC_MODE_SAFEGUARD_STOP",
-    13: "SYSTEM_THREE_POSITION_ENABLING_STOP",
-}
-#: RTDE ``robot_mode`` codes (``RTDEReceiveInterface.getRobotMode`` docstring).
-ROBOT_MODES: dict[int, str] = {
-    -1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF",
-    4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE",
-}
-#: RTDE ``runtime_state`` codes (program state).
-RUNTIME_STATES: dict[int, str] = {
-    0: "STOPPING", 1: "STOPPED", 2: "PLAYING", 3: "PAUSING", 4: "PAUSED", 5: "RESUMING",
-}
-SAFETY_OK = (1, 2)          # NORMAL, REDUCED
-ROBOT_MODE_RUNNING = 7
+#: Bound on a ``disconnect()`` of a stale receive interface (ur_rtde joins its threads there), s.
+DISCONNECT_TIMEOUT_S = 2.0
+#: After a move, a pose short of the target is read again until this many newer receive
+#: packages arrived (or for at most SETTLE_S seconds).
+SETTLE_PACKAGES = 3
+SETTLE_S = 0.2
 
 
-def _name(table: dict[int, str], code: int) -> str:
-    return f"{code} {table.get(code, 'UNKNOWN')}"
+def _quiet_disconnect(handle: Any) -> None:
+    with contextlib.suppress(Exception):
+        handle.disconnect()
+
+
+def _release(box: list[Any]) -> None:
+    """Disconnect the one ur_rtde object in ``box`` by dropping the last reference to it.
+
+    ur_rtde's destructors disconnect (joining their receive thread, ~0.5 s, holding the
+    GIL), and a ``disconnect()`` before them would cost that time twice; so
+    ``disconnect()`` is called only if something else still holds the object.
+    """
+    handle = box.pop()
+    with contextlib.suppress(Exception):
+        if sys.getrefcount(handle) > 2:  # beyond this name and getrefcount's own argument
+            handle.disconnect()
+    del handle
 
 
 @dataclass(frozen=True)
@@ -109,25 +131,26 @@ class URArm(RobotArm):
 
     Three ``ur_rtde`` interfaces are used, all imported only inside :meth:`_connect`:
 
-    * ``rtde_receive.RTDEReceiveInterface``: pose, joints, timestamp and the status
-      calls (``isProtectiveStopped``, ``isEmergencyStopped``, ``getSafetyMode``,
-      ``getRobotMode``, ``getRuntimeState``);
-    * ``rtde_control.RTDEControlInterface``: ``moveL``, ``stopL``, ``setTcp``,
-      ``isProgramRunning``, ``reuploadScript``;
-    * ``dashboard_client.DashboardClient`` (optional): identity (model, serial,
-      PolyScope version), remote-control check, and recovery in :meth:`clear_errors`
-      (``closeSafetyPopup``, ``unlockProtectiveStop``, optionally ``powerOn`` and
-      ``brakeRelease``).
+    * ``rtde_receive.RTDEReceiveInterface``: pose, joints, timestamp, safety, robot
+      mode, program state (``getRobotStatus``) — every state the driver decides on;
+    * ``rtde_control.RTDEControlInterface``, opened with ``FLAG_NO_WAIT`` and no script
+      upload: the driver uploads the control script itself (``reuploadScript``) and
+      waits for it with its own deadline; commands ``moveL``, ``stopL``, ``setTcp``;
+      the async operation register (``getAsyncOperationProgressEx``);
+    * ``dashboard_client.DashboardClient`` (optional): identity, remote-control check,
+      recovery in :meth:`clear_errors`.
 
-    Timeouts: the two RTDE constructors connect (and upload the control script) with
-    no timeout parameter, so they run in a :class:`~cellcal.drivers._blocking.BoundedCaller`
-    worker joined with the caller's timeout; a constructor that finishes late is
-    disconnected by the worker. The dashboard has its own ``connect(timeout_ms)``.
-    ``moveL`` is issued *asynchronously* and its completion polled against the motion
-    timeout; on timeout the arm is told to ``stopL``.
+    Timeouts: ur_rtde's Python constructors hold the GIL, so no thread can time them
+    out; the driver keeps them short instead (no script wait in the control
+    constructor, a plain-socket probe of the stream before a receive interface is
+    rebuilt). Commands run in a :class:`~cellcal.drivers._blocking.BoundedCaller`
+    worker (a control interface that lost its link can block forever in them), and
+    none is sent once the control link reports itself disconnected. ``moveL`` is
+    asynchronous, its completion polled against the motion timeout; on timeout the arm
+    is told to ``stopL``.
 
     Poses are of the flange: with ``set_tcp_to_flange = true`` (default) the TCP offset
-    is set to zero at connect, so ``getActualTCPPose`` and ``moveL`` act on the flange.
+    is set to zero whenever the control script starts.
 
     Attributes:
         receive_rebuilds: How many times a stale receive interface was rebuilt.
@@ -144,16 +167,19 @@ class URArm(RobotArm):
         self.receive_rebuilds = 0
         self._clock: Callable[[], float] = time.monotonic
         self._sleep: Callable[[float], None] = time.sleep
+        self._probe: Callable[[str, float], float] = probe_stream
         self._caller = BoundedCaller(f"ur {config.host}")
         self._rtde_control: Any = None
         self._rtde_receive: Any = None
-        self._dashboard_mod: Any = None
         self._control: Any = None
         self._receive: Any = None
-        self._dashboard: Any = None
+        self._dash = DashboardLink(config.host, config.dashboard_port)
         self._last_ts: float | None = None
         self._last_change = 0.0
-        self._identity: dict[str, str] = {}
+        #: Stale receive interfaces, each with the thread disconnecting it; destroyed at close.
+        self._retired: list[tuple[Any, threading.Thread]] = []
+        #: The controller turned a new connection away: treat every link to it as down.
+        self._link_down = False
 
     # ------------------------------------------------------------ life cycle
     def _connect(self, timeout: float) -> None:
@@ -163,30 +189,47 @@ class URArm(RobotArm):
         except ImportError:
             raise MissingDependencyError("ur_rtde", "ur") from None
         self._rtde_control, self._rtde_receive = rtde_control, rtde_receive
-        deadline = self._clock() + timeout
-        self._receive = self._new_receive(deadline)
-        self._control = self._bounded(
-            lambda: rtde_control.RTDEControlInterface(self.config.host), deadline,
-            "open the RTDE control interface (uploads the control script)")
-        self._mark_fresh(float(self._receive.getTimestamp()))
-        if self.config.set_tcp_to_flange and not self._control.setTcp([0.0] * 6):
-            self._raise_failure("setTcp (TCP offset to the flange)")
+        try:
+            self._open_interfaces(self._clock() + timeout)
+        except BaseException as exc:
+            # The traceback's frames hold the ur_rtde objects: free them, so that close() (next, in
+            # connect) destroys them once (~0.5 s each) instead of disconnecting and leaving them alive.
+            traceback.clear_frames(exc.__traceback__)
+            raise
+
+    def _open_interfaces(self, deadline: float) -> None:
         if self.config.use_dashboard:
-            self._open_dashboard(max(0.05, deadline - self._clock()), required=False)
+            self._dash.open(self._remaining(deadline), required=False)
+            self._dash.require_remote_control()
+        self._receive = self._new_receive(deadline)
+        self._await_stream(self._receive, deadline)
+        rtde_control = self._rtde_control
+        self._control = self._bounded(lambda: rtde_control.RTDEControlInterface(self.config.host, flags=FLAG_NO_WAIT),
+                                      deadline, "open the RTDE control interface")
+        if self._ready_for_program(self._receive):
+            self._start_script(deadline)
+        else:  # status() says why; clear_errors() starts the script once the arm can run it
+            log.warning("ur %s: the arm cannot run programs yet (%s); control script not started",
+                        self.config.host, self._not_ready_reason(self._receive))
 
     def _close(self) -> None:
-        for handle in (self._control, self._receive, self._dashboard):
-            if handle is not None:
-                with contextlib.suppress(Exception):
-                    handle.disconnect()
-        self._control = self._receive = self._dashboard = None
+        end = time.monotonic() + DISCONNECT_TIMEOUT_S
+        for _handle, worker in self._retired:
+            worker.join(max(0.0, end - time.monotonic()))
+        boxes = [[h] for h in (self._control, self._receive, *(h for h, _w in self._retired)) if h is not None]
+        self._control = self._receive = None
+        self._retired = []
         self._last_ts = None
+        self._link_down = False
+        self._dash.close()
+        for box in boxes:
+            _release(box)
         self._caller.join(1.0)
 
     def _info(self) -> DeviceInfo:
         return DeviceInfo(
-            backend="ur", vendor="Universal Robots", model=self._identity.get("model", "UR"),
-            serial=self._identity.get("serial", ""), firmware=self._identity.get("polyscope", ""),
+            backend="ur", vendor="Universal Robots", model=self._dash.identity.get("model", "UR"),
+            serial=self._dash.identity.get("serial", ""), firmware=self._dash.identity.get("polyscope", ""),
             extra={"host": self.config.host, "receive_rebuilds": self.receive_rebuilds},
         )
 
@@ -202,18 +245,13 @@ class URArm(RobotArm):
     def _status(self, timeout: float) -> ArmStatus:
         receive = self._fresh_receive(self._clock() + timeout)
         safety = int(receive.getSafetyMode())
-        robot = int(receive.getRobotMode())
-        running = bool(self._control.isProgramRunning())
         if safety not in SAFETY_OK:
-            return ArmStatus(error_code=safety, message=f"safety mode {_name(SAFETY_MODES, safety)}",
+            return ArmStatus(error_code=safety, message=f"safety mode {name(SAFETY_MODES, safety)}",
                              can_move=False)
-        warning = safety if safety == 2 else 0
-        if robot != ROBOT_MODE_RUNNING:
-            return ArmStatus(warning_code=warning, can_move=False,
-                             message=f"robot mode {_name(ROBOT_MODES, robot)} (needs power on, brakes released)")
-        if not running:
-            return ArmStatus(warning_code=warning, can_move=False,
-                             message="the RTDE control script is not running on the controller")
+        warning = safety if safety == SAFETY_REDUCED else 0
+        reason = self._not_ready_reason(receive)
+        if reason:
+            return ArmStatus(warning_code=warning, can_move=False, message=reason)
         return ArmStatus(warning_code=warning, message="reduced mode" if warning else "", can_move=True)
 
     # ------------------------------------------------------------ motion
@@ -228,43 +266,75 @@ class URArm(RobotArm):
                               f"{UR_MAX_TOOL_ACCELERATION_M_S2:g}); nothing moved")
         deadline = self._clock() + timeout
         target = [float(v) for v in pose_to_ur(pose)]
-        self._fresh_receive(deadline)
-        if not self._control.moveL(target, speed, acceleration, True):
+        receive = self._fresh_receive(deadline)
+        if self._not_ready_reason(receive):
             self._raise_failure("moveL")
-        seen_running = False
+        before = self._async_status().operationId()
+        try:
+            accepted = self._command(lambda c: c.moveL(target, speed, acceleration, True), deadline, "moveL")
+        except DeviceTimeoutError as exc:
+            raise MotionError(f"ur: moveL was not confirmed ({exc}); the command was not sent again; "
+                              f"{self._stop_quietly()}") from None
+        if not accepted:
+            self._raise_failure("moveL")
+        self._await_motion(pose, int(before), deadline, timeout)
+
+    def _await_motion(self, pose: Pose, before: int, deadline: float, timeout: float) -> None:
+        """Poll until the asynchronous moveL ``before`` was followed by has finished at ``pose``."""
+        seen = False
         while True:
-            receive = self._fresh_receive(deadline)
-            if receive.isEmergencyStopped() or receive.isProtectiveStopped() \
-                    or int(receive.getSafetyMode()) not in SAFETY_OK:
-                self._raise_failure("moveL")
-            if not self._control.isProgramRunning():
-                self._raise_failure("moveL")
-            running = bool(self._control.getAsyncOperationProgressEx().isAsyncOperationRunning())
-            seen_running = seen_running or running
-            if not running:
-                actual = pose_from_ur(self._vector(receive.getActualTCPPose(), 6, "getActualTCPPose"))
-                if actual.distance_to(pose) <= cfg.arrival_tolerance_m \
-                        and actual.angle_to(pose) <= cfg.arrival_tolerance_rad:
-                    return
-                # The motion ended short: a safety stop that landed after the status read
-                # above is the usual cause, so read the status again before concluding.
+            try:
                 receive = self._fresh_receive(deadline)
-                if receive.isEmergencyStopped() or receive.isProtectiveStopped() \
-                        or int(receive.getSafetyMode()) not in SAFETY_OK or not self._control.isProgramRunning():
-                    self._raise_failure("moveL")
-                if seen_running:
-                    raise VendorError("ur", 0, (
-                        f"moveL ended {actual.distance_to(pose) * 1000:.1f} mm / "
-                        f"{math.degrees(actual.angle_to(pose)):.2f} deg from the target "
-                        "without a safety stop (stopped by another program?)"))
+                self._require_control_link("moveL")
+            except (DeviceConnectionError, DeviceTimeoutError, ProtocolError) as exc:
+                raise MotionError(f"ur: contact lost during moveL ({exc}); the command was not sent again; "
+                                  f"{self._stop_quietly()}") from None
+            if self._not_ready_reason(receive):
+                self._raise_failure("moveL")
+            status = self._async_status()
+            running = bool(status.isAsyncOperationRunning())
+            seen = seen or running or int(status.operationId()) != before
+            if seen and not running:
+                self._check_arrival(receive, pose)
+                return
             if self._clock() >= deadline:
-                self._stop_quietly()
-                raise DeviceTimeoutError(f"ur: moveL did not finish within {timeout:g} s; arm stopped")
-            self._sleep(cfg.poll_interval_s)
+                raise DeviceTimeoutError(f"ur: moveL did not finish within {timeout:g} s; {self._stop_quietly()}")
+            self._sleep(self.config.poll_interval_s)
+
+    def _check_arrival(self, receive: Any, pose: Pose) -> None:
+        """After the control script reported the move finished: the received pose must be at ``pose``.
+
+        The receive interface has its own RTDE connection, which can lag the control
+        interface's by a package or two; a pose short of the target is read again until
+        the receive timestamp has advanced :data:`SETTLE_PACKAGES` times.
+        """
+        cfg = self.config
+        last, fresh = float(receive.getTimestamp()), 0
+        until = self._clock() + SETTLE_S
+        while True:
+            actual = pose_from_ur(self._vector(receive.getActualTCPPose(), 6, "getActualTCPPose"))
+            if actual.distance_to(pose) <= cfg.arrival_tolerance_m \
+                    and actual.angle_to(pose) <= cfg.arrival_tolerance_rad:
+                return
+            if fresh >= SETTLE_PACKAGES or self._clock() >= until:
+                break
+            self._sleep(0.002)
+            receive = self._fresh_receive(until + cfg.timeout_s)
+            ts = float(receive.getTimestamp())
+            fresh, last = (fresh + 1, ts) if ts != last else (fresh, last)
+        # The motion ended short: a safety stop that landed after the status read above is the
+        # usual cause, so read the status again before concluding.
+        if self._not_ready_reason(receive):
+            self._raise_failure("moveL")
+        raise VendorError("ur", 0, (
+            f"moveL ended {actual.distance_to(pose) * 1000:.1f} mm / {math.degrees(actual.angle_to(pose)):.2f} deg "
+            "from the target without a safety stop (stopped by another program?)"))
 
     def _stop(self, timeout: float) -> None:
-        self._control.stopL(self.config.stop_deceleration_m_s2)
+        decel = self.config.stop_deceleration_m_s2
+        self._command(lambda c: c.stopL(decel), self._clock() + timeout, "stopL")
 
+    # ------------------------------------------------------------ recovery
     def _clear_errors(self, timeout: float) -> None:
         deadline = self._clock() + timeout
         receive = self._fresh_receive(deadline)
@@ -272,37 +342,94 @@ class URArm(RobotArm):
             self._raise_failure("clear_errors")  # an e-stop is released by hand, never remotely
         if receive.isProtectiveStopped() or int(receive.getSafetyMode()) not in SAFETY_OK \
                 or int(receive.getRobotMode()) != ROBOT_MODE_RUNNING:
-            dash = self._open_dashboard(max(0.05, deadline - self._clock()), required=True)
-            dash.closeSafetyPopup()
-            # UR refuses to unlock a protective stop within 5 s of it: retry until the deadline.
-            while receive.isProtectiveStopped():
-                dash.unlockProtectiveStop()
-                if not receive.isProtectiveStopped():
-                    break
-                if self._clock() >= deadline:
-                    self._raise_failure("clear_errors (unlockProtectiveStop)")
-                self._sleep(max(self.config.poll_interval_s, 0.1))
-                receive = self._fresh_receive(deadline)
-            if int(receive.getRobotMode()) != ROBOT_MODE_RUNNING:
-                if not self.config.allow_power_on:
-                    raise VendorError("ur", int(receive.getRobotMode()), (
-                        f"robot mode {_name(ROBOT_MODES, int(receive.getRobotMode()))}: power on and release "
-                        "the brakes on the pendant, or set allow_power_on = true"))
-                dash.powerOn()
-                dash.brakeRelease()
-                while int(receive.getRobotMode()) != ROBOT_MODE_RUNNING:
-                    if self._clock() >= deadline:
-                        raise DeviceTimeoutError(f"ur: arm not RUNNING within {timeout:g} s after power on "
-                                                 f"(robot mode {_name(ROBOT_MODES, int(receive.getRobotMode()))})")
-                    self._sleep(max(self.config.poll_interval_s, 0.1))
-                    receive = self._fresh_receive(deadline)
-        if not self._control.isProgramRunning() and not self._control.reuploadScript():
-            self._raise_failure("clear_errors (reuploadScript)")
-        status = self._status(max(0.05, deadline - self._clock()))
+            dash = self._dash.open(self._remaining(deadline), required=True)
+            self._dash.call("closeSafetyPopup", "close safety popup")
+            self._unlock_protective_stop(dash, deadline)
+            self._power_up(deadline, timeout)
+        if not self._program_running(self._fresh_receive(deadline)):
+            self._start_script(deadline)
+        status = self._status(self._remaining(deadline))
         if not status.ok:
             raise VendorError("ur", status.error_code, f"clear_errors left the arm unable to move: {status.message}")
 
-    # ------------------------------------------------------------ helpers
+    def _unlock_protective_stop(self, dash: Any, deadline: float) -> None:
+        """Unlock a protective stop; UR refuses within 5 s of it, so retry until ``deadline``."""
+        refusal = ""
+        while self._fresh_receive(deadline).isProtectiveStopped():
+            try:
+                dash.unlockProtectiveStop()
+            except RuntimeError as exc:  # ur_rtde raises when the controller refuses
+                refusal = str(exc)
+            if self._clock() >= deadline:
+                raise VendorError("ur", int(self._fresh_receive(deadline).getSafetyMode()), (
+                    f"clear_errors could not unlock the protective stop in time ({refusal or 'still stopped'})"))
+            self._sleep(max(self.config.poll_interval_s, 0.05))
+
+    def _power_up(self, deadline: float, timeout: float) -> None:
+        receive = self._fresh_receive(deadline)
+        robot = int(receive.getRobotMode())
+        if robot == ROBOT_MODE_RUNNING:
+            return
+        if not self.config.allow_power_on:
+            raise VendorError("ur", robot, (
+                f"robot mode {name(ROBOT_MODES, robot)}: power on and release the brakes on the pendant, "
+                "or set allow_power_on = true"))
+        self._dash.call("powerOn", "power on")
+        self._dash.call("brakeRelease", "brake release")
+        while int(receive.getRobotMode()) != ROBOT_MODE_RUNNING:
+            if self._clock() >= deadline:
+                raise DeviceTimeoutError(f"ur: arm not RUNNING within {timeout:g} s after power on "
+                                         f"(robot mode {name(ROBOT_MODES, int(receive.getRobotMode()))})")
+            self._sleep(max(self.config.poll_interval_s, 0.05))
+            receive = self._fresh_receive(deadline)
+
+    def _start_script(self, deadline: float) -> None:
+        """Upload ur_rtde's control script, wait (bounded) until it runs, then zero the TCP offset."""
+        if not self._command(lambda c: c.reuploadScript(), deadline, "reuploadScript"):
+            self._raise_failure("start the control script (reuploadScript)")
+        receive = self._fresh_receive(deadline)
+        # Both links must see it: ur_rtde refuses commands while its own stream says STOPPED.
+        while not (self._program_running(receive) and self._control.isProgramRunning()):
+            if self._clock() >= deadline:
+                state = int(receive.getRuntimeState())
+                raise DeviceTimeoutError(
+                    f"ur {self.config.host}: the control script did not start in time (program state "
+                    f"{name(RUNTIME_STATES, state)}; {self._not_ready_reason(receive) or 'arm ready'})"
+                    f"{self._dash.remote_control_hint()}")
+            self._sleep(self.config.poll_interval_s)
+            receive = self._fresh_receive(deadline)
+        if self.config.set_tcp_to_flange and not self._command(lambda c: c.setTcp([0.0] * 6), deadline, "setTcp"):
+            self._raise_failure("setTcp (TCP offset to the flange)")
+
+    # ------------------------------------------------------------ state helpers
+    @staticmethod
+    def _program_running(receive: Any) -> bool:
+        return bool(int(receive.getRobotStatus()) & STATUS_PROGRAM_RUNNING)
+
+    @staticmethod
+    def _ready_for_program(receive: Any) -> bool:
+        return int(receive.getSafetyMode()) in SAFETY_OK and int(receive.getRobotMode()) == ROBOT_MODE_RUNNING
+
+    def _not_ready_reason(self, receive: Any) -> str:
+        """Why the arm cannot move now ("" when it can): safety, power, or the control script."""
+        safety = int(receive.getSafetyMode())
+        if safety not in SAFETY_OK:
+            return f"safety mode {name(SAFETY_MODES, safety)}"
+        robot = int(receive.getRobotMode())
+        if robot != ROBOT_MODE_RUNNING:
+            return f"robot mode {name(ROBOT_MODES, robot)} (needs power on, brakes released)"
+        if not self._program_running(receive):
+            return "the RTDE control script is not running on the controller"
+        return ""
+
+    def _async_status(self) -> Any:
+        self._require_control_link("read the motion state")
+        return self._control.getAsyncOperationProgressEx()
+
+    # ------------------------------------------------------------ vendor calls
+    def _remaining(self, deadline: float) -> float:
+        return max(0.05, deadline - self._clock())
+
     def _bounded(self, fn: Callable[[], Any], deadline: float, what: str) -> Any:
         remaining = deadline - self._clock()
         if remaining <= 0:
@@ -311,48 +438,106 @@ class URArm(RobotArm):
             return self._caller.call(fn, remaining, what, on_late=lambda h: h.disconnect())
         except RuntimeError as exc:  # ur_rtde reports constructor failures as RuntimeError
             text = str(exc)
-            hint = ""
-            if "remote control" in text.lower():
-                hint = " (switch the pendant to Remote Control)"
+            hint = " (switch the pendant to Remote Control)" if "remote control" in text.lower() else ""
             raise DeviceConnectionError(f"ur {self.config.host}: cannot {what}: {text}{hint}") from None
+
+    def _require_control_link(self, what: str) -> None:
+        control = self._control
+        if control is None or not control.isConnected():
+            raise DeviceConnectionError(f"ur {self.config.host}: {what}: the RTDE control connection is lost")
+        if self._link_down:
+            raise DeviceConnectionError(f"ur {self.config.host}: {what}: the controller refuses new RTDE "
+                                        "connections (its links are gone; no command is sent)")
+
+    def _command(self, fn: Callable[[Any], Any], deadline: float, what: str) -> Any:
+        """Run a control-interface command in a bounded worker; never on a control link known to be down."""
+        self._require_control_link(what)
+        control = self._control
+        remaining = min(self._remaining(deadline), self.config.timeout_s)
+        return self._caller.call(lambda: fn(control), remaining, what)
+
+    def _stop_quietly(self) -> str:
+        """Tell the arm to stop, ignoring errors; says what happened, for messages."""
+        try:
+            self._stop(self.config.timeout_s)
+        except CellcalError as exc:
+            return f"the arm could not be told to stop ({exc})"
+        return "the arm was told to stop"
 
     def _new_receive(self, deadline: float) -> Any:
         rtde_receive = self._rtde_receive
         return self._bounded(lambda: rtde_receive.RTDEReceiveInterface(self.config.host), deadline,
                              "open the RTDE receive interface")
 
+    def _await_stream(self, receive: Any, deadline: float) -> None:
+        """Wait until a new receive interface reports an advancing controller timestamp."""
+        first = float(receive.getTimestamp())
+        until = min(deadline, self._clock() + max(4 * self.config.stale_after_s, 0.5))
+        while True:
+            ts = float(receive.getTimestamp())
+            if receive.isConnected() and ts > 0.0 and ts != first:
+                self._mark_fresh(ts)
+                return
+            if self._clock() >= until:
+                with contextlib.suppress(Exception):
+                    receive.disconnect()
+                raise DeviceConnectionError(f"ur {self.config.host}: the RTDE receive stream does not advance "
+                                            f"(timestamp {ts:.3f} s, connected={bool(receive.isConnected())})")
+            self._sleep(min(self.config.poll_interval_s, 0.01))
+
     def _mark_fresh(self, ts: float) -> None:
         self._last_ts = ts
         self._last_change = self._clock()
 
     def _fresh_receive(self, deadline: float) -> Any:
-        """The receive interface, rebuilt first if its timestamp has stopped advancing.
+        """The receive interface, rebuilt first if it is disconnected or its timestamp stopped advancing.
 
-        ``isConnected()`` can stay True on a receive interface whose stream has died
-        (values frozen). ``getTimestamp()`` is controller time, advancing at 125-500 Hz;
-        a value unchanged for longer than ``stale_after_s`` means a stale stream, and the
-        interface is rebuilt (counted in :attr:`receive_rebuilds`).
+        ``isConnected()`` can stay True on a receive interface whose stream has died (values
+        frozen). ``getTimestamp()`` is controller time, advancing at 125-500 Hz; a value
+        unchanged for longer than ``stale_after_s`` means a stale stream.
         """
-        ts = float(self._receive.getTimestamp())
+        receive = self._receive
+        if receive is None:
+            return self._rebuild_receive(deadline, "no receive interface (the last one was stale)")
+        if not receive.isConnected():
+            return self._rebuild_receive(deadline, "the receive interface reports a lost connection")
+        ts = float(receive.getTimestamp())
         now = self._clock()
         if ts != self._last_ts:
             self._last_ts, self._last_change = ts, now
-            return self._receive
+            return receive
         if now - self._last_change <= self.config.stale_after_s:
-            return self._receive
-        log.warning("ur %s: receive timestamp frozen at %.3f s for %.3f s; rebuilding the interface",
-                    self.config.host, ts, now - self._last_change)
+            return receive
+        return self._rebuild_receive(deadline, f"receive timestamp frozen at {ts:.3f} s for "
+                                               f"{now - self._last_change:.3f} s")
+
+    def _rebuild_receive(self, deadline: float, why: str) -> Any:
+        """Replace the receive interface, after checking with a plain socket that the controller streams."""
+        log.warning("ur %s: %s; rebuilding the receive interface", self.config.host, why)
         old, self._receive = self._receive, None
-        with contextlib.suppress(Exception):
-            old.disconnect()
-        self._receive = self._new_receive(deadline)
+        if old is not None:
+            # A stale interface can take ur_rtde's 2.5 s read timeout to disconnect: do it in the
+            # background (GIL released); its destructor runs at close.
+            worker = threading.Thread(target=_quiet_disconnect, args=(old,), daemon=True,
+                                      name=f"ur {self.config.host}: disconnect a stale receive interface")
+            worker.start()
+            self._retired.append((old, worker))
+        del old
+        # A controller that streams sends its first package within a few ms: no need to wait out the deadline.
+        probe_s = min(self._remaining(deadline), max(0.5, 4 * self.config.stale_after_s))
+        try:
+            self._probe(self.config.host, probe_s)
+        except CellcalError as exc:
+            # Refused, reset or closed: the controller's links are gone, the control link's too,
+            # even before it notices (ur_rtde would then block for ever in any command).
+            self._link_down = isinstance(exc, DeviceConnectionError)
+            raise DeviceConnectionError(f"ur {self.config.host}: {why}, and a new RTDE stream fails: {exc}") from None
+        self._link_down = False
+        receive = self._new_receive(deadline)
+        self._await_stream(receive, deadline)
+        self._receive = receive
         self.receive_rebuilds += 1
-        fresh = float(self._receive.getTimestamp())
-        if fresh == ts:
-            raise DeviceConnectionError(
-                f"ur {self.config.host}: rebuilt receive interface still reports timestamp {ts:.3f} s")
-        self._mark_fresh(fresh)
-        return self._receive
+        return receive
 
     def _vector(self, values: Any, n: int, what: str) -> NDArray[np.float64]:
         try:
@@ -363,80 +548,51 @@ class URArm(RobotArm):
             raise ProtocolError(f"ur: {what} returned {arr.tolist()!r}, expected {n} finite numbers")
         return arr
 
-    def _stop_quietly(self) -> None:
-        try:
-            self._control.stopL(self.config.stop_deceleration_m_s2)
-        except Exception:
-            log.exception("ur %s: stopL failed", self.config.host)
-
-    def _open_dashboard(self, timeout: float, *, required: bool) -> Any:
-        if self._dashboard is not None and self._dashboard.isConnected():
-            return self._dashboard
-        try:
-            import dashboard_client
-        except ImportError:
-            raise MissingDependencyError("ur_rtde (dashboard_client)", "ur") from None
-        dash = dashboard_client.DashboardClient(self.config.host, self.config.dashboard_port)
-        try:
-            dash.connect(max(1, int(timeout * 1000)))
-            self._identity = {"model": str(dash.getRobotModel()), "serial": str(dash.getSerialNumber()),
-                              "polyscope": str(dash.polyscopeVersion())}
-        except (RuntimeError, OSError) as exc:
-            if required:
-                raise DeviceConnectionError(
-                    f"ur {self.config.host}: dashboard server port {self.config.dashboard_port}: {exc}") from None
-            log.warning("ur %s: dashboard unavailable (%s); identity unknown", self.config.host, exc)
-            return None
-        self._dashboard = dash
-        return dash
-
-    def _remote_control_hint(self) -> str:
-        dash = self._dashboard
-        try:
-            if dash is not None and dash.isConnected() and not dash.isInRemoteControl():
-                return "; the pendant is in Local Control (switch it to Remote Control)"
-        except Exception:
-            pass
-        return ""
-
+    # ------------------------------------------------------------ failures
     def _raise_failure(self, operation: str) -> NoReturn:
-        """Explain a False return (or a refused motion) from the status calls and raise.
+        """Explain a False return (or a refused motion) from the receive interface's state and raise.
 
-        * emergency / protective / safeguard stop, violation, fault (the robot's own
-          safety system stopped it): :class:`VendorError` ``("ur", safety_mode, meaning)``
-          with the UR safety-mode code; not :class:`SafetyError`, which in cellcal means
-          *our* envelope rejected a command before anything moved;
-        * robot not powered / brakes engaged: :class:`VendorError` with the robot-mode code;
-        * control script not running (stopped from the pendant, remote control off):
-          :class:`VendorError` with the program runtime-state code;
-        * lost link: :class:`DeviceConnectionError`.
-
-        Speed / acceleration beyond UR's limits (3 m/s, 150 m/s²) or the configured ones
-        are refused earlier, in :meth:`_move_linear`, with :class:`SafetyError` (nothing moved).
+        :class:`VendorError` with the safety-mode code (the robot's own safety system stopped
+        it: not :class:`SafetyError`, which means *our* envelope refused a command), the
+        robot-mode code (not powered, brakes on) or the program-state code (control script
+        not running); :class:`DeviceConnectionError` for a lost link (ADR 0015).
         """
         receive = self._receive
-        if receive is None or not receive.isConnected() or self._control is None \
-                or not self._control.isConnected():
+        if receive is None or not receive.isConnected():
             raise DeviceConnectionError(f"ur {self.config.host}: {operation} failed: RTDE connection lost")
+        self._require_control_link(f"{operation} failed")
+        # The control link can see the cause a package or two before the receive link does.
+        last, fresh = float(receive.getTimestamp()), 0
+        until = self._clock() + SETTLE_S
+        while True:
+            self._raise_known_cause(receive, operation)
+            if fresh >= SETTLE_PACKAGES or self._clock() >= until:
+                break
+            self._sleep(0.002)
+            ts = float(receive.getTimestamp())
+            fresh, last = (fresh + 1, ts) if ts != last else (fresh, last)
+        raise VendorError("ur", 0, f"{operation} returned False with the arm in normal mode "
+                                   "(ur_rtde internal timeout?)")
+
+    def _raise_known_cause(self, receive: Any, operation: str) -> None:
+        """Raise the typed error for the state the receive interface reports, if any."""
         safety = int(receive.getSafetyMode())
         if receive.isEmergencyStopped():
             raise VendorError("ur", safety, (
-                f"{operation} failed: emergency stop engaged (safety mode {_name(SAFETY_MODES, safety)}); "
+                f"{operation} failed: emergency stop engaged (safety mode {name(SAFETY_MODES, safety)}); "
                 "release the e-stop by hand, then call clear_errors()"))
         if receive.isProtectiveStopped():
             raise VendorError("ur", safety, (
-                f"{operation} failed: protective stop (safety mode {_name(SAFETY_MODES, safety)}); "
+                f"{operation} failed: protective stop (safety mode {name(SAFETY_MODES, safety)}); "
                 "remove the cause, then call clear_errors()"))
         if safety not in SAFETY_OK:
-            raise VendorError("ur", safety, f"{operation} failed: safety mode {_name(SAFETY_MODES, safety)}")
+            raise VendorError("ur", safety, f"{operation} failed: safety mode {name(SAFETY_MODES, safety)}")
         robot = int(receive.getRobotMode())
         if robot != ROBOT_MODE_RUNNING:
             raise VendorError("ur", robot, (
-                f"{operation} failed: robot mode {_name(ROBOT_MODES, robot)} (power on and release the brakes)"))
-        if not self._control.isProgramRunning():
+                f"{operation} failed: robot mode {name(ROBOT_MODES, robot)} (power on and release the brakes)"))
+        if not self._program_running(receive):
             state = int(receive.getRuntimeState())
             raise VendorError("ur", state, (
                 f"{operation} failed: the RTDE control script is not running (program state "
-                f"{_name(RUNTIME_STATES, state)}){self._remote_control_hint()}; clear_errors() re-uploads it"))
-        raise VendorError("ur", 0, f"{operation} returned False with the arm in normal mode "
-                                   "(ur_rtde internal timeout?)")
+                f"{name(RUNTIME_STATES, state)}){self._dash.remote_control_hint()}; clear_errors() restarts it"))

@@ -2,11 +2,13 @@
 
 SI units on the API; millimetres and radians only on the wire (converted through
 :mod:`cellcal.devices.geometry.vendor_poses`). Poses are of the tool flange: the
-controller's TCP offset is assumed to be zero.
+controller's TCP offset is assumed to be zero. A motion command is sent once and never
+again; what happens when its reply is missing or foreign is ADR 0016.
 """
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 from dataclasses import dataclass, field
@@ -16,12 +18,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
+from cellcal.devices.arrival import format_pose
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import (
     CellcalError,
     ConfigError,
     DeviceConnectionError,
     DeviceTimeoutError,
+    MotionError,
     ProtocolError,
     SafetyError,
     VendorError,
@@ -50,15 +54,24 @@ from .registers import (
 from .transport import SerialTransport
 
 _MM = 1000.0
+#: Largest |coordinate| of a TCP pose reply taken as real, mm (no xArm reaches 10 m).
+MAX_POSE_MM = 10_000.0
+#: Largest |angle| of a pose or joint reply taken as real, rad.
+MAX_ANGLE_RAD = 4.0 * math.pi
+_LINK_ERRORS = (ProtocolError, DeviceTimeoutError)
 
 
 class XArmArm(RobotArm):
     """xArm over a serial line (backend ``"xarm"``).
 
     A motion is one MOVE_LINE followed by state polling (GET_STATE, GET_CMDNUM,
-    GET_ERROR) until the arm reports it is idle with an empty queue. Errors are never
-    cleared silently: :meth:`recover` (= :meth:`clear_errors`) is the one place that
-    runs the vendor's recovery sequence.
+    GET_ERROR) until the arm reports it is idle with an empty queue; the base class then
+    checks the arrival (ADR 0016). MOVE_LINE is sent once: right before it go a pose read
+    and an error read, whose reply lengths (24 and 2 bytes) differ from its own (0 or 3),
+    so a reply lagging one request behind cannot pass for its confirmation. Without a
+    valid reply the driver reads the state and pose, stops the arm unless it is idle, and
+    raises :class:`MotionError`. Errors are never cleared silently: :meth:`recover`
+    (= :meth:`clear_errors`) is the one place that runs the vendor's recovery sequence.
 
     Args:
         config: Validated :class:`XArmArm.Config`.
@@ -69,21 +82,29 @@ class XArmArm(RobotArm):
 
     @dataclass(frozen=True)
     class Config:
-        """The ``[arm]`` section for ``backend = "xarm"``."""
+        """The ``[arm]`` section for ``backend = "xarm"``; every quantity in the range a real xArm cell has."""
 
         port: str = field(default="/dev/ttyUSB0", metadata={"doc": "serial device path or pyserial URL"})
-        baudrate: int = field(default=2_000_000, metadata={"gt": 0, "doc": "line speed, baud (8N1)"})
+        baudrate: int = field(default=2_000_000, metadata={"ge": 1200, "le": 12_000_000,
+                                                           "doc": "line speed, baud (8N1)"})
         axes: Literal[5, 6, 7] = field(default=6, metadata={"doc": "axis count of the arm"})
-        reply_timeout_s: float = field(default=0.5, metadata={"gt": 0, "le": 10, "doc": "per-attempt reply timeout, s"})
-        retries: int = field(default=2, metadata={"ge": 0, "le": 10, "doc": "extra attempts on a bad/missing reply"})
-        enable_timeout_s: float = field(default=5.0, metadata={"gt": 0, "le": 30, "doc": "MOTION_EN timeout, s"})
-        poll_interval_s: float = field(default=0.02, metadata={"gt": 0, "le": 1, "doc": "state polling period, s"})
-        stop_timeout_s: float = field(default=2.0, metadata={"gt": 0, "le": 30, "doc": "time to confirm a stop, s"})
-        default_speed_m_s: float = field(default=0.1, metadata={"gt": 0, "le": 1.0, "doc": "default tool speed, m/s"})
-        default_acceleration_m_s2: float = field(default=1.0, metadata={"gt": 0, "le": 50.0,
+        reply_timeout_s: float = field(default=0.5, metadata={"ge": 0.001, "le": 10,
+                                                              "doc": "wait for one reply, s (a read's per attempt)"})
+        retries: int = field(default=2, metadata={"ge": 0, "le": 10,
+                                                  "doc": "extra attempts of a read on a bad/missing reply "
+                                                         "(other commands are never resent)"})
+        enable_timeout_s: float = field(default=5.0, metadata={"ge": 0.01, "le": 30, "doc": "MOTION_EN timeout, s"})
+        poll_interval_s: float = field(default=0.02, metadata={"ge": 0.001, "le": 1, "doc": "state polling period, s"})
+        stop_timeout_s: float = field(default=2.0, metadata={"ge": 0.01, "le": 30,
+                                                             "doc": "time to confirm a stop (and, after an "
+                                                                    "unconfirmed motion, to find out and stop), s"})
+        default_speed_m_s: float = field(default=0.1, metadata={"ge": 1e-4, "le": 1.0,
+                                                                "doc": "default tool speed, m/s"})
+        default_acceleration_m_s2: float = field(default=1.0, metadata={"ge": 1e-3, "le": 50.0,
                                                                           "doc": "default tool acceleration, m/s²"})
-        max_speed_m_s: float = field(default=1.0, metadata={"gt": 0, "le": 1.0, "doc": "largest accepted speed, m/s"})
-        max_acceleration_m_s2: float = field(default=50.0, metadata={"gt": 0, "le": 50.0,
+        max_speed_m_s: float = field(default=1.0, metadata={"ge": 1e-4, "le": 1.0,
+                                                            "doc": "largest accepted speed, m/s"})
+        max_acceleration_m_s2: float = field(default=50.0, metadata={"ge": 1e-3, "le": 50.0,
                                                                       "doc": "largest accepted acceleration, m/s²"})
         move_line_layout: Literal["auto", "legacy", "common"] = field(
             default="auto", metadata={"doc": "MOVE_LINE parameter layout; auto picks by firmware version"})
@@ -124,21 +145,36 @@ class XArmArm(RobotArm):
               timeout: float | None = None) -> Reply:
         return self.transport.transact(int(reg), params, expect_len=expect_len, timeout=timeout)
 
-    def _read_error(self) -> tuple[int, int]:
-        reply = self._call(Reg.GET_ERROR, expect_len=2)
+    def _read_error(self, timeout: float | None = None) -> tuple[int, int]:
+        reply = self._call(Reg.GET_ERROR, expect_len=2, timeout=timeout)
         return reply.data[0], reply.data[1]
 
-    def _read_state(self) -> int:
-        return self._call(Reg.GET_STATE, expect_len=1).data[0]
+    def _read_state(self, timeout: float | None = None) -> int:
+        state = self._call(Reg.GET_STATE, expect_len=1, timeout=timeout).data[0]
+        if state not in tuple(ArmState):
+            raise ProtocolError(f"xarm: GET_STATE replied {state}, not a state of the controller (1-5)")
+        return state
 
-    def _read_cmdnum(self) -> int:
-        return int(struct.unpack(">H", self._call(Reg.GET_CMDNUM, expect_len=2).data)[0])
+    def _read_cmdnum(self, timeout: float | None = None) -> int:
+        return int(struct.unpack(">H", self._call(Reg.GET_CMDNUM, expect_len=2, timeout=timeout).data)[0])
+
+    def _read_pose(self, timeout: float | None = None) -> Pose:
+        values = np.asarray(unpack_floats(self._call(Reg.GET_TCP_POSE, expect_len=24, timeout=timeout).data, 6),
+                            dtype=np.float64)
+        if not (np.all(np.isfinite(values)) and np.all(np.abs(values[:3]) <= MAX_POSE_MM)
+                and np.all(np.abs(values[3:]) <= MAX_ANGLE_RAD)):
+            raise ProtocolError(f"xarm: GET_TCP_POSE replied {values.tolist()}, not a pose (mm, rad) of an xArm")
+        return pose_from_xarm(values)
 
     def _raise_error(self, code: int) -> None:
         raise VendorError("xarm", code, codes.error_meaning(code))
 
-    def _set_state(self, value: SetState) -> Reply:
-        return self._call(Reg.SET_STATE, bytes([int(value)]))
+    def _set_state(self, value: SetState, timeout: float | None = None) -> Reply:
+        return self._call(Reg.SET_STATE, bytes([int(value)]), timeout=timeout)
+
+    def _bounded(self, deadline: float) -> float:
+        """Timeout of one read before ``deadline``, never less than one reply's wait."""
+        return max(deadline - time.monotonic(), self.config.reply_timeout_s)
 
     # ------------------------------------------------------------------ life cycle
     def _connect(self, timeout: float) -> None:
@@ -154,7 +190,7 @@ class XArmArm(RobotArm):
         try:
             sn = self._call(Reg.GET_ROBOT_SN, expect_len=VERSION_LEN)
             self._robot_sn, self._box_sn = decode_serials(sn.data)
-        except (ProtocolError, DeviceTimeoutError):
+        except _LINK_ERRORS:
             self._robot_sn, self._box_sn = self._version.robot_sn, self._version.box_sn
         if cfg.enable_on_connect:
             error, _warn = self._read_error()
@@ -205,12 +241,14 @@ class XArmArm(RobotArm):
 
     # ------------------------------------------------------------------ reads
     def _get_pose(self, timeout: float) -> Pose:
-        reply = self._call(Reg.GET_TCP_POSE, expect_len=24, timeout=timeout)
-        return pose_from_xarm(np.asarray(unpack_floats(reply.data, 6), dtype=np.float64))
+        return self._read_pose(timeout)
 
     def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
         reply = self._call(Reg.GET_JOINT_POS, expect_len=4 * JOINT_FLOATS, timeout=timeout)
-        return np.asarray(unpack_floats(reply.data, JOINT_FLOATS)[: self.config.axes], dtype=np.float64)
+        q = np.asarray(unpack_floats(reply.data, JOINT_FLOATS)[: self.config.axes], dtype=np.float64)
+        if not (np.all(np.isfinite(q)) and np.all(np.abs(q) <= MAX_ANGLE_RAD)):
+            raise ProtocolError(f"xarm: GET_JOINT_POS replied {q.tolist()}, not joint angles in radians")
+        return q
 
     def _status(self, timeout: float) -> ArmStatus:
         error, warn = self._read_error()
@@ -248,51 +286,100 @@ class XArmArm(RobotArm):
             raise SafetyError(f"xarm: acceleration {acceleration} m/s^2 exceeds max_acceleration_m_s2 "
                               f"{cfg.max_acceleration_m_s2}")
         deadline = time.monotonic() + timeout
-        error, _warn = self._read_error()
-        if error:
-            self._raise_error(error)
         common = self._layout() == "common"
         params = encode_move_line(pose_to_xarm(pose), speed * _MM, acceleration * _MM, common=common)
-        reply = self._call(Reg.MOVE_LINE, params, expect_len=MOVE_LINE_COMMON_REPLY if common else 0)
+        # The last two requests before MOVE_LINE answer with 24 and 2 bytes, MOVE_LINE with 0 or 3:
+        # a reply one request late shows up as a wrong length, never as MOVE_LINE's confirmation.
+        start = self._read_pose(self._bounded(deadline))
+        error, _warn = self._read_error(self._bounded(deadline))
+        if error:
+            self._raise_error(error)
+        try:
+            reply = self._call(Reg.MOVE_LINE, params, expect_len=MOVE_LINE_COMMON_REPLY if common else 0,
+                               timeout=cfg.reply_timeout_s)
+        except _LINK_ERRORS as exc:
+            raise self._unconfirmed(f"MOVE_LINE to {format_pose(pose)} was not confirmed ({exc})",
+                                    pose, start) from None
         self._check_ready(reply, "MOVE_LINE")
-        self._wait_idle(deadline, timeout)
+        self._wait_idle(deadline, timeout, pose, start)
 
-    def _wait_idle(self, deadline: float, timeout: float) -> None:
-        """Poll until the arm is idle with an empty queue; stop it and raise on timeout."""
+    def _wait_idle(self, deadline: float, timeout: float, target: Pose, start: Pose) -> None:
+        """Poll until the arm is idle with an empty queue; stop it and raise on timeout or lost contact."""
         idle_seen = 0
         while True:
-            error, _warn = self._read_error()
+            try:
+                error, _warn = self._read_error(self._bounded(deadline))
+                state = self._read_state(self._bounded(deadline)) if not error else 0
+                idle = state == ArmState.SLEEPING and self._read_cmdnum(self._bounded(deadline)) == 0
+            except _LINK_ERRORS as exc:
+                raise self._unconfirmed(f"contact lost during the motion to {format_pose(target)} ({exc})",
+                                        target, start) from None
             if error:
                 self._raise_error(error)
-            state = self._read_state()
             if state in (ArmState.STOPPED, ArmState.STOPPING):
                 error, _warn = self._read_error()  # the error may have latched after the read above
                 if error:
                     self._raise_error(error)
                 raise VendorError("xarm", codes.NOT_READY,
                                   f"arm stopped during the motion (state {state}); call clear_errors()")
-            if state == ArmState.SLEEPING and self._read_cmdnum() == 0:
-                idle_seen += 1
-                if idle_seen >= 2:
-                    return
-            else:
-                idle_seen = 0
-            if time.monotonic() >= deadline:
-                try:
-                    self._stop(self.config.stop_timeout_s)
-                except CellcalError as exc:
-                    raise DeviceTimeoutError(f"xarm: motion not finished within {timeout:.3g} s, "
-                                             f"and stopping failed: {exc}") from None
-                raise DeviceTimeoutError(f"xarm: motion not finished within {timeout:.3g} s; arm stopped")
-            time.sleep(min(self.config.poll_interval_s, max(0.0, deadline - time.monotonic())))
-
-    def _stop(self, timeout: float) -> None:
-        """Emergency-style stop: SET_STATE 4 until the state reads 4 (the arm then needs recovery)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            self._set_state(SetState.STOP)
-            if self._read_state() == ArmState.STOPPED:
+            idle_seen = idle_seen + 1 if idle else 0
+            if idle_seen >= 2:
                 return
             if time.monotonic() >= deadline:
-                raise DeviceTimeoutError(f"xarm: arm did not report stopped within {timeout:.3g} s")
-            time.sleep(self.config.poll_interval_s)
+                raise DeviceTimeoutError(f"xarm: motion not finished within {timeout:.3g} s; "
+                                         f"{self._stop_quietly(time.monotonic() + self.config.stop_timeout_s)}")
+            time.sleep(min(self.config.poll_interval_s, max(0.0, deadline - time.monotonic())))
+
+    def _unconfirmed(self, reason: str, target: Pose, start: Pose) -> MotionError:
+        """After a motion command without a valid reply: find out what the arm does, stop it unless idle.
+
+        Takes at most ``stop_timeout_s``: half to read the state and pose, the rest to stop.
+        """
+        budget = self.config.stop_timeout_s
+        end = time.monotonic() + budget
+        findings, unsure = self._assess(target, start, end - budget / 2)
+        stopped = self._stop_quietly(end) if unsure else "it is idle, so it was not stopped"
+        return MotionError(f"xarm: {reason}; the command was not sent again; {findings}; {stopped}")
+
+    def _assess(self, target: Pose, start: Pose, until: float) -> tuple[str, bool]:
+        """What the arm is doing after an unconfirmed motion; ``(description, unsure)``."""
+        try:
+            error, _warn = self._read_error(self._bounded(until))
+            state = self._read_state(self._bounded(until))
+            queued = self._read_cmdnum(self._bounded(until))
+            pose = self._read_pose(self._bounded(until))
+        except _LINK_ERRORS as exc:
+            return f"its state could not be read back ({exc})", True
+        where = (f"the flange is {pose.distance_to(start) * _MM:.1f} mm from where it started and "
+                 f"{pose.distance_to(target) * _MM:.1f} mm from the target")
+        idle = state in (ArmState.SLEEPING, ArmState.STOPPED) and queued == 0
+        return f"state {state}, {queued} queued, error {error}: {where}", not idle
+
+    def _stop_quietly(self, until: float) -> str:
+        """Stop the arm, bounded by ``until``; says what happened, for messages (never raises a device error)."""
+        try:
+            self._stop(max(until - time.monotonic(), self.config.reply_timeout_s))
+        except CellcalError as exc:
+            return f"stopping the arm failed: {exc}"
+        return "the arm was stopped (clear_errors() before the next move)"
+
+    def _stop(self, timeout: float) -> None:
+        """Emergency-style stop: SET_STATE 4 until the state reads 4 (the arm then needs recovery).
+
+        Each round sends SET_STATE 4 once and reads the state; a lost or garbled reply only
+        makes another round (a stop never moves the arm, so repeating it is the vendor's way).
+        """
+        cfg = self.config
+        deadline = time.monotonic() + timeout
+        last: CellcalError | None = None
+        while True:
+            try:
+                self._set_state(SetState.STOP, cfg.reply_timeout_s)
+                if self._read_state(min(self._bounded(deadline), 2 * cfg.reply_timeout_s)) == ArmState.STOPPED:
+                    return
+            except _LINK_ERRORS as exc:
+                last = exc
+            if time.monotonic() >= deadline:
+                why = f" (last: {last})" if last is not None else ""
+                raise DeviceTimeoutError(f"xarm: arm did not report stopped within {timeout:.3g} s{why}")
+            time.sleep(cfg.poll_interval_s)

@@ -36,6 +36,20 @@ class Reg(IntEnum):
     GET_TCP_POSE_AA = 91
 
 
+READ_REGISTERS: frozenset[int] = frozenset({
+    Reg.GET_VERSION, Reg.GET_ROBOT_SN, Reg.GET_STATE, Reg.GET_CMDNUM, Reg.GET_ERROR,
+    Reg.GET_TCP_POSE, Reg.GET_JOINT_POS, Reg.GET_TCP_POSE_AA,
+})
+"""Idempotent reads: the only requests the transport may send again after a bad or missing reply."""
+
+MOTION_REGISTERS: frozenset[int] = frozenset({*range(21, 26), *range(27, 31), 83, 92, 93})
+"""Commands that move the arm, by the SDK's register table (MOVE_LINE 21, MOVE_LINEB,
+MOVE_JOINT, MOVE_JOINTB, MOVE_HOME 25, MOVE_CIRCLE 27, MOVE_LINE_TOOL, MOVE_SERVOJ,
+MOVE_SERVO_CART 30, MOVE_RELATIVE 83, MOVE_LINE_AA 92, MOVE_SERVO_CART_AA 93): sent once,
+never again, whatever the reply (ADR 0016). SET_STATE 0 (run) can resume a paused queue,
+so every write is sent once too; only :data:`READ_REGISTERS` are retried."""
+
+
 class ArmState(IntEnum):
     """Values of the GET_STATE reply."""
 

@@ -1,7 +1,12 @@
 """One request/reply transaction at a time over a serial line (pyserial, imported lazily).
 
-The transport owns the port and the retry policy and nothing else: it retries a bounded
-number of times on a bad CRC, a malformed frame, a reply of the wrong length or no reply.
+The transport owns the port and the retry policy: only idempotent reads
+(:data:`~.registers.READ_REGISTERS`) are sent again after a bad, foreign or missing reply;
+every other request, above all a motion command, is sent exactly once (ADR 0016). The
+serial protocol echoes no register and carries no transaction id, so a reply belongs to
+its request only if it comes in time, alone, and with the data length that register
+answers with; anything else puts the line out of step, and the transport resynchronises
+(waits for a quiet line, flushes) before it sends again.
 """
 
 from __future__ import annotations
@@ -19,6 +24,15 @@ from cellcal.devices.errors import (
 )
 
 from .protocol import FrameSplitter, Reply, encode_request, parse_reply
+from .registers import READ_REGISTERS, Reg
+
+
+def register_name(register: int) -> str:
+    """``21 (MOVE_LINE)`` for messages."""
+    try:
+        return f"{register} ({Reg(register).name})"
+    except ValueError:
+        return str(register)
 
 
 class SerialTransport:
@@ -28,12 +42,15 @@ class SerialTransport:
         port: Serial device path (``/dev/ttyUSB0``, a pty) or a pyserial URL
             (``loop://`` in tests).
         baudrate: Line speed, baud (8N1).
-        reply_timeout_s: Seconds to wait for each reply before retrying.
-        retries: Extra attempts after a failed one (bad CRC, short frame, wrong
-            length, no reply).
+        reply_timeout_s: Seconds to wait for each reply of a read before trying again,
+            and the default wait for the one reply of any other request.
+        retries: Extra attempts of a read after a failed one (bad CRC, foreign reply,
+            no reply); other requests are never retried.
 
     Attributes:
-        stats: Counters of ``requests``, ``retries``, ``bad_frames``, ``timeouts``.
+        stats: Counters of ``requests``, ``retries``, ``bad_frames`` (garbled or foreign
+            replies), ``timeouts``, ``resyncs`` and ``stale_bytes`` (bytes that came
+            when no request was waiting).
     """
 
     def __init__(self, port: str, baudrate: int = 2_000_000, *, reply_timeout_s: float = 0.5,
@@ -42,9 +59,11 @@ class SerialTransport:
         self.baudrate = baudrate
         self.reply_timeout_s = reply_timeout_s
         self.retries = retries
+        self.quiet_s = min(reply_timeout_s, 0.05)  # a line silent this long is taken as in step
         self._serial: Any = None
         self._lock = threading.Lock()
-        self.stats = {"requests": 0, "retries": 0, "bad_frames": 0, "timeouts": 0}
+        self._out_of_step = False
+        self.stats = {"requests": 0, "retries": 0, "bad_frames": 0, "timeouts": 0, "resyncs": 0, "stale_bytes": 0}
 
     @property
     def is_open(self) -> bool:
@@ -78,16 +97,50 @@ class SerialTransport:
                 ser.close()
 
     # ------------------------------------------------------------------ I/O
-    def _write(self, frame: bytes) -> None:
+    def _io_error(self, what: str, exc: Exception) -> DeviceConnectionError:
+        return DeviceConnectionError(f"xarm: {what} {self.port!r} failed: {exc}")
+
+    def _write(self, frame: bytes, limit: float) -> None:
+        """Send one request on a line in step: stray input first makes the line resynchronise."""
+        try:
+            stray = int(self._serial.in_waiting)
+        except Exception as exc:
+            raise self._io_error("read from", exc) from None
+        if stray:
+            self.stats["stale_bytes"] += stray
+            self._out_of_step = True
+        if self._out_of_step:
+            self._resync(limit)
         try:
             self._serial.reset_input_buffer()
             self._serial.write(frame)
             self._serial.flush()
         except Exception as exc:
-            raise DeviceConnectionError(f"xarm: write to {self.port!r} failed: {exc}") from None
+            raise self._io_error("write to", exc) from None
 
-    def _read_reply(self, deadline: float, expect_len: int | None) -> Reply | None:
-        """One reply, or None when the deadline passes. Raises ProtocolError on a bad one."""
+    def _resync(self, limit: float) -> None:
+        """Discard input until the line has been quiet for :attr:`quiet_s` (or ``limit`` passes), then flush."""
+        self.stats["resyncs"] += 1
+        try:
+            while True:
+                remaining = limit - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._serial.timeout = min(self.quiet_s, remaining)
+                if not self._serial.read(256):
+                    self._out_of_step = False
+                    break
+            self._serial.reset_input_buffer()
+        except Exception as exc:
+            raise self._io_error("read from", exc) from None
+
+    def _read_reply(self, deadline: float, expect_len: int | None, register: int) -> Reply | None:
+        """The one reply to ``register``, or None when the deadline passes.
+
+        Raises:
+            ProtocolError: On a garbled frame, a reply of another length than ``register``
+                answers with (a stale or foreign reply), or more than one frame.
+        """
         splitter = FrameSplitter.for_replies()
         while True:
             remaining = deadline - time.monotonic()
@@ -101,71 +154,79 @@ class SerialTransport:
                 waiting = self._serial.in_waiting
                 chunk = self._serial.read(max(1, min(waiting, 64)))
             except Exception as exc:
-                raise DeviceConnectionError(f"xarm: read from {self.port!r} failed: {exc}") from None
+                raise self._io_error("read from", exc) from None
             if not chunk:
                 continue
             frames = splitter.feed(chunk)
             if frames:
                 reply = parse_reply(frames[0])
+                if len(frames) > 1 or splitter.pending:
+                    raise ProtocolError("xarm: more than one reply frame came for one request (a stale reply "
+                                        "is on the line)")
                 if expect_len is not None and len(reply.data) != expect_len:
-                    raise ProtocolError(f"xarm: reply carries {len(reply.data)} data bytes, expected {expect_len}",
-                                        offset=4)
+                    raise ProtocolError(f"xarm: a reply of {len(reply.data)} data bytes does not belong to register "
+                                        f"{register_name(register)}, which answers with {expect_len} (stale or "
+                                        "foreign reply)", offset=4)
                 return reply
 
-    def _drain(self, quiet_s: float = 0.02) -> None:
-        """After a retry, discard late duplicates until the line has been quiet for ``quiet_s``."""
-        limit = time.monotonic() + self.reply_timeout_s
-        try:
-            self._serial.timeout = quiet_s
-            while time.monotonic() < limit and self._serial.read(256):
-                pass
-        except Exception as exc:
-            raise DeviceConnectionError(f"xarm: read from {self.port!r} failed: {exc}") from None
+    def _reply_deadline(self, attempts: int, overall: float, total: float) -> float:
+        """When to give up waiting for the reply just sent (a resynchronisation before it does not count)."""
+        sent_at = time.monotonic()
+        if attempts > 1:
+            return min(overall, sent_at + self.reply_timeout_s)
+        return max(overall, sent_at + min(total, self.reply_timeout_s))
 
     def transact(self, register: int, params: bytes = b"", *, expect_len: int | None = None,
                  timeout: float | None = None) -> Reply:
-        """Send one request and return its reply, retrying on bad or missing replies.
+        """Send one request and return its reply; reads are retried on a bad or missing reply.
 
         Args:
             register: Register number.
             params: Parameter bytes.
             expect_len: Number of data bytes the reply must carry (None: any).
-            timeout: Overall seconds for all attempts; None means
-                ``reply_timeout_s * (retries + 1)``.
+            timeout: Overall seconds. For a read, all attempts together; None means
+                ``(reply_timeout_s + quiet_s) * (retries + 1)`` (each attempt may need a
+                resynchronisation). For any other request, the wait for its one reply
+                and a resynchronisation; None means ``reply_timeout_s + quiet_s``.
 
         Raises:
             DeviceConnectionError: If the port is closed or fails.
-            ProtocolError: If every attempt got a malformed reply (the last error).
-            DeviceTimeoutError: If no attempt got any reply.
+            ProtocolError: If the (last) reply was garbled, foreign or stale.
+            DeviceTimeoutError: If no reply came.
         """
         frame = encode_request(register, params)
-        total = self.reply_timeout_s * (self.retries + 1) if timeout is None else timeout
-        overall = time.monotonic() + total
+        attempts = self.retries + 1 if register in READ_REGISTERS else 1
+        total = (self.reply_timeout_s + self.quiet_s) * attempts if timeout is None else timeout
+        started = time.monotonic()
+        overall = started + total
         last_error: ProtocolError | None = None
+        made = 0
         with self._lock:
             if self._serial is None:
                 raise DeviceConnectionError(f"xarm: serial port {self.port!r} is not open")
             self.stats["requests"] += 1
-            for attempt in range(self.retries + 1):
+            for attempt in range(attempts):
                 now = time.monotonic()
-                if now >= overall:
+                if attempt and now >= overall:
                     break
                 if attempt:
                     self.stats["retries"] += 1
-                self._write(frame)
-                deadline = min(overall, now + self.reply_timeout_s)
+                made += 1
+                self._write(frame, min(overall, now + self.reply_timeout_s))
                 try:
-                    reply = self._read_reply(deadline, expect_len)
+                    reply = self._read_reply(self._reply_deadline(attempts, overall, total), expect_len, register)
                 except ProtocolError as exc:
                     self.stats["bad_frames"] += 1
                     last_error = exc
+                    self._out_of_step = True
+                    self._resync(overall)
                     continue
                 if reply is not None:
-                    if attempt:
-                        self._drain()
                     return reply
                 self.stats["timeouts"] += 1
+                self._out_of_step = True  # a late reply may still be on its way
+        sent = f"{made} attempts" if attempts > 1 else "sent once, not retried"
         if last_error is not None:
-            raise ProtocolError(f"xarm register {register}: {last_error} (after {self.retries + 1} attempts)")
-        raise DeviceTimeoutError(f"xarm register {register}: no reply within {total:.3g} s "
-                                 f"({self.retries + 1} attempts)")
+            raise ProtocolError(f"xarm register {register_name(register)}: {last_error} ({sent})")
+        raise DeviceTimeoutError(f"xarm register {register_name(register)}: no reply within "
+                                 f"{time.monotonic() - started:.2g} s ({sent})")

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
+from cellcal.devices.arrival import ArrivalTolerance
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError, NotConnectedError
 from cellcal.devices.pose import Pose
@@ -32,10 +33,10 @@ _OWN_FIELDS: list[tuple[str, Any, Any]] = [
     ("axes", Literal[5, 6, 7], dataclasses.field(default=5, metadata={"doc": "axis count the emulator reports"})),
     ("firmware", str, dataclasses.field(default="2.5.0", metadata={"doc": "firmware version reported, X.Y.Z"})),
     ("reply_timeout_s", float, dataclasses.field(
-        default=0.5, metadata={"gt": 0, "le": 10, "doc": "driver per-attempt reply timeout, s"})),
+        default=0.5, metadata={"ge": 0.001, "le": 10, "doc": "driver per-attempt reply timeout, s"})),
     ("retries", int, dataclasses.field(default=2, metadata={"ge": 0, "le": 10,
                                                             "doc": "driver retries on a bad/missing reply"})),
-    ("poll_interval_s", float, dataclasses.field(default=0.005, metadata={"gt": 0, "le": 1,
+    ("poll_interval_s", float, dataclasses.field(default=0.005, metadata={"ge": 0.001, "le": 1,
                                                                            "doc": "driver state polling period, s"})),
 ]
 _SIM_NAMES = tuple(f.name for f in dataclasses.fields(SimArmConfig))
@@ -80,7 +81,8 @@ class EmulatedXArmArm(RobotArm):
     config would build it) connected to that pty. ``close()`` shuts down the driver,
     the emulator thread and the pty. Its config section accepts every key of the
     ``sim`` arm (``time_scale``, ``reach_m``, ...) plus the emulator/driver keys of
-    ``_OWN_FIELDS``.
+    ``_OWN_FIELDS``. A move's arrival is checked twice: by the driver (its read-back over
+    the wire) and by this backend, both with this backend's tolerance.
 
     Args:
         config: Validated :attr:`Config`; None uses the defaults.
@@ -122,6 +124,7 @@ class EmulatedXArmArm(RobotArm):
                    "retries": cfg.retries, "poll_interval_s": cfg.poll_interval_s}
         self.driver = default_registry().create_arm(section, self.context)
         self.driver.default_motion_timeout_s = self.default_motion_timeout_s
+        self.driver.arrival_tolerance = self.arrival_tolerance
         self.driver.connect(timeout)
 
     def _close(self) -> None:
@@ -132,6 +135,15 @@ class EmulatedXArmArm(RobotArm):
         if emulator is not None:
             emulator.close()
         self.sim_arm.close()
+
+    def default_arrival_tolerance(self) -> ArrivalTolerance:
+        """The sim arm's (which widens with its read-back repeatability); the driver gets the same."""
+        return self.sim_arm.default_arrival_tolerance()
+
+    def _set_arrival_tolerance(self, value: ArrivalTolerance) -> None:
+        super()._set_arrival_tolerance(value)
+        if self.driver is not None:
+            self.driver.arrival_tolerance = value
 
     def _drv(self) -> RobotArm:
         if self.driver is None:

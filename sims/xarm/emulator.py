@@ -49,7 +49,7 @@ from .wire import (
     text_field,
 )
 
-FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall"]
+FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall", "lag"]
 
 
 class ArmModel(Protocol):
@@ -101,9 +101,12 @@ class XArmEmulator:
     command counter). Its framing, CRC and register layouts are its own
     (:mod:`cellcal.sims.xarm.wire`), not the driver's.
 
-    Fault injection (tests): :meth:`inject` corrupts the CRC of, drops, truncates or
-    stalls upcoming replies; :meth:`fail_next_move` raises a controller error in the
-    middle of the next motion.
+    Fault injection (tests): :meth:`inject` corrupts the CRC of, drops, truncates,
+    stalls or delays by one request ("lag") upcoming replies; a dropped or corrupted
+    reply to MOVE_LINE (``register=21``) is the lost confirmation of a motion command
+    that did take effect. :meth:`fail_next_move` raises a controller error in the
+    middle of the next motion. An arm that stops short or whose pose read-back jumps
+    is the simulated arm's (``SimArm.faults``), served as is.
 
     Args:
         arm: The simulated arm (connected).
@@ -151,6 +154,7 @@ class XArmEmulator:
         self._ready = start_ready
         self._mode = 0
         self._faults: deque[_Fault] = deque()
+        self._held: bytes | None = None  # a reply held back by a "lag" fault
         self._scheduled: _ScheduledError | None = None
         self._master = -1
         self._slave = -1
@@ -222,7 +226,10 @@ class XArmEmulator:
 
         Kinds: ``corrupt_crc`` flips the CRC; ``drop`` sends nothing (the command
         still takes effect, as when a reply is lost on the line); ``truncate`` sends
-        half the frame; ``stall`` delays the reply by ``stall_s`` seconds.
+        half the frame; ``stall`` delays the reply by ``stall_s`` seconds; ``lag``
+        holds the reply back and sends it in answer to the next request instead of that
+        one's, which is held in turn (replies one request behind, as long as lag faults
+        last; the first reply after them goes out right behind the held one).
         """
         with self._lock:
             for _ in range(count):
@@ -424,6 +431,14 @@ class XArmEmulator:
 
     def _send(self, frame: bytes, register: int) -> None:
         fault = self._next_fault(register)
+        held, self._held = self._held, None
+        if fault is not None and fault.kind == "lag":
+            self._held = frame
+            if held is not None:
+                self._write_all(held)
+            return
+        if held is not None:
+            frame = held + frame  # the end of a lag: the late reply, then this one
         if fault is not None:
             if fault.kind == "drop":
                 return
@@ -433,6 +448,9 @@ class XArmEmulator:
                 frame = frame[: max(1, len(frame) // 2)]
             elif fault.kind == "stall" and self._stop.wait(fault.stall_s):
                 return
+        self._write_all(frame)
+
+    def _write_all(self, frame: bytes) -> None:
         view = memoryview(frame)
         while view and not self._stop.is_set():
             try:

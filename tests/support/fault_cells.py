@@ -1,15 +1,18 @@
-"""Shared set-up of the fault, resume and dry-run tests: small fast cells and device probes."""
+"""Shared set-up of the fault, resume, dry-run and process tests: small fast cells, device probes, cellcal processes."""
 
 from __future__ import annotations
 
 import copy
 import signal
+import subprocess
+import sys
 import threading
 import time
 import tomllib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 from leaks import open_fds
@@ -102,3 +105,98 @@ def all_threads() -> set[threading.Thread]:
 def iter_rows(result: dict[str, Any]) -> Iterator[dict[str, Any]]:
     for pose in result["poses"]:
         yield from pose["measurements"]
+
+
+# ---------------------------------------------------------------------- real cellcal processes
+
+
+def cellcal_argv() -> list[str]:
+    """The ``cellcal`` console script of this environment (``python -m cellcal.core.cli`` without one)."""
+    exe = Path(sys.executable).with_name("cellcal")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "cellcal.core.cli"]
+
+
+#: What :class:`CellcalProcess` writes on stderr just before it calls ``main`` (``announce=True``).
+READY = "cellcal-test: calling main\n"
+#: The console script, with :data:`READY` written between importing ``main`` and calling it.
+_ANNOUNCING_SCRIPT = ("import sys\nfrom cellcal.core.cli import main\n"
+                      f"sys.stderr.write({READY!r}); sys.stderr.flush()\nsys.exit(main())\n")
+
+
+def slow_cell_document(settle_s: float = 0.4, **tables: dict[str, Any]) -> dict[str, Any]:
+    """The fast sim cell of :func:`cell_document`, with ``settle_s`` of waiting at each of its 3 poses.
+
+    A run then lasts about ``3 * settle_s`` after start-up, long enough to act on it
+    while it runs (the progress bar says which pose it is at).
+    """
+    doc = cell_document(**tables)
+    doc["plan"]["settle_s"] = settle_s
+    return doc
+
+
+class CellcalProcess:
+    """A ``cellcal`` subprocess whose stdout and stderr are collected as they come.
+
+    Args:
+        args: The arguments after ``cellcal``.
+        preexec_fn: Run in the child before it execs (e.g. a resource limit).
+        announce: Run the console script's two lines with :data:`READY` on stderr right
+            before ``main()`` is called, so a test can act at a known moment however long
+            the interpreter takes to start on a loaded machine (:meth:`wait_ready`); the
+            line is left out of :meth:`finish`'s stderr.
+    """
+
+    def __init__(self, args: list[str], *, preexec_fn: Callable[[], None] | None = None,
+                 announce: bool = False) -> None:
+        argv = [sys.executable, "-c", _ANNOUNCING_SCRIPT, *args] if announce else [*cellcal_argv(), *args]
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=preexec_fn)
+        self._out = bytearray()
+        self._err = bytearray()
+        self._readers = [threading.Thread(target=self._drain, args=(stream, buf), daemon=True)
+                         for stream, buf in ((self.proc.stdout, self._out), (self.proc.stderr, self._err))]
+        for reader in self._readers:
+            reader.start()
+
+    @staticmethod
+    def _drain(stream: Any, buf: bytearray) -> None:
+        while chunk := stream.read1(65536):
+            buf.extend(chunk)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def stderr_so_far(self) -> str:
+        return bytes(self._err).decode("utf-8", "replace")
+
+    def wait_for(self, text: str, timeout_s: float = 60.0) -> bool:
+        """Wait until ``text`` appears on stderr (True) or the process ends or time runs out (False)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if text in self.stderr_so_far():
+                return True
+            if self.proc.poll() is not None:
+                return text in self.stderr_so_far()
+            time.sleep(0.005)
+        return False
+
+    def wait_ready(self, timeout_s: float = 60.0) -> None:
+        """Wait until the process is about to call ``main`` (``announce=True``)."""
+        assert self.wait_for(READY, timeout_s), f"never got to main: {self.stderr_so_far()!r}"
+
+    def interrupt(self) -> None:
+        """Ctrl-C: SIGINT to the process."""
+        self.proc.send_signal(signal.SIGINT)
+
+    def finish(self, timeout_s: float = 60.0) -> tuple[int, str, str]:
+        """Wait for the end; (exit status, stdout, stderr). A process still running is killed (and fails the test)."""
+        try:
+            code = self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5.0)
+            raise AssertionError(f"cellcal did not end within {timeout_s} s; "
+                                 f"stderr: {self.stderr_so_far()!r}") from None
+        for reader in self._readers:
+            reader.join(5.0)
+        return code, bytes(self._out).decode("utf-8", "replace"), self.stderr_so_far().replace(READY, "", 1)

@@ -11,6 +11,12 @@ must either succeed or raise the documented error; any other exception is a defe
 * ``xarm`` — UFACTORY xArm serial frames both ways: :class:`FrameSplitter`,
   :func:`parse_reply` / :func:`parse_request` (whatever parses must re-encode to the
   same bytes), and the register decoders on the parsed data; :class:`ProtocolError`.
+* ``xmlrpc`` — the ifm O3R configuration channel from the HTTP body on: :func:`parse_reply`
+  (defusedxml + XML-RPC), :func:`parse_json_object`, and the checks of the documented tree
+  (:func:`port_info`, :func:`firmware`); documented errors :class:`ProtocolError`,
+  :class:`VendorError` (a well-formed fault) and :class:`ConfigError` (no such port), each
+  one line of at most 600 characters. Mutations are byte and XML-token edits of the reply,
+  structural edits of the JSON tree inside it, and byte edits of that JSON text.
 * ``config`` — the TOML cell configuration: :func:`load_config` on the bytes written
   to a file, then :func:`build_devices` (backend sections and ``[sim]``);
   :class:`ConfigError`. Mutations are byte/line edits of the text and structural edits
@@ -27,6 +33,7 @@ import random
 import struct
 import tempfile
 import tomllib
+import xmlrpc.client
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
@@ -38,9 +45,10 @@ from xarm_wire_helpers import decode_move_line, encode_reply, parse_request, req
 
 from cellcal.core.calibration.calibrator import build_devices
 from cellcal.core.calibration.config import load_config
-from cellcal.devices.errors import ConfigError, ProtocolError
+from cellcal.devices.errors import ConfigError, ProtocolError, VendorError
 from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.types import Frame, Intrinsics
+from cellcal.drivers.o3r.config_values import firmware, port_info
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.pcic import (
     TICKET_ASYNC_ERROR,
@@ -52,6 +60,8 @@ from cellcal.drivers.o3r.pcic import (
     parse_notification,
     walk_chunks,
 )
+from cellcal.drivers.o3r.xmlrpc_config import parse_json_object
+from cellcal.drivers.o3r.xmlrpc_config import parse_reply as parse_rpc_reply
 from cellcal.drivers.xarm.protocol import FrameSplitter, encode_request, parse_reply
 from cellcal.drivers.xarm.registers import decode_serials, decode_text, unpack_floats
 from cellcal.sims.o3r.wire import FrameEncoder, message, models_from_intrinsics
@@ -73,11 +83,17 @@ class Target:
     """
 
     name: str
-    documented: type[Exception]
+    documented: type[Exception] | tuple[type[Exception], ...]
     seeds: list[bytes]
     run: Callable[[bytes], None]
     mutate: Mutator
     close: Callable[[], None] = field(default=lambda: None)
+
+    @property
+    def documented_names(self) -> str:
+        """The documented error(s) by name, e.g. ``ProtocolError`` or ``ProtocolError/VendorError``."""
+        kinds = self.documented if isinstance(self.documented, tuple) else (self.documented,)
+        return "/".join(k.__name__ for k in kinds)
 
     def check(self, data: bytes) -> bool:
         """Run one input: True if it parsed, False if rejected with the documented error."""
@@ -221,6 +237,106 @@ def xarm_target() -> Target:
     return Target("xarm", ProtocolError, xarm_seeds(), parse_xarm, mutate_xarm)
 
 
+# ---------------------------------------------------------------------- O3R XML-RPC configuration channel
+def o3r_tree() -> dict[str, Any]:
+    """A documented O3R tree: a 2D head on port0, a 3D head on port2, the firmware version."""
+    head = {"data": {"pcicTCPPort": 50012}, "state": "RUN", "mode": "standard_range4m",
+            "info": {"features": {"type": "3D", "resolution": {"width": 224, "height": 172}}, "name": "O3R222"}}
+    return {"ports": {"port0": {"data": {"pcicTCPPort": 50010}, "state": "CONF",
+                                "info": {"features": {"type": "2D"}}},
+                      "port2": head},
+            "device": {"swVersion": {"firmware": "1.4.30", "kernel": "5.10"}}}
+
+
+def xmlrpc_reply(value: Any) -> bytes:
+    return xmlrpc.client.dumps((value,), methodresponse=True, allow_none=True).encode("utf-8")
+
+
+def xmlrpc_seeds() -> list[bytes]:
+    """Replies to get (whole tree, one port), set (empty string) and a fault."""
+    tree = o3r_tree()
+    return [xmlrpc_reply(json.dumps(tree)), xmlrpc_reply(json.dumps({"ports": {"port2": tree["ports"]["port2"]}})),
+            xmlrpc_reply(""), xmlrpc.client.dumps(xmlrpc.client.Fault(101000, "unknown key: /x"),
+                                                  methodresponse=True).encode()]
+
+
+#: XML and XML-RPC fragments that break structure, types, entities and encodings.
+XML_TOKENS = (b"<!DOCTYPE r [<!ENTITY a 'aaaa'>]>", b"&a;", b"&amp;", b"&#0;", b"&#x110000;", b"<![CDATA[", b"]]>",
+              b"<value>", b"</value>", b"<array><data>", b"</data></array>", b"<struct>", b"</struct>",
+              b"<member><name>faultCode</name>", b"</member>", b"<int>", b"</int>", b"<int>1e308</int>",
+              b"<double>nan</double>", b"<boolean>2</boolean>", b"<nil/>", b"<base64>!</base64>",
+              b"<dateTime.iso8601>x</dateTime.iso8601>", b"<fault>", b"</fault>", b"<params>", b"</params>",
+              b"<?xml version='1.0' encoding='utf-16'?>", b"\x00", b"\xff", b"<i8>" + b"9" * 5000 + b"</i8>")
+#: JSON fragments: deep nesting, constants, huge numbers, odd strings.
+JSON_TOKENS = (b"[" * 5000, b"]" * 5000, b"NaN", b"-Infinity", b"1e999", b"1" + b"0" * 5000, b'"\\ud800"', b"null",
+               b"true", b"{}", b"[]", b'"\\u0000"', b",", b":", b"{", b"}")
+
+
+def _mutate_tree_reply(seed: bytes, rng: random.Random) -> bytes | None:
+    """The reply with the JSON tree inside edited structurally or as bytes; None if the seed carries none."""
+    try:
+        text = parse_rpc_reply(seed, "seed")
+        doc = json.loads(text) if isinstance(text, str) and text else None
+    except (ProtocolError, VendorError, ValueError):
+        return None
+    if not isinstance(doc, dict):
+        return None
+    if rng.random() < 0.6:
+        return xmlrpc_reply(json.dumps(mutate_document(doc, rng)))
+    raw = bytearray(mutate_bytes(json.dumps(doc).encode(), rng, max_ops=3))
+    for _ in range(rng.randint(0, 2)):
+        pos = rng.randint(0, len(raw))
+        raw[pos:pos] = rng.choice(JSON_TOKENS)
+    return xmlrpc_reply(raw.decode("utf-8", "replace"))
+
+
+def mutate_xmlrpc(seed: bytes, rng: random.Random) -> bytes:
+    """Structural/byte edits of the JSON inside, XML-token insertions, or byte edits of the XML."""
+    kind = rng.random()
+    if kind < 0.45:
+        mutated = _mutate_tree_reply(seed, rng)
+        if mutated is not None:
+            return mutated
+    if kind < 0.75:
+        buf = bytearray(seed)
+        for _ in range(rng.randint(1, 3)):
+            pos = rng.randint(0, len(buf))
+            buf[pos:pos] = rng.choice(XML_TOKENS)
+        return bytes(buf)
+    if kind < 0.95:
+        return mutate_bytes(seed, rng)
+    return random_bytes(rng)
+
+
+def parse_xmlrpc(data: bytes) -> None:
+    """Everything the driver does with a reply body: XML-RPC, JSON, then the checks of both ports and firmware.
+
+    Raises:
+        The last documented error; AssertionError if an error message is not one short line.
+    """
+    where = "O3R XML-RPC fuzz:80 get(['/ports'])"
+    last: Exception | None = None
+    try:
+        doc = parse_json_object(parse_rpc_reply(data, where), where)
+        for check in (lambda: port_info(doc, "port2", host="fuzz", where=where),
+                      lambda: port_info(doc, "port0", host="fuzz", where=where), lambda: firmware(doc, where)):
+            try:
+                check()
+            except (ProtocolError, ConfigError) as exc:
+                last = exc
+    except (ProtocolError, VendorError) as exc:
+        last = exc
+    if last is not None:
+        message = str(last)
+        if "\n" in message or len(message) > 600:
+            raise AssertionError(f"error message is not one short line: {message[:200]!r}...")
+        raise last
+
+
+def xmlrpc_target() -> Target:
+    return Target("xmlrpc", (ProtocolError, VendorError, ConfigError), xmlrpc_seeds(), parse_xmlrpc, mutate_xmlrpc)
+
+
 # ---------------------------------------------------------------------- TOML config
 CONFIG_DIR = Path(str(resources.files("cellcal.configs")))
 
@@ -354,4 +470,4 @@ def config_target(directory: Path | None = None) -> Target:
 
 
 def all_targets() -> list[Target]:
-    return [pcic_target(), xarm_target(), config_target()]
+    return [pcic_target(), xarm_target(), xmlrpc_target(), config_target()]

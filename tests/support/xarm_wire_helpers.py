@@ -1,12 +1,18 @@
 """The controller's side of the xArm wire, written on the driver's own framing, for the driver's tests.
 
 Encode replies, decode requests and MOVE_LINE parameters, so the tests can round-trip
-the driver's frames; the emulator (``cellcal.sims.xarm.wire``) keeps its own,
-independent wire code.
+the driver's frames, and :class:`ScriptedPeer`, a pty controller answering as a test
+scripts it; the emulator (``cellcal.sims.xarm.wire``) keeps its own, independent wire
+code, and tests/integration/hostile/test_hostile_xarm.py its own fake.
 """
 
 from __future__ import annotations
 
+import os
+import select
+import threading
+import tty
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from cellcal.devices.errors import ProtocolError
@@ -113,3 +119,57 @@ def decode_move_line(params: bytes) -> MoveLine:
         return MoveLine(tuple(f[:6]), f[6], f[7], radius_mm=f[9], coord=coord, axis_angle=bool(aa),
                         only_check=only, common=True)
     raise ProtocolError(f"xarm MOVE_LINE with {n} parameter bytes matches no known layout")
+
+
+class ScriptedPeer:
+    """A controller on a pty that answers each request with ``answer(request)`` (bytes; b"" = no reply).
+
+    For the driver's unit tests: the requests it received are in :attr:`requests`. Use it as
+    a context manager; the serving thread and both pty ends are closed on exit.
+
+    Args:
+        answer: Called on the serving thread for every well-formed request.
+    """
+
+    def __init__(self, answer: Callable[[Request], bytes]):
+        self.answer = answer
+        self.requests: list[Request] = []
+        self._stop = threading.Event()
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        self.path = os.ttyname(self._slave)
+        self._thread = threading.Thread(target=self._serve, name="scripted-xarm", daemon=True)
+
+    def __enter__(self) -> ScriptedPeer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        os.close(self._master)
+        os.close(self._slave)
+
+    def registers(self) -> list[int]:
+        """The register of every request received, in order."""
+        return [r.register for r in self.requests]
+
+    def send(self, data: bytes) -> None:
+        """Write unsolicited bytes to the host."""
+        os.write(self._master, data)
+
+    def _serve(self) -> None:
+        splitter = request_splitter()
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._master], [], [], 0.01)
+            if not ready:
+                continue
+            for frame in splitter.feed(os.read(self._master, 4096)):
+                try:
+                    request = parse_request(frame)
+                except ProtocolError:
+                    continue
+                self.requests.append(request)
+                out = self.answer(request)
+                if out:
+                    os.write(self._master, out)

@@ -1,4 +1,4 @@
-"""The robust full-frame fit: triplet hypotheses, reweighted Gauss-Newton on the ranges, intervals.
+"""The robust full-frame fit: robust start, reweighted Gauss-Newton on the ranges, intervals, gates.
 
 Points are in the camera frame (OpenCV: x right, y down, z along the optical axis), metres,
 with the sensor at the origin; the fitted normal points toward the camera (``offset_m > 0``).
@@ -8,18 +8,28 @@ Method and rationale: docs/adr/0007-full-frame-fit.md.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import ndtr, ndtri
+from scipy.special import ndtri
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe.flatness import (
+    Flatness,
+    PlaneFrame,
+    grid_cells,
+    grid_flatness,
+    off_plane_regions,
+    region_flatness,
+)
 from cellcal.core.methods.fullframe.gates import gate_table, image_coverage
+from cellcal.core.methods.fullframe.mixed import EdgeClean, EdgeReport
+from cellcal.core.methods.fullframe.passes import Cutoff, FinalPass, KeepMask, Model, basis, final_pass, step_plane
 from cellcal.core.methods.fullframe.result import Estimate, FullFrameResult
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
+from cellcal.core.methods.fullframe.start import initial_scale, refine, robust_start
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.types import Frame
 
@@ -29,200 +39,22 @@ F32 = NDArray[np.float32]
 
 __all__ = ["fit_full_frame", "fit_plane_points"]
 
-_SQRT_2PI = math.sqrt(2.0 * math.pi)
+#: A median range above this (metres) means the distances are not in metres.
+MAX_MEDIAN_RANGE_M = 100.0
+_DEFAULTS = FullFrameSettings()
+#: Passes over every point (the second from the first one's plane).
+FINAL_PASSES = 2
+#: Inliers (strided) the flatness grid uses at most.
+MAX_FLAT_POINTS = 1 << 16
+#: Off-plane maps are subsampled to about this many pixels across before finding regions.
+REGION_MAP_PX = 320
+#: Frames with at most this many valid pixels are checked for what the edge margin leaves.
+SMALL_FRAME_POINTS = 4096
+#: Rings around outlier patches examined for mixed pixels, as a multiple of the floor (+ this many pixels).
+RING_REACH = 16
 
 
-# ---------------------------------------------------------------------- numerics
-def _basis(n: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Two unit vectors completing the unit vector ``n`` to a right-handed orthonormal basis."""
-    x, y, z = float(n[0]), float(n[1]), float(n[2])
-    # e1 = normalise(ex - x n), or normalise(ey - y n) when n is close to ex
-    e1 = np.array([1.0 - x * x, -x * y, -x * z]) if abs(x) < 0.8 else np.array([-y * x, 1.0 - y * y, -y * z])
-    e1 /= math.sqrt(float(e1 @ e1))
-    a, b, c = float(e1[0]), float(e1[1]), float(e1[2])
-    return e1, np.array([y * c - z * b, z * a - x * c, x * b - y * a])   # e2 = n x e1
-
-
-def _truncation(c: float) -> tuple[float, float]:
-    """For a Gaussian cut at ``±c`` sigma: (variance factor of the kept part, covariance factor).
-
-    The first divides the inlier mean square to estimate sigma^2; the second multiplies
-    the sandwich covariance of the hard-rejection estimator (its derivative loses the
-    ``2 c phi(c)`` of the points crossing the cut).
-    """
-    p = 2.0 * float(ndtr(c)) - 1.0                          # kept probability 2 Phi(c) - 1
-    jump = 2.0 * c * math.exp(-0.5 * c * c) / _SQRT_2PI     # 2 c phi(c)
-    kept_var = (p - jump) / p                               # E[z^2 | |z| < c]
-    bread = p - jump
-    return kept_var, (p / bread) ** 2 if bread > 0 else 1.0
-
-
-def _step_plane(n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float, step: FloatArray
-                ) -> tuple[FloatArray, float]:
-    """Apply a step ``(d_e1, d_e2, d_offset)``: the new unit normal and offset."""
-    n_new = n + step[0] * e1 + step[1] * e2                 # tangent move of the normal ...
-    return n_new / np.linalg.norm(n_new), offset + float(step[2])   # ... back onto the sphere
-
-
-@dataclass(frozen=True)
-class _Cutoff:
-    """Hard inlier cut-off on the normalised range residual: ``k_sig`` scales, within [lo, hi]."""
-
-    k_sig: float
-    lo: float                 # min_inlier_threshold_m at the median pixel's noise
-    hi: float                 # max_inlier_threshold_m at the median pixel's noise
-    kept_var: float           # variance factor of a Gaussian cut at ±k_sig (see _truncation)
-    cov_factor: float         # covariance factor of the hard-rejection estimator
-
-    def at(self, scale: float) -> float:
-        """The cut-off for a robust scale ``scale`` of the normalised residuals."""
-        return min(max(self.k_sig * scale, self.lo), self.hi)
-
-
-@dataclass
-class _Pass:
-    """Sums of one Gauss-Newton pass over a point set."""
-
-    step: FloatArray          # (d_e1, d_e2, d_offset)
-    hessian: FloatArray       # J^T W J
-    n_inliers: int
-    z2_sum: float             # sum of squared normalised residuals of the inliers
-    meat: FloatArray | None = None      # sum (w rho)^2 J J^T (final pass only)
-    ortho2_sum: float = math.nan        # sum of squared orthogonal residuals (final pass only)
-    inliers: BoolArray | None = None    # (final pass only)
-
-
-def _residuals(b0: F32, dm: F32, offset: float, thr: float, weighted: bool, exponent: float,
-               sigma: F32 | None) -> tuple[F32, F32, F32, F32 | None, BoolArray]:
-    """Whitened range residuals of points with ``b0 = p·n`` (N,) and ranges ``dm``.
-
-    Returns ``1/cos``, the predicted range ``t``, the whitened residual ``z``, the
-    inverse sigma (None when unweighted) and the inlier mask ``|z| < thr`` (in front).
-    """
-    f32 = np.float32
-    inv_c = np.divide(dm, b0)                  # 1 / cos(ray, normal), negative in front
-    t = inv_c * f32(-offset)                   # predicted range along the ray
-    z = np.subtract(dm, t)                     # range residual rho ...
-    if sigma is not None:
-        isig: F32 | None = np.divide(f32(1.0), sigma)
-    elif weighted:                             # 1 / (t^e / sqrt|cos|)
-        isig = np.multiply(t, inv_c)
-        np.abs(isig, out=isig)
-        if exponent == 1.5:
-            np.sqrt(isig, out=isig)
-            isig *= t
-        else:
-            np.power(isig, f32(0.5), out=isig)
-            isig *= np.abs(t) ** f32(exponent - 1.0) * t
-        np.divide(f32(1.0), isig, out=isig)
-    else:
-        isig = None
-    if isig is not None:
-        z *= isig                              # ... whitened
-    inl = np.abs(z) < f32(thr)                 # inliers: within the cut-off ...
-    inl &= t > 0                               # ... and the plane in front along the ray
-    return inv_c, t, z, isig, inl
-
-
-def _gram(cols: Sequence[F32]) -> FloatArray:
-    """Symmetric 3x3 matrix of the dot products of three columns (float64 sums)."""
-    out = np.empty((3, 3))
-    for i in range(3):
-        for k in range(i, 3):
-            out[i, k] = out[k, i] = float(np.dot(cols[i], cols[k]))
-    return out
-
-
-def _gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
-             thr: float, weighted: bool, exponent: float, sigma: F32 | None = None,
-             final: bool = False, refine: Callable[[BoolArray], BoolArray] | None = None) -> _Pass:
-    """One reweighted Gauss-Newton pass of the range model over points ``p`` (3, N).
-
-    The range along the ray ``r = p / |p|`` predicted by the plane is
-    ``t = -offset / (r·n)``; the residual ``rho = |p| - t`` has the Jacobian
-    ``(t (r·e1) / (r·n), t (r·e2) / (r·n), 1 / (r·n))`` with respect to the normal's
-    tangent steps along ``e1``, ``e2`` and the offset. Everything is whitened by the
-    point's noise sigma and masked to the inliers, in place on a few float32 buffers.
-
-    Args:
-        thr: Cut-off on the noise-normalised range residual.
-        sigma: Per-point range-noise sigma (N,), replacing the noise model if given.
-        final: Also return the sandwich "meat", the orthogonal residual sum and the
-            inlier mask.
-        refine: Maps the inlier mask (N,) to the points allowed to stay inliers.
-    """
-    f32 = np.float32
-    basis = np.stack([n, e1, e2]).astype(f32)
-    b = basis @ p                              # (3, N): p·n, p·e1, p·e2
-    inv_c, t, z, isig, inl = _residuals(b[0], dm, offset, thr, weighted, exponent, sigma)
-    if refine is not None:
-        inl &= refine(inl)                     # image-space clean-up of the inliers
-    n_in = int(np.count_nonzero(inl))
-    if n_in < MIN_POINTS:
-        raise CalibrationError(f"full-frame fit found only {n_in} inlier(s); no plane is defined")
-    z *= inl                                   # r: whitened, masked residual
-    if isig is None:
-        isig = inl.astype(f32)
-    else:
-        isig *= inl                            # masked 1 / sigma
-    t *= inv_c
-    t /= dm
-    t *= isig                                  # q = t / (|p| cos) / sigma
-    a1 = np.multiply(t, b[1])                  # whitened Jacobian columns
-    a2 = np.multiply(t, b[2], out=t)
-    a3 = np.multiply(inv_c, isig, out=inv_c)
-    cols = (a1, a2, a3)
-    h = _gram(cols)                            # J^T W J
-    g = np.array([float(np.dot(c, z)) for c in cols])   # J^T W rho
-    try:
-        step = np.asarray(-np.linalg.solve(h, g), dtype=np.float64)   # Gauss-Newton step
-    except np.linalg.LinAlgError:
-        raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
-    z2 = float(np.dot(z, z))                   # sum of squared whitened inlier residuals
-    if not final:
-        return _Pass(step, h, n_in, z2)
-    meat = _gram([np.multiply(c, z, out=c if c is not a1 else None) for c in cols])   # sum (w rho)^2 J J^T
-    ortho = np.add(b[0], f32(offset), out=isig)   # orthogonal residual p·n + offset ...
-    ortho *= inl                                  # ... of the inliers
-    return _Pass(step, h, n_in, z2, meat, float(np.dot(ortho, ortho)), inl)
-
-
-def _hypothesis(p: F32, settings: FullFrameSettings, rng: np.random.Generator) -> tuple[FloatArray, float]:
-    """Best triplet plane by the quantile of normalised orthogonal residuals (unit n, offset)."""
-    n_pts = p.shape[1]
-    m = min(n_pts, settings.sample_points)
-    sub = np.take(p, rng.integers(0, n_pts, m), axis=1).T.astype(np.float64)   # m random points
-    idx = rng.integers(0, m, size=(3, settings.hypotheses))                     # a random triplet each
-    a = sub[idx[0]]
-    u = sub[idx[1]] - a
-    v = sub[idx[2]] - a
-    nrm = np.empty_like(u)                     # normal u x v of each triplet
-    nrm[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
-    nrm[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
-    nrm[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
-    length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))
-    ok = length > 1e-9 * np.einsum("ij,ij->i", u, u)    # drop (nearly) collinear triplets
-    if not ok.any():
-        raise CalibrationError("full-frame fit: the points are collinear or coincident; no plane is defined")
-    nrm = nrm[ok] / length[ok, None]
-    off = -np.einsum("ij,ij->i", nrm, a[ok])
-    sub32 = sub.astype(np.float32)
-    res = nrm.astype(np.float32) @ sub32.T                # (K, m) orthogonal distances
-    res += off.astype(np.float32)[:, None]
-    np.abs(res, out=res)
-    if settings.weighted:                                  # noise grows with the range
-        rng_m = np.sqrt(np.einsum("ij,ij->i", sub32, sub32))
-        res /= rng_m ** np.float32(settings.noise_distance_exponent)
-    k = min(int(settings.hypothesis_quantile * m), m - 1)
-    score = np.partition(res, k, axis=1)[:, k]             # the quantile of each plane's residuals
-    j = int(np.argmin(score))                              # least quantile of squares wins
-    n = nrm[j]
-    d = float(off[j])
-    if d < 0:                                              # normal toward the camera
-        n, d = -n, -d
-    return n, d
-
-
+# ---------------------------------------------------------------------- the fit
 def _subsample(limit: int, *arrays: F32) -> list[F32]:
     """Every k-th point (last axis; contiguous copies) so that at most ``limit`` remain."""
     step = -(-arrays[0].shape[-1] // limit)
@@ -240,107 +72,59 @@ class _Fit:
     inliers: BoolArray
     residual_rms_m: float
     noise_scale_m: float
+    unit_rms_m: float         # inlier RMS residual the noise model predicts per unit of noise (see result)
+    multipath: tuple[float, float, FloatArray]   # border bias, its sigma, the plane step it implies
 
 
-def _initial_scale(p: F32, dm: F32, sigma: F32 | None, n: FloatArray, offset: float,
-                   settings: FullFrameSettings) -> tuple[float, _Cutoff]:
-    """Robust scale of the start plane's normalised range residuals on <= 1024 points, and the cut-off."""
-    k0 = max(1, p.shape[1] // 1024)
-    p0, d0 = p[:, ::k0], dm[::k0]
-    inv_c = d0 / (n.astype(np.float32) @ p0)   # 1 / cos(ray, normal)
-    t = inv_c * np.float32(-offset)            # predicted range along the ray
-    z = d0 - t                                 # range residual ...
-    sig_med = 1.0
-    if sigma is not None:
-        sig = sigma[::k0]
-        z /= sig                               # ... normalised by the given sigmas
-    elif settings.weighted:
-        sig = (np.abs(t) ** np.float32(settings.noise_distance_exponent) / np.sqrt(np.abs(inv_c))).astype(np.float32)
-        z /= sig                               # ... or by the noise model t^e / sqrt|cos|
-    if sigma is not None or settings.weighted:
-        mid = sig.size // 2
-        sig_med = max(float(np.partition(sig, mid)[mid]), 1e-12)   # median pixel's sigma
-    q = settings.hypothesis_quantile
-    az = np.abs(z)
-    kq = min(int(q * az.size), az.size - 1)
-    s = float(np.partition(az, kq)[kq]) / float(ndtri(0.5 + q / 2.0))   # |z| quantile -> Gaussian sigma
-    k_sig = settings.inlier_threshold_sigma
-    kept_var, cov_factor = _truncation(k_sig)
-    cutoff = _Cutoff(k_sig, settings.min_inlier_threshold_m / sig_med, settings.max_inlier_threshold_m / sig_med,
-                     kept_var, cov_factor)
-    return s, cutoff
+def _final(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float, cutoff: Cutoff,
+           keep: KeepMask | None, edge: EdgeClean | None) -> _Fit:
+    """Passes over every point: plane, sandwich covariance, inliers, RMS, scale, multipath.
 
-
-def _converged(it: _Pass, s: float, s_new: float, floor_scale: float) -> bool:
-    """The step is a small fraction of the parameters' (subsample) sigma and the scale has settled.
-
-    Noise-free data: the cut-off sits at its floor (``floor_scale``) and the scale never settles
-    in relative terms. The full-data pass after the loop finishes the job.
+    The second pass starts from the first one's full-data plane and scale, so that the
+    inliers and the edge clean-up of the answer do not depend on where the start was.
     """
-    try:
-        sd = np.sqrt(np.abs(np.diag(np.linalg.inv(it.hessian)))) * max(s_new, floor_scale)   # parameter sigmas
-    except np.linalg.LinAlgError:
-        sd = np.full(3, np.inf)
-    settled = abs(s_new - s) <= 0.15 * s or max(s, s_new) <= floor_scale
-    return bool(np.all(np.abs(it.step) <= 0.5 * sd)) and settled
-
-
-def _refine(p: F32, dm: F32, sigma: F32 | None, n: FloatArray, offset: float, s: float, cutoff: _Cutoff,
-            settings: FullFrameSettings) -> tuple[FloatArray, float, float]:
-    """Reweighted Gauss-Newton passes (on the subsample) until converged: normal, offset, scale."""
-    e1, e2 = _basis(n)
-    for _ in range(settings.max_iterations):
-        it = _gn_pass(p, dm, n, e1, e2, offset, cutoff.at(s), settings.weighted,
-                      settings.noise_distance_exponent, sigma)
-        n, offset = _step_plane(n, e1, e2, offset, it.step)
-        e1, e2 = _basis(n)
-        s_new = math.sqrt(it.z2_sum / it.n_inliers / cutoff.kept_var)   # inlier RMS, truncation-corrected
-        converged = _converged(it, s, s_new, cutoff.lo / cutoff.k_sig)
-        s = s_new
-        if converged:
-            break
-    return n, offset, s
-
-
-def _final_fit(p: F32, dm: F32, sigma: F32 | None, n: FloatArray, offset: float, s: float, cutoff: _Cutoff,
-               settings: FullFrameSettings, refine_mask: Callable[[BoolArray], BoolArray] | None) -> _Fit:
-    """The last Gauss-Newton pass over every point: plane, sandwich covariance, inliers, RMS, scale."""
-    e1, e2 = _basis(n)
-    fin = _gn_pass(p, dm, n, e1, e2, offset, cutoff.at(s), settings.weighted, settings.noise_distance_exponent,
-                   sigma, final=True, refine=refine_mask)
-    assert fin.meat is not None and fin.inliers is not None
-    n_fin, offset_fin = _step_plane(n, e1, e2, offset, fin.step)
+    for k in range(FINAL_PASSES):
+        e1, e2 = basis(n)
+        if edge is not None:
+            edge.scale = s
+        fin: FinalPass = final_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, keep)
+        n_fin, offset_fin = step_plane(n, e1, e2, offset, fin.step)
+        s = math.sqrt(fin.z2_sum / fin.n_inliers / cutoff.kept_var)   # truncation-corrected scale
+        if k < FINAL_PASSES - 1:
+            n, offset = n_fin, offset_fin
     try:
         h_inv = np.linalg.inv(fin.hessian)
+        h4_inv = np.linalg.inv(fin.radial[0])
     except np.linalg.LinAlgError:
         raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
     dof = max(fin.n_inliers - 3, 1)
     # sandwich H^-1 M H^-1, small-sample factor n / (n - 3), hard-rejection correction
     cov = h_inv @ fin.meat @ h_inv * (fin.n_inliers / dof) * cutoff.cov_factor
-    plane = Plane(n_fin, offset_fin)
     rms = math.sqrt(fin.ortho2_sum / fin.n_inliers)
-    noise = math.sqrt(fin.z2_sum / fin.n_inliers / cutoff.kept_var)   # truncation-corrected scale
-    return _Fit(plane, cov, e1, e2, fin.inliers, rms, noise)
+    unit = math.sqrt(cutoff.kept_var * fin.model_ortho2_sum / fin.n_inliers)
+    step4 = -h4_inv @ fin.radial[1]                             # plane and radial range bias together
+    beta_sigma = s * math.sqrt(max(float(h4_inv[3, 3]), 0.0) * cutoff.cov_factor)
+    return _Fit(Plane(n_fin, offset_fin), cov, e1, e2, fin.inliers, rms, s, unit,
+                (-float(step4[3]), beta_sigma, step4[:3] - fin.step))
 
 
-def _robust_fit(p: F32, dm: F32, settings: FullFrameSettings, sigma: F32 | None = None,
-                refine_mask: Callable[[BoolArray], BoolArray] | None = None) -> _Fit:
-    """The three stages on finite camera-frame points ``p`` (3, N) with ranges ``dm``.
+def _robust_fit(p: F32, dm: F32, model: Model, settings: FullFrameSettings, keep: KeepMask | None = None,
+                edge: EdgeClean | None = None) -> _Fit:
+    """The stages on finite camera-frame points ``p`` (3, N) with ranges ``dm``.
 
-    ``sigma`` (N,), if given, is each point's range-noise sigma (replaces the model).
-    ``refine_mask`` maps the inlier mask (N,) of the converged plane to the points
-    allowed in the last pass (image-space clean-up, see ``edge_margin_deg``).
+    ``keep`` maps the inlier mask (N,) and the residuals of the converged plane to the
+    points allowed in the last pass (image-space clean-up, see ``edge_margin_deg``).
     """
-    rng = np.random.default_rng(settings.seed)
-    n, offset = _hypothesis(p, settings, rng)                  # robust start
-    if sigma is None:                                          # strided subsample for the passes
+    n, offset = robust_start(p, dm, model, settings)
+    if model.sigma is None:                                    # strided subsample for the passes
         ps, ds = _subsample(settings.refine_points, p, dm)
-        ss = None
+        sub = model
     else:
-        ps, ds, ss = _subsample(settings.refine_points, p, dm, sigma)
-    s, cutoff = _initial_scale(ps, ds, ss, n, offset, settings)
-    n, offset, s = _refine(ps, ds, ss, n, offset, s, cutoff, settings)
-    return _final_fit(p, dm, sigma, n, offset, s, cutoff, settings, refine_mask)   # one pass over all
+        ps, ds, ss = _subsample(settings.refine_points, p, dm, model.sigma)
+        sub = model.subset(ss)
+    s, cutoff = initial_scale(ps, ds, sub, n, offset, settings)
+    n, offset, s = refine(ps, ds, sub, n, offset, s, cutoff, settings)
+    return _final(p, dm, model, n, offset, s, cutoff, keep, edge)
 
 
 # ---------------------------------------------------------------------- derived values
@@ -364,8 +148,8 @@ def _geometry(n: FloatArray, d: FloatArray) -> FloatArray:
     return out
 
 
-def _derived(fit: _Fit) -> tuple[list[float], list[float]]:
-    """Angle, tilt x, tilt y, height and their 1-sigma (central-difference Jacobians)."""
+def _derived(fit: _Fit) -> tuple[list[float], list[float], FloatArray]:
+    """Angle, tilt x, tilt y, height, their 1-sigma, and the (4, 3) Jacobian (central differences)."""
     n0 = fit.plane.normal
     d0 = fit.plane.offset_m
     steps = np.array([1e-6, 1e-6, 1e-6 * max(abs(d0), 1e-3)])
@@ -375,28 +159,89 @@ def _derived(fit: _Fit) -> tuple[list[float], list[float]]:
     v = _geometry(nn / norm[:, None], (d0 + dp[:, 2]) / norm)
     jac = ((v[1:4] - v[4:7]) / (2.0 * steps[:, None])).T                      # (4, 3)
     var = np.einsum("ij,jk,ik->i", jac, fit.cov, jac)                          # diag(J C J^T)
-    return v[0].tolist(), np.sqrt(np.maximum(var, 0.0)).tolist()
+    return v[0].tolist(), np.sqrt(np.maximum(var, 0.0)).tolist(), jac
 
 
-def _assemble(fit: _Fit, settings: FullFrameSettings, *, n_points: int, valid_fraction: float,
-              inlier_mask: BoolArray, coverage: float, n_frames: int) -> FullFrameResult:
+@dataclass(frozen=True)
+class _Extras:
+    """What the frame path adds: image coverage, flatness and the edge clean-up."""
+
+    coverage: float = math.nan
+    flatness: Flatness | None = None
+    edge: EdgeReport | None = None
+
+
+def _assemble(fit: _Fit, settings: FullFrameSettings, model: Model, *, n_points: int, valid_fraction: float,
+              inlier_mask: BoolArray, n_frames: int, extras: _Extras) -> FullFrameResult:
     """The result: estimates with intervals, covariances of normal and offset, gate values."""
-    (angle, tx, ty, height), (s_a, s_x, s_y, s_h) = _derived(fit)
+    (angle, tx, ty, height), (s_a, s_x, s_y, s_h), jac = _derived(fit)
+    if not (math.isfinite(height) and height > 0):
+        raise CalibrationError("full-frame fit: the plane does not cross the optical axis in front of the "
+                               "camera, so its height is undefined; is the camera looking at the plane?")
     z = float(ndtri(0.5 + settings.confidence / 2.0))   # two-sided normal quantile: value ± z sigma
     e = np.stack([fit.e1, fit.e2], axis=1)
     cov_n = e @ fit.cov[:2, :2] @ e.T                    # tangent steps -> unit normal (3x3)
     cov_nd = e @ fit.cov[:2, 2]
+    edge = extras.edge or EdgeReport()
     n_in = int(np.count_nonzero(fit.inliers))
-    inlier_fraction = n_in / n_points
-    gates = gate_table(settings, valid_fraction, inlier_fraction, fit.residual_rms_m, coverage)
+    inlier_fraction = (n_in + edge.n_dropped) / n_points   # on the plane: inliers and mixed pixels
+    sigma_given = model.sigma is not None
+    flat = extras.flatness
+    gates = gate_table(settings, valid_fraction, inlier_fraction, fit.residual_rms_m, fit.unit_rms_m,
+                       sigma_given, extras.coverage, math.nan if flat is None else flat.excess_m)
+    beta, beta_sigma, dstep = fit.multipath
+    shift = jac @ dstep                                  # change of each value with the radial bias fitted
     return FullFrameResult(
         plane=fit.plane, angle=Estimate.from_sigma(angle, s_a, z, 0.0, math.pi / 2),
         tilt_x=Estimate.from_sigma(tx, s_x, z), tilt_y=Estimate.from_sigma(ty, s_y, z),
         height=Estimate.from_sigma(height, s_h, z), confidence=settings.confidence,
         normal_covariance=cov_n, offset_variance_m2=float(fit.cov[2, 2]), normal_offset_covariance=cov_nd,
         valid_fraction=valid_fraction, inlier_fraction=inlier_fraction, residual_rms_m=fit.residual_rms_m,
-        coverage=coverage, noise_scale_m=fit.noise_scale_m, n_points=n_points, n_inliers=n_in,
-        n_frames=n_frames, inlier_mask=inlier_mask, gates=gates)
+        coverage=extras.coverage, noise_scale_m=fit.noise_scale_m, n_points=n_points, n_inliers=n_in,
+        n_frames=n_frames, inlier_mask=inlier_mask, gates=gates,
+        residual_unit_rms_m=fit.unit_rms_m, sigma_given=sigma_given,
+        flatness_m=math.nan if flat is None else flat.excess_m, flatness_where="" if flat is None else flat.where,
+        multipath=Estimate.from_sigma(beta, beta_sigma, z),
+        multipath_shift={"angle_rad": float(shift[0]), "tilt_x_rad": float(shift[1]),
+                         "tilt_y_rad": float(shift[2]), "height_m": float(shift[3])},
+        mixed_margin_px=edge.margin_px, n_mixed=edge.n_dropped, settings=settings)
+
+
+# ---------------------------------------------------------------------- input checks
+def _check_points(p: F32, dm: F32, n_behind: int, n_pixels: int, min_valid: float, what: str) -> None:
+    """Enough points in front of the camera, in metres."""
+    n_ok = p.shape[1]
+    if n_behind > n_ok:
+        raise CalibrationError(f"{n_behind} of {n_behind + n_ok} {what}s lie behind the camera (z <= 0): "
+                               "the points must be in the camera frame (OpenCV: z along the optical axis)")
+    if n_ok < MIN_POINTS:
+        extra = f" ({n_behind} behind the camera)" if n_behind else ""
+        raise CalibrationQualityError("valid_fraction", n_ok / max(n_pixels, 1), min_valid,
+                                      f"only {n_ok} {what}(s){extra}; a full-frame fit needs {MIN_POINTS}")
+    sample = dm[:: max(1, dm.size // 4096)]
+    median = float(np.median(sample))
+    if median > MAX_MEDIAN_RANGE_M:
+        raise CalibrationError(f"the median range of the {what}s is {median:.4g}: the distances look like "
+                               "millimetres; the full-frame fit takes metres")
+
+
+def _check_margin(edge: EdgeClean, n_ok: int, n_pixels: int, min_valid: float) -> None:
+    """Few valid pixels: enough of them must lie farther than the edge margin from invalid patches."""
+    if n_ok > SMALL_FRAME_POINTS:
+        return
+    left = edge.margin_keep()
+    if left < MIN_POINTS:
+        raise CalibrationQualityError(
+            "valid_fraction", n_ok / n_pixels, min_valid,
+            f"{n_ok} valid pixels, {left} left after the edge margin ({edge.floor_px} px around invalid regions, "
+            f"edge_margin_deg); a full-frame fit needs {MIN_POINTS}")
+
+
+def _front(p: F32, ok: BoolArray) -> tuple[BoolArray, int]:
+    """``ok`` restricted to z > 0, and how many finite points were behind the camera."""
+    with np.errstate(invalid="ignore"):
+        behind = ok & ~(p[..., 2] > 0)
+    return ok & ~behind, int(np.count_nonzero(behind))
 
 
 # ---------------------------------------------------------------------- public API
@@ -413,14 +258,16 @@ def fit_plane_points(points_m: ArrayLike, sigma_m: ArrayLike | None = None,
         settings: Fit settings and gates; None uses the defaults.
 
     Returns:
-        The result; ``inlier_mask`` has shape (N,), ``coverage`` is NaN (no image) and
-        there is no coverage gate; ``valid_fraction`` counts finite rows.
+        The result; ``inlier_mask`` has shape (N,), ``coverage`` and ``flatness_m`` are
+        NaN (no image) and there are no coverage and flatness gates; ``valid_fraction``
+        counts finite rows in front of the camera.
 
     Raises:
-        CalibrationError: Wrong shape or type, or no plane can be defined.
+        CalibrationError: Wrong shape or type, points behind the camera or in millimetres,
+            or no plane can be defined.
         CalibrationQualityError: Fewer than 16 usable points (gate ``valid_fraction``).
     """
-    cfg = settings or FullFrameSettings()
+    cfg = settings or _DEFAULTS
     try:
         pts = np.asarray(points_m, dtype=np.float32)
     except (TypeError, ValueError):
@@ -430,7 +277,7 @@ def fit_plane_points(points_m: ArrayLike, sigma_m: ArrayLike | None = None,
     n_all = pts.shape[0]
     with np.errstate(invalid="ignore", over="ignore"):
         dm = np.sqrt(np.einsum("ij,ij->i", pts, pts))   # measured range |p|
-    ok = np.isfinite(dm) & (dm > 0)
+        ok = np.isfinite(dm) & (dm > 0)
     sig: F32 | None = None
     if sigma_m is not None:
         try:
@@ -439,30 +286,39 @@ def fit_plane_points(points_m: ArrayLike, sigma_m: ArrayLike | None = None,
             raise CalibrationError("sigma_m must be a numeric (N,) array") from None
         if sig.shape != (n_all,):
             raise CalibrationError(f"sigma_m must have shape ({n_all},), got {np.shape(sigma_m)}")
-        ok &= np.isfinite(sig) & (sig > 0)
-    n_ok = int(np.count_nonzero(ok))
-    valid_fraction = n_ok / n_all if n_all else 0.0
-    if n_ok < MIN_POINTS:
-        raise CalibrationQualityError("valid_fraction", valid_fraction, cfg.min_valid_fraction,
-                                      f"only {n_ok} usable point(s); a full-frame fit needs {MIN_POINTS}")
+        with np.errstate(invalid="ignore"):
+            ok &= np.isfinite(sig) & (sig > 0)
+    ok, n_behind = _front(pts, ok)
     p = np.ascontiguousarray(pts[ok].T)
     d = np.ascontiguousarray(dm[ok])
-    fit = _robust_fit(p, d, cfg, None if sig is None else np.ascontiguousarray(sig[ok]))
+    _check_points(p, d, n_behind, n_all, cfg.min_valid_fraction, "usable point")
+    model = Model(cfg.weighted, cfg.noise_distance_exponent, None if sig is None else np.ascontiguousarray(sig[ok]))
+    fit = _robust_fit(p, d, model, cfg)
     mask = np.zeros(n_all, dtype=bool)
     mask[ok] = fit.inliers
-    return _assemble(fit, cfg, n_points=n_ok, valid_fraction=valid_fraction, inlier_mask=mask,
-                     coverage=math.nan, n_frames=1)
+    n_ok = p.shape[1]
+    return _assemble(fit, cfg, model, n_points=n_ok, valid_fraction=n_ok / n_all, inlier_mask=mask,
+                     n_frames=1, extras=_Extras())
 
 
-def _frames_points(frames: Frame | Sequence[Frame]) -> tuple[list[Frame], F32, F32, list[BoolArray]]:
-    """Validate frames; pooled valid points (3, N), ranges (N,) and each frame's flat mask."""
+@dataclass
+class _FramePoints:
+    """Pooled valid points of one or more frames of the same camera."""
+
+    frames: list[Frame]
+    p: F32                    # (3, N) camera frame
+    dm: F32                   # (N,) measured range
+    masks: list[BoolArray]    # per frame, flat (H*W,) mask of the pixels that became points
+    n_behind: int             # finite valid pixels with z <= 0 (dropped)
+
+
+def _frame_list(frames: Frame | Sequence[Frame]) -> list[Frame]:
     if isinstance(frames, Frame):
-        seq = [frames]
-    else:
-        try:
-            seq = list(frames)
-        except TypeError:
-            raise CalibrationError(f"expected a Frame or a sequence of frames, got {type(frames).__name__}") from None
+        return [frames]
+    try:
+        seq = list(frames)
+    except TypeError:
+        raise CalibrationError(f"expected a Frame or a sequence of frames, got {type(frames).__name__}") from None
     if not seq:
         raise CalibrationError("fit_full_frame needs at least one frame")
     for i, f in enumerate(seq):
@@ -470,47 +326,35 @@ def _frames_points(frames: Frame | Sequence[Frame]) -> tuple[list[Frame], F32, F
             raise CalibrationError(f"frame {i} is a {type(f).__name__}, not a Frame")
         if f.shape != seq[0].shape:
             raise CalibrationError(f"frame {i} has shape {f.shape}, frame 0 has {seq[0].shape}")
+    return seq
+
+
+def _frames_points(frames: Frame | Sequence[Frame]) -> _FramePoints:
+    """Validate frames; pooled valid points in front of the camera, ranges and each frame's flat mask."""
+    seq = _frame_list(frames)
     pts, dms, masks = [], [], []
+    behind = 0
     for f in seq:
         dist = f.distance.reshape(-1)
+        xyz = f.xyz.reshape(-1, 3)
         with np.errstate(invalid="ignore"):
             m = f.valid.reshape(-1) & (dist > 0)   # NaN compares False
         idx = np.flatnonzero(m)
-        p = np.take(f.xyz.reshape(-1, 3).T, idx, axis=1)    # (3, n) structure of arrays
+        p = np.take(xyz.T, idx, axis=1)            # (3, n) structure of arrays
         d = np.take(dist, idx)
-        if not (math.isfinite(float(p.sum())) and math.isfinite(float(d.sum()))):   # rare: drop NaN/inf
-            fin = np.isfinite(p).all(axis=0) & np.isfinite(d)
-            m[idx[~fin]] = False
-            p, d = np.ascontiguousarray(p[:, fin]), d[fin]
+        if not (math.isfinite(float(p.sum())) and math.isfinite(float(d.sum()))) or not bool((p[2] > 0).all()):
+            with np.errstate(invalid="ignore"):
+                fin = np.isfinite(p).all(axis=0) & np.isfinite(d)
+                front = fin & (p[2] > 0)
+            behind += int(np.count_nonzero(fin & ~front))
+            m[idx[~front]] = False
+            p, d = np.ascontiguousarray(p[:, front]), d[front]
         pts.append(p)
         dms.append(d)
         masks.append(m)
     if len(seq) == 1:
-        return seq, pts[0], dms[0], masks
-    return seq, np.concatenate(pts, axis=1), np.concatenate(dms), masks
-
-
-def _edge_keep(inliers: BoolArray, masks: list[BoolArray], shape: tuple[int, int], margin_px: int) -> BoolArray:
-    """Points (pooled order) farther than ``margin_px`` from solid patches of non-plane pixels.
-
-    Per frame: non-plane = outlier or invalid; a morphological opening (3x3) keeps
-    patches, dropping isolated outliers (noise tails, random flying pixels); the
-    patches grown by ``margin_px`` are excluded.
-    """
-    h, w = shape
-    keep = np.ones(inliers.size, dtype=bool)
-    k_open = np.ones((3, 3), np.uint8)
-    k_grow = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
-    start = 0
-    for m in masks:
-        k = int(np.count_nonzero(m))
-        off_plane = np.ones(h * w, dtype=np.uint8)
-        off_plane[m] = ~inliers[start:start + k]
-        patches = cv2.morphologyEx(off_plane.reshape(h, w), cv2.MORPH_OPEN, k_open)
-        near = cv2.dilate(patches, k_grow).reshape(-1)
-        keep[start:start + k] = near[m] == 0
-        start += k
-    return keep
+        return _FramePoints(seq, pts[0], dms[0], masks, behind)
+    return _FramePoints(seq, np.concatenate(pts, axis=1), np.concatenate(dms), masks, behind)
 
 
 def _pixel_inliers(inliers: BoolArray, masks: list[BoolArray], shape: tuple[int, int]) -> BoolArray:
@@ -531,6 +375,80 @@ def _pixel_inliers(inliers: BoolArray, masks: list[BoolArray], shape: tuple[int,
     return ((val_count > 0) & (2 * inl_count >= val_count)).reshape(h, w)
 
 
+def _noise_orth(p: F32, dm: F32, frame: PlaneFrame, model: Model) -> F32:
+    """Orthogonal noise shape ``sigma_range |cos|`` of points with ranges ``dm`` (up to the fitted scale).
+
+    Evaluated at the range the plane predicts along each ray, never at the noisy one
+    (weights correlated with the noise bias the local planes, as in ADR 0007, "Weighting").
+    """
+    pn = frame.n.astype(np.float32) @ p
+    cos = np.abs(pn) / dm
+    if model.weighted:
+        t = np.abs(np.float32(-frame.offset) * dm / pn)   # predicted range along the ray
+        shape = t ** np.float32(model.exponent) / np.sqrt(np.maximum(cos, np.float32(1e-6)))
+    else:
+        shape = np.ones_like(dm)
+    out: F32 = shape * cos
+    return out
+
+
+def _flatness(fit: _Fit, data: _FramePoints, model: Model, cfg: FullFrameSettings) -> Flatness:
+    """The flatness gate's value: local planes of grid cells and of large planar off-plane regions."""
+    h, w = data.frames[0].shape
+    pl = fit.plane
+    e1, e2 = basis(pl.normal)
+    frame = PlaneFrame(pl.normal, e1, e2, pl.offset_m)
+    sel = np.flatnonzero(fit.inliers)
+    sel = sel[:: max(1, -(-sel.size // MAX_FLAT_POINTS))]   # strided inliers
+    pix = _pixels_of(sel, data.masks)
+    p_in = data.p[:, sel]
+    noise = _noise_orth(p_in, data.dm[sel], frame, model).astype(np.float64)
+    grid = (min(cfg.flatness_grid[0], w), min(cfg.flatness_grid[1], h))
+    best = grid_flatness(frame.uvw(p_in), 1.0 / noise ** 2, grid_cells(pix, (h, w), grid), grid,
+                         fit.noise_scale_m, cfg.flatness_sigma)
+    step = max(1, round(max(h, w) / REGION_MAP_PX))
+    start = 0
+    for m in data.masks:
+        k = int(np.count_nonzero(m))
+        inl = fit.inliers[start:start + k]
+        if k - int(np.count_nonzero(inl)) >= cfg.flatness_min_region * k:   # enough outliers for a region
+            reg = _region_flatness(frame, data.p[:, start:start + k], data.dm[start:start + k], m, inl, (h, w),
+                                   step, fit, model, cfg)
+            if reg.excess_m > best.excess_m:
+                best = reg
+        start += k
+    return best
+
+
+def _region_flatness(frame: PlaneFrame, p: F32, dm: F32, m: BoolArray, inl: BoolArray, shape: tuple[int, int],
+                     step: int, fit: _Fit, model: Model, cfg: FullFrameSettings) -> Flatness:
+    """Flatness of the large off-plane regions of one frame (points ``p`` of the pixels ``m``)."""
+    h, w = shape
+    k = inl.size
+    off = np.zeros(h * w, dtype=np.uint8)
+    off[m] = ~inl
+    labels, sizes = off_plane_regions(off.reshape(h, w), step)
+    min_size = math.ceil(cfg.flatness_min_region * k / step ** 2)
+    big = np.flatnonzero(sizes >= min_size)
+    if big.size == 0:
+        return Flatness(0.0, "")
+    lab = labels.reshape(-1)[m]
+    pick = np.flatnonzero(np.isin(lab, big))
+    pick = pick[:: max(1, -(-pick.size // MAX_FLAT_POINTS))]                # strided, at most 65536
+    p_off = p[:, pick]
+    noise = fit.noise_scale_m * _noise_orth(p_off, dm[pick], frame, model).astype(np.float64)
+    return region_flatness(frame, p_off, noise, lab[pick], sizes, min_size, cfg.flatness_sigma, step ** 2,
+                           k)
+
+
+def _pixels_of(sel: NDArray[np.intp], masks: list[BoolArray]) -> NDArray[np.intp]:
+    """Flat pixel index (within its frame) of the pooled points ``sel`` (sorted)."""
+    if len(masks) == 1:
+        out: NDArray[np.intp] = np.flatnonzero(masks[0])[sel]
+        return out
+    return np.concatenate([np.flatnonzero(m) for m in masks])[sel]
+
+
 def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings | None = None) -> FullFrameResult:
     """Fit the measuring plane to every valid pixel of one or more frames of a static camera.
 
@@ -545,25 +463,24 @@ def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings 
         The plane (camera frame, normal toward the camera) with intervals and gates.
 
     Raises:
-        CalibrationError: Malformed input (not frames, mixed shapes) or no plane defined.
+        CalibrationError: Malformed input (not frames, mixed shapes), points behind the
+            camera or in millimetres, or no plane defined.
         CalibrationQualityError: Fewer than 16 valid pixels (gate ``valid_fraction``).
     """
-    cfg = settings or FullFrameSettings()
-    seq, p, dm, masks = _frames_points(frames)
-    h, w = seq[0].shape
-    n_pixels = h * w * len(seq)
-    n_ok = p.shape[1]
-    valid_fraction = n_ok / n_pixels
-    if n_ok < MIN_POINTS:
-        raise CalibrationQualityError("valid_fraction", valid_fraction, cfg.min_valid_fraction,
-                                      f"only {n_ok} valid pixel(s); a full-frame fit needs {MIN_POINTS}")
-    refine = None
-    intr = seq[0].intrinsics
-    margin_px = math.ceil(math.radians(cfg.edge_margin_deg) * max(intr.fx, intr.fy) - 1e-9)   # degrees -> px
-    if margin_px > 0:
-        def refine(inliers: BoolArray) -> BoolArray:
-            return _edge_keep(inliers, masks, (h, w), margin_px)
-    fit = _robust_fit(p, dm, cfg, refine_mask=refine)
-    mask = _pixel_inliers(fit.inliers, masks, (h, w))
-    return _assemble(fit, cfg, n_points=n_ok, valid_fraction=valid_fraction, inlier_mask=mask,
-                     coverage=image_coverage(mask, cfg), n_frames=len(seq))
+    cfg = settings or _DEFAULTS
+    data = _frames_points(frames)
+    h, w = data.frames[0].shape
+    n_pixels = h * w * len(data.frames)
+    _check_points(data.p, data.dm, data.n_behind, n_pixels, cfg.min_valid_fraction, "valid pixel")
+    intr = data.frames[0].intrinsics
+    floor_px = math.ceil(math.radians(cfg.edge_margin_deg) * max(intr.fx, intr.fy) - 1e-9)   # degrees -> px
+    edge = None
+    if floor_px > 0:
+        edge = EdgeClean(data.masks, (h, w), floor_px, RING_REACH * (floor_px + 1), cfg.mixed_ring_sigma)
+        _check_margin(edge, data.p.shape[1], n_pixels, cfg.min_valid_fraction)
+    model = Model(cfg.weighted, cfg.noise_distance_exponent)
+    fit = _robust_fit(data.p, data.dm, model, cfg, keep=edge, edge=edge)
+    mask = _pixel_inliers(fit.inliers, data.masks, (h, w))
+    extras = _Extras(image_coverage(mask, cfg), _flatness(fit, data, model, cfg), None if edge is None else edge.report)
+    return _assemble(fit, cfg, model, n_points=data.p.shape[1], valid_fraction=data.p.shape[1] / n_pixels,
+                     inlier_mask=mask, n_frames=len(data.frames), extras=extras)

@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe.settings import FullFrameSettings
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -83,6 +84,23 @@ class FullFrameResult:
         inlier_mask: (H, W) bool, pixels that are inliers in at least half of the frames
             where they are valid; shape (N,) for raw point clouds.
         gates: ``name -> (value, threshold, passed)``.
+        residual_unit_rms_m: The inliers' RMS orthogonal residual the noise model predicts
+            per metre of range-noise sigma at 1 m (with given sigmas: the RMS they
+            predict, metres); ``expected_noise_m`` times it is the expected RMS.
+        sigma_given: Per-point sigmas replaced the noise model.
+        flatness_m: Largest departure of a local plane from the global fit beyond
+            ``flatness_sigma`` of its uncertainty, metres (0 when none departs; NaN for
+            raw point clouds).
+        flatness_where: The region of that departure ("" when none departs).
+        multipath: Range bias at the image border relative to the centre (growing with
+            the squared image radius), estimated from the residual pattern, metres: a
+            bias such as multipath, which the intervals do not cover.
+        multipath_shift: How much each value (``angle_rad``, ``tilt_x_rad``,
+            ``tilt_y_rad``, ``height_m``) would change if that radial pattern were
+            fitted as a bias: the size of the error it may cause.
+        mixed_margin_px: Rings of pixels dropped around outlier patches (mixed pixels).
+        n_mixed: Inliers dropped near depth edges and invalid patches.
+        settings: The settings of the fit.
     """
 
     plane: Plane
@@ -104,6 +122,15 @@ class FullFrameResult:
     n_frames: int
     inlier_mask: BoolArray
     gates: dict[str, tuple[float, float, bool]]
+    residual_unit_rms_m: float
+    sigma_given: bool
+    flatness_m: float
+    flatness_where: str
+    multipath: Estimate
+    multipath_shift: dict[str, float]
+    mixed_margin_px: int
+    n_mixed: int
+    settings: FullFrameSettings
 
     @property
     def angle_rad(self) -> float:
@@ -175,9 +202,16 @@ class FullFrameResult:
         """1-sigma of ``plane.offset_m``, metres."""
         return math.sqrt(max(self.offset_variance_m2, 0.0))
 
+    @property
+    def noise_ratio(self) -> float:
+        """The inliers' RMS residual over the RMS ``expected_noise_m`` predicts for them."""
+        unit = self.residual_unit_rms_m * (1.0 if self.sigma_given else self.settings.expected_noise_m)
+        return self.residual_rms_m / unit if unit > 0 else math.nan
+
     def to_dict(self) -> dict[str, Any]:
         """JSON form: degrees and metres for humans."""
         num = _finite_or_none
+        shift = self.multipath_shift
         return {
             "method": "full_frame",
             **self.angle.to_dict("angle", "deg", math.degrees),
@@ -198,4 +232,13 @@ class FullFrameResult:
             "gates": {name: {"value": num(v), "threshold": t, "passed": ok}
                       for name, (v, t, ok) in self.gates.items()},
             "passed": self.passed,
+            "noise_ratio": num(self.noise_ratio),
+            "flatness_m": num(self.flatness_m),
+            "flatness_where": self.flatness_where,
+            **self.multipath.to_dict("multipath_border", "m", num),
+            "multipath_shift": {"angle_deg": math.degrees(shift["angle_rad"]),
+                                "tilt_x_deg": math.degrees(shift["tilt_x_rad"]),
+                                "tilt_y_deg": math.degrees(shift["tilt_y_rad"]), "height_m": shift["height_m"]},
+            "mixed_margin_px": self.mixed_margin_px,
+            "n_mixed": self.n_mixed,
         }

@@ -1,8 +1,18 @@
-"""The ``[full_frame]`` configuration table: the full-frame fit's knobs and quality gates."""
+"""The ``[full_frame]`` configuration table: the full-frame fit's knobs and quality gates.
+
+The ranges in the field metadata (``gt``, ``ge``, ``lt``, ``le``) are the one place the
+limits live: :func:`cellcal.devices.config.parse_section` applies them to a config file
+and ``FullFrameSettings.__post_init__`` to a direct construction.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
+from typing import Any
+
+from cellcal.devices.errors import ConfigError
 
 __all__ = ["MIN_POINTS", "FullFrameSettings"]
 
@@ -23,25 +33,42 @@ class FullFrameSettings:
             metres (keeps noise-free data fittable).
         max_inlier_threshold_m: Upper bound of the cut-off at the median pixel, metres.
         confidence: Confidence level of the reported intervals.
+        expected_noise_m: The camera's range-noise sigma at 1 m and normal incidence
+            (data sheet), metres: the unit of the residual gate.
+        max_noise_ratio: Gate ``residual_rms_m``: the inliers' RMS residual may be at most
+            this many times what ``expected_noise_m`` predicts for the same pixels.
+        max_residual_rms_m: Optional absolute cap of the same gate, metres (None: none).
         min_valid_fraction: Gate: valid pixels / all pixels.
-        min_inlier_fraction: Gate: inliers / valid pixels.
-        max_residual_rms_m: Gate: RMS orthogonal residual of the inliers, metres.
+        min_inlier_fraction: Gate: plane pixels (inliers and the mixed pixels dropped near
+            depth edges) / valid pixels.
         min_coverage: Gate: fraction of the ``coverage_grid`` cells holding inliers.
         coverage_grid: Cells across and down the image, ``(columns, rows)``.
         min_cell_inlier_fraction: A cell counts as covered when at least this fraction
             of its pixels are inliers.
-        edge_margin_deg: Before the last pass, inliers within this angle (degrees of
-            view; ``ceil(radians * focal length)`` pixels, 1 px at 224x172, 4 px at
-            1280x800) of a solid (at least 3x3 px) patch of outliers or invalid pixels are
-            dropped: the feet of box walls and the mixed pixels along depth edges, which
-            sit within the noise of the plane but are not on it (with 1 M points their
-            bias would exceed the interval). 0 disables; raw point clouds never use it.
+        flatness_tolerance_m: Gate ``flatness``: how far (metres) a local plane may depart
+            from the global fit beyond ``flatness_sigma`` of its own uncertainty.
+        flatness_grid: Image cells, ``(columns, rows)``, each fitted with a local plane (and
+            the image's halves and quarters made of them).
+        flatness_sigma: Uncertainty multiple allowed before the tolerance counts.
+        flatness_min_region: Connected off-plane regions at least this fraction of the
+            valid pixels that are themselves planar are compared as well (a second table,
+            a step, the other side of a roof).
+        edge_margin_deg: Inliers within this angle (degrees of view; ``ceil(radians *
+            focal length)`` pixels, 2 px at 224x172, 6 px at 1280x800) of a solid (at
+            least 3x3 px) patch of outliers or invalid pixels are always dropped; beyond
+            it, bands of as many rings around outlier patches are dropped while their
+            residuals are biased (mixed pixels, ADR 0007). 0 disables both; raw point
+            clouds never use them.
+        mixed_ring_sigma: A band of rings around outlier patches is dropped while the
+            sum of its residuals is this many standard errors from the clean level.
         hypotheses: Number of random triplet planes of the robust start.
-        sample_points: Points scoring the hypotheses.
+        sample_points: Points scoring the hypotheses (a fixed stratified subsample).
         hypothesis_quantile: Quantile of the residuals that scores a hypothesis.
         refine_points: Points (strided subsample) of the reweighting passes.
         max_iterations: Maximum reweighting passes on the subsample.
-        seed: Seed of the random sampling (same data and seed, same result).
+        seed: Seed of the random triplets; None: a fixed set. The answer does not
+            depend on it (the reweighting grows the scale from below to the smallest
+            self-consistent one, ADR 0007 "Robustness").
     """
 
     weighted: bool = True
@@ -50,21 +77,67 @@ class FullFrameSettings:
     min_inlier_threshold_m: float = field(default=0.0005, metadata={"ge": 0.0, "le": 0.1})
     max_inlier_threshold_m: float = field(default=0.1, metadata={"gt": 0.0, "le": 10.0})
     confidence: float = field(default=0.95, metadata={"gt": 0.0, "lt": 1.0})
+    expected_noise_m: float = field(default=0.0032, metadata={"gt": 0.0, "le": 1.0})
+    max_noise_ratio: float = field(default=4.0, metadata={"ge": 1.0, "le": 1000.0})
+    max_residual_rms_m: float | None = field(default=None, metadata={"gt": 0.0})
     min_valid_fraction: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
     min_inlier_fraction: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
-    max_residual_rms_m: float = field(default=0.01, metadata={"gt": 0.0})
     min_coverage: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
     coverage_grid: tuple[int, int] = field(default=(6, 6), metadata={"ge": 1, "le": 64})
     min_cell_inlier_fraction: float = field(default=0.2, metadata={"ge": 0.0, "le": 1.0})
-    edge_margin_deg: float = field(default=0.2, metadata={"ge": 0.0, "le": 10.0})
+    flatness_tolerance_m: float = field(default=0.001, metadata={"ge": 0.0, "le": 1.0})
+    flatness_grid: tuple[int, int] = field(default=(4, 4), metadata={"ge": 1, "le": 64})
+    flatness_sigma: float = field(default=5.0, metadata={"ge": 0.0, "le": 100.0})
+    flatness_min_region: float = field(default=0.2, metadata={"gt": 0.0, "le": 1.0})
+    edge_margin_deg: float = field(default=0.3, metadata={"ge": 0.0, "le": 10.0})
+    mixed_ring_sigma: float = field(default=3.0, metadata={"gt": 0.0, "le": 100.0})
     hypotheses: int = field(default=96, metadata={"ge": 8, "le": 10000})
-    sample_points: int = field(default=160, metadata={"ge": 32, "le": 100000})
+    sample_points: int = field(default=1024, metadata={"ge": 32, "le": 100000})
     hypothesis_quantile: float = field(default=0.25, metadata={"gt": 0.0, "lt": 1.0})
-    refine_points: int = field(default=4096, metadata={"ge": 256})
-    max_iterations: int = field(default=6, metadata={"ge": 1, "le": 100})
-    seed: int = field(default=0, metadata={"ge": 0})
+    refine_points: int = field(default=4096, metadata={"ge": 256, "le": 10_000_000})
+    max_iterations: int = field(default=12, metadata={"ge": 1, "le": 100})
+    seed: int | None = field(default=None, metadata={"ge": 0})
 
     def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            _check_field(f.name, getattr(self, f.name), f.type, f.metadata)
         if self.max_inlier_threshold_m < self.min_inlier_threshold_m:
-            raise ValueError(f"full_frame.max_inlier_threshold_m ({self.max_inlier_threshold_m}) must be "
-                             f">= min_inlier_threshold_m ({self.min_inlier_threshold_m})")
+            raise ConfigError(f"max_inlier_threshold_m ({self.max_inlier_threshold_m}) must be "
+                              f">= min_inlier_threshold_m ({self.min_inlier_threshold_m})", key="full_frame")
+
+
+def _check_field(name: str, value: Any, annotation: Any, meta: Any) -> None:
+    """Type and range of one field (ranges from the field metadata, as in a config file)."""
+    key = f"full_frame.{name}"
+    text = str(annotation)
+    if value is None:
+        if "None" not in text:
+            raise ConfigError("must be set, got None", key=key)
+        return
+    values = value if isinstance(value, tuple) else (value,)
+    if text.startswith("tuple") and (not isinstance(value, tuple) or len(value) != 2):
+        raise ConfigError(f"expected 2 integers, got {value!r}", key=key)
+    for v in values:
+        if text == "bool":
+            ok = isinstance(v, bool)
+        elif "float" in text:
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        else:
+            ok = isinstance(v, int) and not isinstance(v, bool)
+        if not ok:
+            kind = "a boolean" if text == "bool" else "a finite number" if "float" in text else "an integer"
+            raise ConfigError(f"expected {kind}, got {value!r}", key=key)
+        for op, word in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+            if op in meta and not _holds(op, v, meta[op]):
+                raise ConfigError(f"must be {word} {meta[op]}, got {value!r}", key=key)
+
+
+def _holds(op: str, value: float, bound: float) -> bool:
+    """``value op bound`` for the range keys of the field metadata (False for NaN)."""
+    if op == "gt":
+        return value > bound
+    if op == "ge":
+        return value >= bound
+    if op == "lt":
+        return value < bound
+    return value <= bound

@@ -19,6 +19,7 @@ from cellcal.core.calibration.config import parse_config
 from cellcal.core.calibration.report import RESULT_SCHEMA, format_full_frame, format_table, plane_summary, summarize
 from cellcal.core.cli import main
 from cellcal.core.geometry.planemap import PlaneMap
+from cellcal.core.methods.fullframe.gates import GATE_NAMES
 from cellcal.core.methods.measure import expected_geometry
 from cellcal.devices.pose import Pose
 
@@ -58,7 +59,7 @@ def test_full_frame_tilt_is_within_0_05_deg_and_its_interval_holds_the_truth(def
         assert abs(ff["error"]["tilt_x_deg"]) < 0.05 and abs(ff["error"]["height_m"]) < 0.5e-3
         assert ff["expected_in_ci"]["tilt_x_deg"] is True
         assert all(g["passed"] for g in ff["gates"].values()) and ff["passed"] is True
-        assert set(ff["gates"]) == {"valid_fraction", "inlier_fraction", "residual_rms_m", "coverage"}
+        assert set(ff["gates"]) == set(GATE_NAMES)  # every gate, each with its value and threshold
         row = [m for m in pose["measurements"] if m["method"] == "full_frame"]
         assert len(row) == 1 and row[0]["perimeter_px"] is None
         assert row[0]["angle_deg"] == pytest.approx(ff["angle_deg"])

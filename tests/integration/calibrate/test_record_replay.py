@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import signal
 import sys
 import tomllib
 from collections.abc import Iterator
@@ -13,6 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from fault_cells import interrupt
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
@@ -22,6 +24,7 @@ from cellcal.core.calibration.replay import exact_part, record, replay_session
 from cellcal.core.cli import main
 from cellcal.devices import (
     BackendContext,
+    CellcalError,
     ConfigError,
     DeviceTimeoutError,
     MissingDependencyError,
@@ -493,9 +496,69 @@ def test_cli_record_of_a_rejected_plan_is_discarded_unless_kept(tmp_path: Path,
     out = tmp_path / "rec" / "s.mcap"
     args = ["record", "--config", str(tmp_path / "cell.toml"), "--out", str(out), "--quiet"]
     assert main(args) == 1 and "speed 0.3 m/s exceeds max 0.1 m/s" in capsys.readouterr().err
-    assert list(out.parent.iterdir()) == []  # no recording, no temp file
+    assert not out.parent.exists()  # no recording, no temp file, no lock file: nothing (not even its directory)
     assert main([*args, "--keep-failed"]) == 1
     assert f"recording of the failed run written to {out}" in capsys.readouterr().err
     kept = read_recording(out)
     assert kept.result is not None and not kept.result["ok"] and kept.result["error"]["type"] == "SafetyError"
     assert [p.name for p in out.parent.iterdir()] == ["s.mcap"]
+
+
+# ---------------------------------------------------------------------------- Ctrl-C while recording
+INTERRUPTED = {"type": "KeyboardInterrupt", "message": "interrupted (Ctrl-C)", "attrs": {}}
+
+
+@pytest.mark.parametrize("keep_failed", [False, True])
+def test_an_interrupted_recording_is_finished_with_what_was_recorded(tmp_path: Path, registry: Registry,
+                                                                     keep_failed: bool) -> None:
+    """Ctrl-C (a real SIGINT) while the last pose's frame is taken: a valid file, with the capture it cut short."""
+    config = parse_config(SIM_DOC, "<sim.toml>")
+    out = tmp_path / "s.mcap"
+    out.write_bytes(b"an earlier recording")
+    camera, arm = build_devices(config)
+    camera.fault_hook = lambda what, n: interrupt() if (what, n) == ("capture", N_POSES) else None
+    with pytest.raises(KeyboardInterrupt), \
+            SessionRecorder(out, config_document=SIM_DOC, keep_on_error=keep_failed) as rec:
+        Calibrator(config, rec.camera(camera), type(arm)(rec.arm(arm.inner), arm.limits)).run()
+    assert rec.finished and rec.finish_error is None
+    stored = read_recording(out)  # summary, chunk indexes, CRCs: all checked
+    assert stored.result == {"ok": False, "result": None, "error": INTERRUPTED}
+    assert [c["error"] for c in stored.captures] == [None] * (N_POSES - 1) + [INTERRUPTED]
+    assert [c["method"] for c in stored.arm_calls][-1] == "stop"
+    assert [p.name for p in tmp_path.iterdir()] == ["s.mcap"]
+    # the replay re-runs the recorded part and stops where the session was interrupted
+    with pytest.raises(CellcalError, match="KeyboardInterrupt: interrupted"):
+        run_replay(out, registry)
+
+
+@pytest.mark.parametrize("at_message", [1, 2, 5, 9])
+def test_ctrl_c_inside_the_mcap_writer_waits_for_the_message_to_be_written(tmp_path: Path,
+                                                                            at_message: int) -> None:
+    """A SIGINT that arrives half-way through a write is delivered right after it, never inside it."""
+    out = tmp_path / "s.mcap"
+    rec = SessionRecorder(out, config_document=SIM_DOC)
+    real_add = rec._writer.add_message
+    calls = {"n": 0, "written": 0}
+
+    def add_message(**kwargs: Any) -> None:
+        calls["n"] += 1
+        if calls["n"] == at_message:
+            interrupt_now()  # the handler runs at the next bytecode: inside this write unless held back
+        real_add(**kwargs)
+        calls["written"] += 1
+
+    rec._writer.add_message = add_message  # type: ignore[method-assign]
+    with pytest.raises(KeyboardInterrupt), rec:
+        for i in range(12):
+            rec.log("/arm/flange_pose", {"timestamp": {"sec": i, "nsec": 0}, "frame_id": "base",
+                                         "pose": {"position": {"x": 0, "y": 0, "z": 0},
+                                                  "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}}})
+    assert calls["written"] == calls["n"]  # every write that started, finished
+    stored = read_recording(out)
+    assert stored.message_counts["/arm/flange_pose"] == at_message  # the one it arrived in, and no later one
+    assert stored.result == {"ok": False, "result": None, "error": INTERRUPTED}
+
+
+def interrupt_now() -> None:
+    """SIGINT to this process, returning (Python raises KeyboardInterrupt at its next check)."""
+    signal.raise_signal(signal.SIGINT)

@@ -101,7 +101,7 @@ def test_ur_backend_passes_the_kit(ur_factory: Callable[[], RobotArm]) -> None:
     assert report.ok
     # the round trip really went through the mocked RTDE control interface: there and back, in metres
     moves = ur_factory.moves  # type: ignore[attr-defined]
-    assert len(moves) == 2
+    assert len(moves) == 6  # the round trip (there and back) and the arrival rule's four moves
     np.testing.assert_allclose(np.subtract(moves[0][0][:3], moves[1][0][:3]), [0.0, 0.0, 0.02], atol=1e-12)
 
 

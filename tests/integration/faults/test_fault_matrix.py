@@ -8,12 +8,15 @@ exactly that step with the public hooks of the sims and emulators:
 fault        connect / move k / capture k                                        expected error
 ============ =================================================================== =====================
 drop         connect: the O3R head refuses PCIC (``go_offline``);                DeviceConnectionError
-             move: every xArm reply lost from the k-th MOVE_LINE on;             DeviceTimeoutError
+             move: every xArm reply lost from the k-th MOVE_LINE on;             MotionError (the move
+                                                                                 is not confirmed, and
+                                                                                 never sent again)
              capture: the O3R head drops off the network while sending frame k   DeviceConnectionError
 stall        connect: every xArm reply stalls past the reply timeout;            DeviceTimeoutError
              move: the arm stops progressing (blocked) past the move timeout;
              capture: frame k stops half-way, past the capture timeout
 corrupt      xArm replies with a bad CRC (connect, from move k on);              ProtocolError
+             (move: MotionError, as for drop);
              capture: frame k with a corrupt chunk header
 vendor_error xArm controller error 22 (latched at connect; raised in move k);    VendorError
              capture: O3R async error 104000005 with frame k
@@ -26,7 +29,7 @@ interrupt    SIGINT (KeyboardInterrupt) in the camera's connect / as move k     
 At ``write`` the devices are closed already, so no device fault can reach it; what
 can go wrong there is the process being interrupted or the file system failing,
 injected at the rename of the finished result: ``interrupt``, ``io_error`` (EIO),
-``disk_full`` (ENOSPC).
+``disk_full`` (ENOSPC) — an :class:`OutputError` that is not a bad path (exit status 1).
 
 Every case checks: the typed error; the time stays within the case's timeout budget
 (a bound against hangs, not a speed target); the arm was told to stop, observed on
@@ -63,9 +66,10 @@ from fault_cells import (
 from cellcal.core.calibration.calibrator import Calibrator, run_to_file
 from cellcal.core.calibration.journal import journal_path, plan_fingerprint, read_journal
 from cellcal.devices.errors import (
-    CalibrationError,
     DeviceConnectionError,
     DeviceTimeoutError,
+    MotionError,
+    OutputError,
     ProtocolError,
     VendorError,
 )
@@ -136,7 +140,7 @@ def arrange(step: str, fault: str) -> tuple[Case, Callable[[Probe], None]]:
     if kind == "move":
         if fault in ("drop", "corrupt"):
             spoil = "drop" if fault == "drop" else "corrupt_crc"
-            return (Case("sim", "xarm-emulated", DeviceTimeoutError if fault == "drop" else ProtocolError),
+            return (Case("sim", "xarm-emulated", MotionError),
                     lambda p: setattr(p.sim_arm, "fault_hook",
                                       when("move")(lambda: p.xarm[-1].inject(spoil, count=EVERY))))
         if fault == "stall":
@@ -219,7 +223,7 @@ def test_fault(step: str, fault: str, tmp_path: Path, earlier_result: bytes,
     result = out_dir / "result.json"
     result.write_bytes(earlier_result)
     if step == "write":
-        case = Case("sim", "sim", KeyboardInterrupt if fault == "interrupt" else CalibrationError)
+        case = Case("sim", "sim", KeyboardInterrupt if fault == "interrupt" else OutputError)
         probe = make_probe(cell_document())
         real_replace = os.replace
 
@@ -248,6 +252,7 @@ def test_fault(step: str, fault: str, tmp_path: Path, earlier_result: bytes,
     assert result.read_bytes() == earlier_result, "the earlier result.json changed"
     if case.expected is not KeyboardInterrupt:
         assert "\n" not in str(info.value) and str(info.value)
+    assert not isinstance(info.value, OutputError) or not info.value.bad_path  # a failing disk: exit status 1
     assert elapsed <= case.budget_s, f"took {elapsed:.2f} s, budget {case.budget_s} s"
 
     # the arm was told to stop (seen by the simulator or the emulator), and is still

@@ -1,8 +1,10 @@
-"""Bounded fuzz (hypothesis) of the three parsers fed by the outside world.
+"""Bounded fuzz (hypothesis) of the four parsers fed by the outside world.
 
-The PCIC stream parser and decoder, the xArm frame parser (both directions) and the
-TOML cell-configuration loader must answer any input with success or their documented
-error (:class:`ProtocolError`, :class:`ConfigError`), never another exception. The
+The PCIC stream parser and decoder, the xArm frame parser (both directions), the O3R
+XML-RPC/JSON configuration path and the TOML cell-configuration loader must answer any
+input with success or their documented error (:class:`ProtocolError`, for the O3R
+configuration also :class:`VendorError` and :class:`ConfigError`; :class:`ConfigError` for
+the TOML loader), never another exception. The
 targets and mutators live in ``tests/support/fuzz_targets.py`` and are shared with the long
 seeded run in ``benchmarks/fuzz_parsers.py``; here each gets a few hundred examples
 (the whole file runs in seconds).
@@ -10,6 +12,7 @@ seeded run in ``benchmarks/fuzz_parsers.py``; here each gets a few hundred examp
 
 from __future__ import annotations
 
+import json
 import random
 import tomllib
 from collections.abc import Iterator
@@ -23,14 +26,17 @@ from fuzz_targets import (
     config_target,
     dump_toml,
     mutate_document,
+    o3r_tree,
     pcic_target,
     xarm_target,
+    xmlrpc_reply,
+    xmlrpc_target,
 )
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from xarm_wire_helpers import encode_reply, parse_request
 
-from cellcal.devices.errors import CellcalError, ConfigError, ProtocolError
+from cellcal.devices.errors import CellcalError, ConfigError, ProtocolError, VendorError
 from cellcal.drivers.xarm.protocol import encode_request, parse_reply
 
 BOUNDED = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow,
@@ -38,6 +44,7 @@ BOUNDED = settings(max_examples=150, deadline=None, suppress_health_check=[Healt
 
 PCIC = pcic_target()
 XARM = xarm_target()
+XMLRPC = xmlrpc_target()
 
 
 @pytest.fixture(scope="module")
@@ -106,6 +113,54 @@ def test_fuzz_config_random_text_raises_only_config_error(config: Target, text: 
     config.check(text.encode("utf-8"))
 
 
+def test_xmlrpc_seeds() -> None:
+    assert XMLRPC.check(XMLRPC.seeds[0])  # the whole documented tree parses
+    assert not XMLRPC.check(XMLRPC.seeds[-1])  # a well-formed fault: VendorError
+    assert all(issubclass(k, CellcalError) for k in XMLRPC.documented)  # type: ignore[union-attr]
+
+
+@BOUNDED
+@given(index=st.integers(0, 10), rnd=st.randoms(use_true_random=False))
+def test_fuzz_xmlrpc_mutated_replies_raise_only_documented_errors(index: int, rnd: random.Random) -> None:
+    XMLRPC.check(XMLRPC.mutate(XMLRPC.seeds[index % len(XMLRPC.seeds)], rnd))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=600))
+def test_fuzz_xmlrpc_random_bytes_raise_only_documented_errors(raw: bytes) -> None:
+    assert not XMLRPC.check(raw)
+
+
+_json = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
+                     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner,
+                                                                                 max_size=4), max_leaves=12)
+
+
+@settings(max_examples=200, deadline=None)
+@given(where=st.sampled_from([("ports", "port2", "data", "pcicTCPPort"), ("ports", "port2", "state"),
+                              ("ports", "port2", "info", "features", "type"), ("ports", "port2", "info"),
+                              ("ports", "port2", "info", "features", "resolution", "width"), ("ports", "port2"),
+                              ("ports",), ("device", "swVersion", "firmware"), ("ports", "port0", "data")]),
+       value=_json)
+def test_fuzz_xmlrpc_any_json_value_anywhere_in_the_tree(where: tuple[str, ...], value: object) -> None:
+    """Any JSON value at a documented place: parses, or one error naming that place's JSON pointer."""
+    doc = o3r_tree()
+    node = doc
+    for key in where[:-1]:
+        node = node[key]
+    node[where[-1]] = value
+    try:
+        XMLRPC.run(xmlrpc_reply(json.dumps(doc, allow_nan=True)))
+    except ProtocolError as exc:
+        text = str(exc)
+        assert "\n" not in text and len(text) < 400
+        assert "/" + "/".join(where) in text or "not JSON" in text, text  # NaN/Infinity are refused as such
+    except ConfigError as exc:  # the ports table lost a port: that is the configured port missing
+        assert where == ("ports",) and "has no port" in str(exc), str(exc)
+    except VendorError:
+        raise AssertionError("a value in the tree is not a fault") from None
+
+
 _values = st.sampled_from(ODD_VALUES)
 
 
@@ -137,3 +192,4 @@ def test_structural_mutation_changes_the_document() -> None:
 
 def test_documented_errors() -> None:
     assert PCIC.documented is ProtocolError and XARM.documented is ProtocolError
+    assert XMLRPC.documented == (ProtocolError, VendorError, ConfigError)

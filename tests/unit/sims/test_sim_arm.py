@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cellcal.devices.arrival import ArrivalTolerance
 from cellcal.devices.base import BackendContext
-from cellcal.devices.errors import DeviceTimeoutError, NotConnectedError, VendorError
+from cellcal.devices.errors import CellcalError, DeviceTimeoutError, MotionError, NotConnectedError, VendorError
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.sims.arm import (
@@ -228,3 +229,59 @@ def test_sim_error_codes_mean_what_the_xarm_driver_says_they_mean() -> None:
         assert error_meaning(code) == meaning
     assert ERROR_MEANINGS[ERROR_OUT_OF_REACH] == "Kinematic error (target not reachable)"
     assert error_meaning(99) == "Controller Error 99"  # a code the sim does not know still reads as one
+
+
+# ---------------------------------------------------------------- switchable faults and the arrival check
+FAR = Pose(DOWN, np.array([0.3, 0.14, 0.5]))  # 140 mm from make_arm's start
+
+
+def test_arm_that_stops_short_fails_the_arrival_check_and_is_stopped() -> None:
+    arm = make_arm(time_scale=0.0, repeatability_m=0.0)
+    with arm:
+        arm.faults.stop_short_m = 0.07
+        with pytest.raises(MotionError, match=r"pose read 1 of 2 is 70\.000 mm and 0\.0000 deg from the target "
+                                              r"\(tolerance 1 mm / 0\.1 deg\).*the arm was told to stop$"):
+            arm.move_linear(FAR, speed=0.5, acceleration=2.0, timeout=5.0)
+        assert arm.true_flange_pose().distance_to(FAR) == pytest.approx(0.07, abs=1e-12)
+        assert arm.true_flange_pose().translation[1] == pytest.approx(0.07, abs=1e-12)  # on the straight path
+        assert arm.stops == 1 and arm.moves_started == 1
+        arm.faults.stop_short_m = 0.0
+        arm.move_linear(FAR, speed=0.5, acceleration=2.0, timeout=5.0)  # healthy again: arrives
+        assert arm.true_flange_pose().distance_to(FAR) == 0.0
+
+
+def test_jumping_and_lagging_read_backs_fail_the_arrival_check() -> None:
+    arm = make_arm(time_scale=0.0, repeatability_m=0.0)
+    with arm:
+        arm.faults.pose_jump_m = 0.005
+        readings = [arm.get_pose() for _ in range(20)]
+        offsets = [r.distance_to(arm.true_flange_pose()) for r in readings]
+        assert offsets == pytest.approx([0.005] * 20, abs=1e-12)
+        with pytest.raises(MotionError, match="the reported pose is not steady"):
+            arm.move_linear(FAR, speed=0.5, acceleration=2.0, timeout=5.0)
+        arm.faults.pose_jump_m = 0.0
+        arm.faults.stale_reads = True
+        start = arm.true_flange_pose()
+        back = Pose(DOWN, np.array([0.3, 0.0, 0.5]))
+        # the first read after the move is the one from before it (the target of the move above)
+        with pytest.raises(MotionError, match=r"pose reads 1 and 2 of 2 at rest differ by 140\.000 mm"):
+            arm.move_linear(back, speed=0.5, acceleration=2.0, timeout=5.0)
+        assert start.distance_to(FAR) == 0.0 and arm.true_flange_pose().distance_to(back) == 0.0
+        assert arm.stops == 2
+
+
+def test_arrival_tolerance_fits_the_read_back_noise_and_can_be_configured() -> None:
+    assert make_arm().arrival_tolerance == ArrivalTolerance(position_m=1e-3)
+    noisy = make_arm(time_scale=0.0, repeatability_m=0.005)  # 5 mm (4 sigma) read-back noise
+    assert noisy.arrival_tolerance.position_m == 0.01
+    with noisy:
+        for _ in range(20):  # two reads 1.25 mm sigma apart per axis stay within 10 mm
+            noisy.move_linear(FAR, speed=0.5, acceleration=2.0, timeout=5.0)
+            noisy.move_linear(Pose(DOWN, np.array([0.3, 0.0, 0.5])), speed=0.5, acceleration=2.0, timeout=5.0)
+        noisy.arrival_tolerance = ArrivalTolerance(position_m=1e-4)  # tighter than the noise: refused
+        with pytest.raises(MotionError, match=r"\(tolerance 0\.1 mm / 0\.1 deg\)"):
+            noisy.move_linear(FAR, speed=0.5, acceleration=2.0, timeout=5.0)
+    with pytest.raises(CellcalError, match=r"ArrivalTolerance\.position_m must be in"):
+        ArrivalTolerance(position_m=math.inf)
+    with pytest.raises(CellcalError, match="arrival_tolerance must be an ArrivalTolerance"):
+        noisy.arrival_tolerance = 0.001  # type: ignore[assignment]

@@ -1,4 +1,7 @@
-"""The simulated O3R222-like camera: geometry, noise model, invalid pixels, seeding, sharing."""
+"""The simulated O3R222-like camera: geometry, noise model, invalid pixels, seeding, sharing.
+
+The ToF artefacts (mixed pixels, multipath, amplitude noise, drift) are tested in
+test_sim_tof_artefacts.py."""
 
 from __future__ import annotations
 
@@ -14,13 +17,16 @@ from cellcal.devices.geometry.camera_model import pixel_grid_rays, project
 from cellcal.devices.pose import Pose
 from cellcal.sims.camera import CONF_INVALID, CONF_LOW_AMPLITUDE, CONF_OUT_OF_RANGE, SimCamera, SimCameraConfig
 from cellcal.sims.scene import Box, Scene
+from cellcal.sims.tof import ArtefactsConfig, datasheet_sigma_m, noise_sigma_m
 from cellcal.sims.world import SimWorld, world_from_context
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)  # camera z along world -z
 
 
-def make_camera(camera_pose: Pose, scene: Scene | None = None, world_seed: int = 7, **cfg: object) -> SimCamera:
-    world = SimWorld(scene or Scene(), mount=Pose.identity(), flange_pose=camera_pose, seed=world_seed)
+def make_camera(camera_pose: Pose, scene: Scene | None = None, world_seed: int = 7,
+                artefacts: ArtefactsConfig | None = None, **cfg: object) -> SimCamera:
+    world = SimWorld(scene or Scene(), mount=Pose.identity(), flange_pose=camera_pose, seed=world_seed,
+                     artefacts=artefacts)
     return SimCamera(SimCameraConfig(**cfg), world=world)  # type: ignore[arg-type]
 
 
@@ -72,10 +78,18 @@ def test_quantisation_keeps_points_within_half_a_millimetre() -> None:
     assert np.max(np.abs(off_plane)) > 0.0003  # quantisation really happened
 
 
-@pytest.mark.parametrize(("height_m", "sigma_mm"), [(0.5, 3.2 * 0.5**1.5), (1.5, 3.2 * 1.5**1.5)])
-def test_noise_statistics_match_documented_model(height_m: float, sigma_mm: float) -> None:
+@pytest.mark.parametrize(("height_m", "amplitude_noise", "sigma_mm"), [
+    (0.5, True, 1.4751),  # 3.2 mm * sqrt((4 + 0.25) / 1.25) / 4: shot-noise limited
+    (1.5, True, 5.3666),  # 3.2 mm * sqrt((0.444 + 0.25) / 1.25) / 0.444
+    (0.5, False, 3.2 * 0.5**1.5),  # the data-sheet law
+    (1.5, False, 3.2 * 1.5**1.5),
+])
+def test_noise_statistics_match_documented_model(height_m: float, amplitude_noise: bool, sigma_mm: float) -> None:
+    law = noise_sigma_m if amplitude_noise else datasheet_sigma_m
+    assert float(law(height_m)) * 1000.0 == pytest.approx(sigma_mm, rel=1e-4)
     pose = tilted_pose(height_m, 0.0)
-    cam = make_camera(pose, world_seed=11)
+    arte = ArtefactsConfig(amplitude_noise=amplitude_noise)
+    cam = make_camera(pose, world_seed=11, artefacts=arte)
     window = (slice(80, 92), slice(106, 118))  # within ~2 deg of the axis: cos(incidence) > 0.999
     stack = np.array([cam.render(pose).distance[window] for _ in range(40)], dtype=np.float64)
     per_pixel_std = stack.std(axis=0, ddof=1)
@@ -83,17 +97,19 @@ def test_noise_statistics_match_documented_model(height_m: float, sigma_mm: floa
     expected_mm = math.sqrt(sigma_mm**2 + 1.0 / 12.0)  # + 1 mm quantisation
     assert measured_mm == pytest.approx(expected_mm, rel=0.06)
     # Unbiased: the mean over frames matches the true distance within 4 standard errors.
-    truth = make_camera(pose, noise=False, quantisation_m=0.0).render(pose).distance[window]
+    truth = make_camera(pose, noise=False, quantisation_m=0.0, artefacts=arte).render(pose).distance[window]
     bias_mm = float(np.mean(stack.mean(axis=0) - truth)) * 1000.0
     assert abs(bias_mm) < 4 * expected_mm / math.sqrt(stack.size)
 
 
-def test_quoted_repeatability_is_met_as_two_sigma() -> None:
-    from cellcal.sims.camera import REPEATABILITY_SIGMAS, noise_sigma_m
+@pytest.mark.parametrize("law", [noise_sigma_m, datasheet_sigma_m])
+def test_quoted_repeatability_is_met_as_two_sigma(law: object) -> None:
+    from cellcal.sims.camera import REPEATABILITY_SIGMAS
 
-    rep = REPEATABILITY_SIGMAS * noise_sigma_m(np.array([0.5, 0.99, 1.5, 2.0])) * 1000.0
+    rep = REPEATABILITY_SIGMAS * law(np.array([0.5, 0.99, 1.5, 2.0, 4.0])) * 1000.0  # type: ignore[operator]
     assert np.all(rep[:2] < 7.0)  # < 7 mm under 1 m
     assert 10.0 < rep[2] < 20.0 and 10.0 < rep[3] < 20.0  # ~15 mm at 1-2 m
+    assert rep[4] == pytest.approx(51.0, abs=1.0)  # up to 51 mm beyond 4 m
 
 
 def test_grazing_pixels_are_invalid() -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cellcal.devices.errors import CalibrationError
-from cellcal.sims.scene import Box, Scene
+from cellcal.sims.scene import SURFACE_NONE, SURFACE_PLANE, Box, Scene
 
 
 def _unit(v: list[float]) -> np.ndarray:
@@ -106,3 +106,70 @@ def test_bad_input_raises_cellcal_error() -> None:
         Box((0.0, 0.0), (0.1, -0.1, 0.1))
     with pytest.raises(CalibrationError):
         Scene(np.zeros(3), np.zeros(3))
+
+
+def test_surface_ids_and_reflectivities() -> None:
+    # Box 0: 0.2 x 0.1 x 0.05 at (0.3, 0); box 1: a white 0.1 cube at (-0.3, 0).
+    scene = Scene(np.zeros(3), np.array([0.0, 0.0, 1.0]),
+                  (Box((0.3, 0.0), (0.2, 0.1, 0.05)), Box((-0.3, 0.0), (0.1, 0.1, 0.1), reflectivity=0.9)),
+                  plane_reflectivity=0.3)
+    origin = np.array([0.0, 0.0, 0.02])
+    dirs = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, -1.0], [0, 0, 1.0]])
+    t, _, hit, surface = scene.raycast_surfaces(origin, dirs)
+    # +x ray enters box 0 through its -x face (axis 0, minus side: face 0): id 1 + 0; -x ray enters box 1
+    # through its +x face (face 1): id 1 + 6 + 1; down: the plane; up: nothing.
+    assert surface.tolist() == [1, 8, SURFACE_PLANE, SURFACE_NONE]
+    assert hit.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(t[:3], [0.2, 0.25, 0.02])
+    np.testing.assert_allclose(scene.reflectivity(surface), [0.5, 0.9, 0.3, 0.0])
+    # The top face of box 0 from above: face 5 (axis 2, plus side).
+    _, _, _, top = scene.raycast_surfaces(np.array([0.3, 0.0, 1.0]), np.array([[0.0, 0.0, -1.0]]))
+    assert top.tolist() == [1 + 5]
+    for bad in (0.0, -0.1, 1e3):
+        with pytest.raises(CalibrationError, match="reflectivity"):
+            Box((0.0, 0.0), (0.1, 0.1, 0.1), reflectivity=bad)
+        with pytest.raises(CalibrationError, match="reflectivity"):
+            Scene(plane_reflectivity=bad)
+
+
+def _slab_reference(origin: np.ndarray, dirs: np.ndarray, scene: Scene) -> np.ndarray:
+    """Nearest hit by brute force: every ray against every box face rectangle and the plane."""
+    best = np.full(dirs.shape[0], np.inf)
+    denom = dirs @ scene.plane_normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tp = float((scene.plane_point_m - origin) @ scene.plane_normal) / denom
+    best = np.where(tp > 1e-9, tp, best)
+    for b in scene.boxes:
+        c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
+        rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])  # plane frame == world frame here
+        centre = np.array([*b.center_xy_m, b.size_m[2] / 2])
+        half = np.asarray(b.size_m) / 2
+        o_l, d_l = rot.T @ (origin - centre), dirs @ rot
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t = (sign * half[axis] - o_l[axis]) / d_l[:, axis]
+                p = o_l + t[:, None] * d_l
+                others = [a for a in range(3) if a != axis]
+                inside = np.all(np.abs(p[:, others]) <= half[others] + 1e-12, axis=1) & (t > 1e-9)
+                best = np.where(inside & (t < best), t, best)
+    return best
+
+
+def test_culled_ray_casting_agrees_with_brute_force() -> None:
+    rng = np.random.default_rng(4)
+    boxes = tuple(Box((float(rng.uniform(-0.3, 0.3)), float(rng.uniform(-0.3, 0.3))),
+                      tuple(float(v) for v in rng.uniform(0.03, 0.2, 3)), float(rng.uniform(0, math.pi)))
+                  for _ in range(6))
+    scene = Scene(np.zeros(3), np.array([0.0, 0.0, 1.0]), boxes)  # type: ignore[arg-type]
+    for origin in (np.array([0.0, 0.0, 0.8]), np.array([0.5, -0.4, 0.1])):
+        dirs = rng.normal(size=(20000, 3))
+        dirs[:, 2] = -np.abs(dirs[:, 2])
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        t, _, hit = scene.raycast(origin, dirs)
+        ref = _slab_reference(origin, dirs, scene)
+        np.testing.assert_array_equal(hit, np.isfinite(ref))
+        np.testing.assert_allclose(t[hit], ref[hit], rtol=1e-12, atol=1e-12)
+        # the boxes are really in the way of a good share of the rays (the plane is farther there)
+        t_plane, _, _ = Scene(np.zeros(3), np.array([0.0, 0.0, 1.0])).raycast(origin, dirs)
+        assert np.mean(t[hit] < t_plane[hit] - 1e-9) > 0.02

@@ -197,6 +197,8 @@ class ToyArm(RobotArm):
         self.config = config or self.Config()
         self._pose = Pose.from_xyz_rpy([0.3, 0.0, 0.4], [math.pi, 0.0, 0.0])
         self._stopped = False
+        self.moves: list[Pose] = []
+        self.stops = 0
 
     def _connect(self, timeout: float) -> None:
         if self.mutation == "leaks-thread":
@@ -219,13 +221,18 @@ class ToyArm(RobotArm):
         return p
 
     def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
+        if self.mutation == "stops-short":  # 70 mm before the target along the path, and says it is done
+            step = pose.translation - self._pose.translation
+            pose = Pose(pose.rotation, pose.translation - SHORTFALL_M * step / max(np.linalg.norm(step), 1e-12))
         self._pose = pose
         self._stopped = False
+        self.moves.append(pose)
 
     def _stop(self, timeout: float) -> None:
         if self.mutation == "stop-twice-fails" and self._stopped:
             raise VendorError("toy", 9, "already stopped")
         self._stopped = True
+        self.stops += 1
 
     def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
         q = np.array([0.0, -1.0, 1.2, 0.3, 2.0])
@@ -245,7 +252,13 @@ class UncheckedMoveArm(ToyArm):
 
     def move_linear(self, pose: Pose, *, speed: float, acceleration: float, timeout: float | None = None) -> None:
         if isinstance(pose, Pose):
-            self._pose = pose
+            self._move_linear(pose, speed, acceleration, 1.0)
+
+
+class UncheckedShortArm(UncheckedMoveArm):
+    """Stops 70 mm short and, skipping the base class's arrival check, says nothing."""
+
+    mutation = "stops-short"
 
 
 def arm_mutant(mutation: str) -> type[ToyArm]:
@@ -253,17 +266,19 @@ def arm_mutant(mutation: str) -> type[ToyArm]:
 
 
 TOY_ARM_OPTIONS = ArmOptions(joint_count=5, **FAST)
+SHORTFALL_M = 0.07
 
 
 def test_correct_toy_arm_passes_every_rule() -> None:
     report = check_arm(ToyArm, TOY_ARM_OPTIONS)
     assert report.ok and report.backend == "toy-arm"
-    assert [r.rule for r in report.results] == list(ARM_RULES) and len(ARM_RULES) == 15
+    assert [r.rule for r in report.results] == list(ARM_RULES) and len(ARM_RULES) == 16
 
 
 ARM_MUTANTS = {
-    "millimetres": {"arm.pose-units", "arm.pose-round-trip"},
-    "degrees": {"arm.pose-round-trip"},
+    "millimetres": {"arm.pose-units", "arm.pose-round-trip", "arm.arrival"},  # reads back 1000x off the target
+    "degrees": {"arm.pose-round-trip", "arm.arrival"},
+    "stops-short": {"arm.pose-round-trip", "arm.arrival"},
     "joints-in-degrees": {"arm.joint-positions"},
     "stop-twice-fails": {"arm.stop-idempotent"},
     "stuck-in-error": {"arm.status", "arm.stop-idempotent"},
@@ -290,13 +305,46 @@ def test_mutant_fails_exactly_its_rules(kind: str, mutation: str, failing: set[s
 def test_arm_in_degrees_fails_the_round_trip_by_the_right_amount() -> None:
     report = check_arm(arm_mutant("degrees"), TOY_ARM_OPTIONS, only=["arm.pose-round-trip"], raise_on_failure=False)
     (failure,) = report.failures
-    assert "0.02 m and 0.05 rad away" in failure.detail and "0 mm and" in failure.detail
+    # the base class's arrival check reads the pose back in "radians" that are degrees: off by 57.3x
+    assert failure.detail.startswith("unexpected MotionError: toy-arm: move to ") and "reported done" in failure.detail
+    assert "is 0.000 mm and" in failure.detail and "the arm was told to stop" in failure.detail
+
+
+def test_arm_that_stops_short_fails_the_arrival_rule() -> None:
+    report = check_arm(arm_mutant("stops-short"), TOY_ARM_OPTIONS, only=["arm.arrival"], raise_on_failure=False)
+    (failure,) = report.failures
+    assert failure.detail.startswith("move_linear to a reachable target raised MotionError: toy-arm: move to ")
+    assert "is 70.000 mm and 0.0000 deg from the target (tolerance 1 mm / 0.1 deg)" in failure.detail
+    # bypassing the base class's check does not help: the kit reads the pose back itself
+    report = check_arm(UncheckedShortArm, TOY_ARM_OPTIONS, only=["arm.arrival"], raise_on_failure=False)
+    (failure,) = report.failures
+    assert failure.detail == ("move_linear returned, but pose read 1 is 70 mm and 0 deg from the target: "
+                              "it reported an arrival that did not happen")
+
+
+def test_arrival_rule_fakes_a_short_move_and_wants_a_stop() -> None:
+    arms: list[ToyArm] = []
+
+    def factory() -> ToyArm:
+        arms.append(ToyArm())
+        return arms[-1]
+
+    assert check_arm(factory, TOY_ARM_OPTIONS, only=["arm.arrival"]).ok
+    (arm,) = arms
+    step = np.linalg.norm(TOY_ARM_OPTIONS.step_m)
+    # there, back, there again (read back 70 mm off: MotionError, stopped), back: every move at most one step
+    assert len(arm.moves) == 4 and arm.stops == 1
+    assert [round(float(np.linalg.norm(b.translation - a.translation)), 9) for a, b in
+            zip(arm.moves, arm.moves[1:], strict=False)] == [step] * 3
+    assert "_get_pose" not in vars(arm) and "_stop" not in vars(arm)  # the arm's own hooks are back
 
 
 def test_unchecked_move_is_caught() -> None:
     report = check_arm(UncheckedMoveArm, TOY_ARM_OPTIONS, raise_on_failure=False)
     assert {r.rule for r in report.failures} == {"arm.not-connected", "arm.use-after-close",
-                                                 "arm.argument-validation", "arm.timeout-validation"}
+                                                 "arm.argument-validation", "arm.timeout-validation", "arm.arrival"}
+    (arrival,) = [r for r in report.failures if r.rule == "arm.arrival"]
+    assert arrival.detail == "move_linear whose pose reads back 70 mm off the target did not raise MotionError"
 
 
 def test_joint_count_is_checked_when_declared() -> None:

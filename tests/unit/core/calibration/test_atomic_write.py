@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import stat
@@ -11,7 +12,7 @@ import pytest
 
 from cellcal.core.calibration.journal import JOURNAL_SCHEMA, JournalWriter, read_journal
 from cellcal.core.calibration.report import write_bytes_atomic
-from cellcal.devices.errors import CalibrationError
+from cellcal.devices.errors import OutputError
 
 
 @pytest.fixture
@@ -42,8 +43,9 @@ def test_failure_leaves_the_earlier_file_and_no_temp_file(tmp_path: Path) -> Non
     target = tmp_path / "r.json"
     target.write_bytes(b"old")
     (tmp_path / "blocker").write_text("a file, not a directory")
-    with pytest.raises(CalibrationError, match=r"cannot write .*blocker"):
+    with pytest.raises(OutputError, match=r"cannot write .*blocker") as info:
         write_bytes_atomic(tmp_path / "blocker" / "r.json", b"new", fsync_dir=True)
+    assert info.value.bad_path  # a path that cannot be used: bad input (exit status 2)
     assert target.read_bytes() == b"old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["blocker", "r.json"]
 
@@ -70,6 +72,23 @@ def test_first_journal_write_is_header_and_pose_made_durable(tmp_path: Path, fsy
 def test_journal_that_cannot_be_created_says_so(tmp_path: Path) -> None:
     (tmp_path / "blocker").write_text("")
     writer = JournalWriter(tmp_path / "blocker" / "r.json.journal.jsonl", "f" * 64, 1)
-    with pytest.raises(CalibrationError, match=r"^resume journal: cannot write .*r\.json\.journal\.jsonl"):
+    with pytest.raises(OutputError, match=r"^resume journal: cannot write .*r\.json\.journal\.jsonl"):
         writer.append(0, {}, {})
-    assert writer.appended == 0
+    assert writer.appended == 0 and writer.saved == 0
+
+
+@pytest.mark.parametrize(("code", "bad_path"), [(errno.ENOSPC, False), (errno.EIO, False), (errno.EDQUOT, False),
+                                                (errno.EFBIG, False), (errno.EACCES, True), (errno.EROFS, True)])
+def test_a_full_disk_is_an_environment_failure_and_a_bad_path_bad_input(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, code: int, bad_path: bool) -> None:
+    target = tmp_path / "r.json"
+    target.write_bytes(b"old")
+
+    def failing_fsync(fd: int) -> None:  # where a full disk shows itself on many file systems
+        raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(os, "fsync", failing_fsync)
+    with pytest.raises(OutputError, match=os.strerror(code)) as info:
+        write_bytes_atomic(target, b"new")
+    assert info.value.errno == code and info.value.bad_path is bad_path
+    assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["r.json"]

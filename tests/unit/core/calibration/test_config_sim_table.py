@@ -39,7 +39,7 @@ def _warnings(caplog: pytest.LogCaptureFixture, doc: dict[str, Any]) -> list[str
 def test_sim_table_with_only_real_backends_is_one_warning(caplog: pytest.LogCaptureFixture) -> None:
     assert _warnings(caplog, _doc("o3r", "xarm")) == [
         "cell.toml: [sim] has no effect: camera backend 'o3r' and arm backend 'xarm' are not simulated "
-        "(only o3r-emulated, sim, xarm-emulated read it)"]
+        "(only o3r-emulated, sim, ur-emulated, xarm-emulated read it)"]
     assert caplog.records[0].levelno == logging.WARNING
 
 
@@ -69,5 +69,5 @@ def test_cli_prints_the_warning_as_one_line_and_still_runs(tmp_path: Path) -> No
                           capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert done.stderr == (f"{real}: [sim] has no effect: camera backend 'o3r' and arm backend 'ur' are not "
-                           "simulated (only o3r-emulated, sim, xarm-emulated read it)\n")
+                           "simulated (only o3r-emulated, sim, ur-emulated, xarm-emulated read it)\n")
     assert done.stdout.rstrip().endswith("inside the safety envelope")

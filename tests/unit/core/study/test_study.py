@@ -1,8 +1,9 @@
-"""The accuracy study: CSV, plots, reproducibility, clutter placement, full frame vs the paper, CLI."""
+"""The accuracy study: CSV, plots, reproducibility, clutter placement, artefact levels, full frame vs the paper, CLI."""
 
 from __future__ import annotations
 
 import csv
+import json
 import math
 import sys
 from pathlib import Path
@@ -14,6 +15,8 @@ import pytest
 from cellcal.core import study
 from cellcal.core.cli import main
 from cellcal.core.study import (
+    ARTEFACT_LEVELS,
+    BASE_ARTEFACTS,
     COLUMNS,
     FULL_FRAME,
     GRID_METHODS,
@@ -25,6 +28,7 @@ from cellcal.core.study import (
     run_study,
     run_trial,
     study_intrinsics,
+    summary_table,
     write_csv,
 )
 from cellcal.devices.errors import CalibrationError, MissingDependencyError
@@ -65,6 +69,7 @@ def test_rows_cover_every_method_perimeter_and_trial(result: study.StudyResult) 
     assert all(r["perimeter_px"] is None for r in ff)
     # truth: the paper's geometry
     for r in result.rows:
+        assert r["artefacts"] == BASE_ARTEFACTS  # the quick design: the base ToF artefact level only
         assert r["true_angle_deg"] == pytest.approx(80.0, abs=1e-9)
         assert r["true_tilt_deg"] == pytest.approx(10.0, abs=1e-9)
         assert r["true_height_m"] == pytest.approx(r["height_m"], abs=1e-12)
@@ -126,6 +131,60 @@ def test_clutter_hits_the_requested_fraction(fraction: float, intrinsics: Any) -
         # placement's occlusion model agrees with the simulator's ray casting
         assert abs(trial.clutter_observed - trial.clutter_achieved) < 0.02
         assert trial.clutter_observed > 0.5 * fraction
+
+
+def test_the_design_sweeps_clutter_at_every_artefact_level() -> None:
+    settings = StudySettings(trials=2, heights_m=(0.46,), clutter_fractions=(0.0, 0.3))
+    conds = settings.conditions()
+    sweep = {(c.clutter, c.artefacts) for c in conds if c.inclination_deg == 80.0 and c.noise_scale == 1.0}
+    assert sweep == {(c, a) for c in (0.0, 0.3) for a in ARTEFACT_LEVELS}
+    # the inclination and noise sweeps run at the base level only, and nothing is run twice
+    assert {c.artefacts for c in conds if c.inclination_deg != 80.0 or c.noise_scale != 1.0} == {BASE_ARTEFACTS}
+    assert len({c.ident() for c in conds}) == len(conds)
+    assert settings.trials_for(Condition(0.46, 80.0, 1.0, 0.3, BASE_ARTEFACTS)) == 2 * settings.headline_factor
+    assert settings.trials_for(Condition(0.46, 80.0, 1.0, 0.3, "all")) == 2
+    with pytest.raises(CalibrationError, match="artefact levels must be some of off, all-but-multipath, all"):
+        StudySettings(artefact_levels=("none",))
+
+
+def test_artefact_levels_see_the_same_scene_and_noise(intrinsics: Any) -> None:
+    settings = StudySettings(trials=1, seed=2)
+    trials = {a: run_trial(settings, Condition(0.46, 80.0, 1.0, 0.3, a), 0, intrinsics, None)[0]
+              for a in ARTEFACT_LEVELS}
+    off, base, full = trials["off"], trials[BASE_ARTEFACTS], trials["all"]
+    assert off.seed == base.seed == full.seed and off.boxes == base.boxes == full.boxes  # paired trials
+    valid = off.frame.valid & base.frame.valid & full.frame.valid
+    d_base = (base.frame.distance - off.frame.distance)[valid]
+    d_mp = (full.frame.distance - base.frame.distance)[valid]
+    # flying pixels (cm) and the amplitude noise law (mm) change the frame; multipath adds a bias
+    assert np.max(np.abs(d_base)) > 0.01 and np.median(np.abs(d_base)) < 0.002
+    assert np.mean(d_mp) > 0 and np.percentile(d_mp, 1) > -1e-3
+    row = run_trial(settings, Condition(0.46, 80.0, 1.0, 0.3, "all"), 0, intrinsics, None)[1][0]
+    assert row["artefacts"] == "all"
+
+
+def test_headline_and_summary_per_artefact_level() -> None:
+    rows = []
+    for level, err in (("off", 0.001), (BASE_ARTEFACTS, 0.004), ("all", 0.03)):
+        for clutter in (0.0, 0.3):
+            for trial in range(4):
+                rows.append({"height_m": 0.46, "inclination_deg": 80.0, "noise_scale": 1.0, "clutter_target": clutter,
+                             "artefacts": level, "trial": trial, "method": FULL_FRAME, "ok": True,
+                             "abs_tilt_error_deg": err, "height_error_m": -err / 10, "ci_contains": trial > 0,
+                             "height_ci_contains": trial != 1 or level == "off", "gates_passed": True,
+                             "clutter_achieved": clutter})
+    h = headline(rows)
+    assert h.artefacts == BASE_ARTEFACTS and h.full_frame_error_deg == pytest.approx(0.004)
+    assert h.coverage_by_clutter == ((0.0, 0.75, 0.75), (0.3, 0.75, 0.75))
+    assert h.meets_coverage_clutter is False
+    assert headline(rows, "off").full_frame_error_deg == pytest.approx(0.001)
+    assert headline([r for r in rows if r["artefacts"] == "all"]).artefacts == "all"
+    table = summary_table(rows)
+    assert [(r["artefacts"], r["clutter"]) for r in table] == [(a, c) for a in ARTEFACT_LEVELS for c in (0.0, 0.3)]
+    by = {(r["artefacts"], r["clutter"]): r for r in table}
+    assert by[("all", 0.3)]["mean_deg"] == pytest.approx(0.03)
+    assert by[("off", 0.0)]["height_coverage"] == 1.0 and by[("all", 0.0)]["height_coverage"] == 0.75
+    assert by[("all", 0.0)]["mean_height_error_m"] == pytest.approx(0.003)
 
 
 def test_no_clutter_places_no_box(intrinsics: Any) -> None:
@@ -194,8 +253,46 @@ def test_cli_writes_to_out_and_exits_0(tmp_path: Path, capsys: pytest.CaptureFix
     assert (out / "headline.json").stat().st_size > 0
 
 
+def test_cli_artefact_levels_and_resolution(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "study-out"
+    code = main(["study", "--quick", "--trials", "1", "--seed", "2", "--out", str(out), "--no-plots",
+                 "--artefacts", "off,all", "--resolution", "160x120"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "ToF artefacts off" in text  # without the base level, the headline reports the first level
+    rows = read_csv(out / "study.csv")
+    assert {r["artefacts"] for r in rows} == {"off", "all"}
+    assert len(rows) == 2 * 6 * (len(GRID_METHODS) * 4 + 1)
+    head = json.loads((out / "headline.json").read_text())
+    assert head["resolution_px"] == [160, 120] and head["artefact_levels"] == ["off", "all"]
+
+
+@pytest.mark.parametrize(("option", "value"), [("--artefacts", "off,most"), ("--artefacts", ","),
+                                               ("--resolution", "160"), ("--resolution", "1x800"),
+                                               ("--resolution", "axb")])
+def test_cli_bad_artefacts_or_resolution_is_a_usage_error(option: str, value: str, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["study", option, value, "--out", str(tmp_path)])
+    assert exc.value.code == 2
+    assert option in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
 def test_cli_bad_trials_is_a_usage_error(tmp_path: Path) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["study", "--trials", "0", "--out", str(tmp_path)])
     assert exc.value.code == 2
     assert not any(tmp_path.iterdir())
+
+
+def test_artefact_plot_is_a_png(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from cellcal.core.study.plots import PLOT_FILES, plot_artefacts
+
+    rows = [{"height_m": 0.46, "inclination_deg": 80.0, "noise_scale": 1.0, "clutter_target": c, "artefacts": a,
+             "trial": i, "method": FULL_FRAME, "ok": True, "abs_tilt_error_deg": 0.001 * (1 + i), "ci_contains": i > 0,
+             "height_ci_contains": True} for a in ARTEFACT_LEVELS for c in (0.0, 0.2, 0.4) for i in range(3)]
+    path = plot_artefacts(rows, tmp_path / PLOT_FILES["artefacts"])
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE and len(data) > 5000

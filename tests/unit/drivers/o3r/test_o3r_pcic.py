@@ -181,5 +181,17 @@ def test_missing_markers_and_short_pixel_data() -> None:
         image_view(p, chunk)
 
 
+@pytest.mark.parametrize(("width", "height"), [(224, 172), (32, 23), (33, 24), (0, 0)])
+def test_frame_whose_size_disagrees_with_its_tof_info_is_refused(width: int, height: int) -> None:
+    payload = bytearray(image_message(plane_frame(INTR))[16:])
+    info = next(c for c in walk_chunks(payload) if c.chunk_type == 420)
+    struct.pack_into("<2I", payload, info.offset + 16, width, height)  # the TOF_INFO header's IMAGE_WIDTH/HEIGHT
+    with pytest.raises(ProtocolError, match=f"distance image is 32x24 but its TOF_INFO says {width}x{height}") as ei:
+        FrameDecoder().decode(payload, offset=1000)
+    assert ei.value.offset == 1000 + info.offset + 16
+    struct.pack_into("<2I", payload, info.offset + 16, 32, 24)
+    assert FrameDecoder().decode(payload).frame.distance.shape == (24, 32)
+
+
 # The bounded fuzz of this parser lives in tests/integration/faults/test_fuzz_parsers.py (targets shared with
 # benchmarks/fuzz_parsers.py, see tests/support/fuzz_targets.py).

@@ -4,7 +4,9 @@ A small controller model (:class:`FakeController`) plays the robot: it advances 
 RTDE timestamp, carries out asynchronous ``moveL`` over a few polls, and can be
 protective-stopped mid-motion or lose its receive stream. The RTDE interfaces handed
 to the backend are strict autospecs of the real ``rtde_control.RTDEControlInterface``,
-``rtde_receive.RTDEReceiveInterface`` and ``dashboard_client.DashboardClient``.
+``rtde_receive.RTDEReceiveInterface`` and ``dashboard_client.DashboardClient``. These
+tests pin the driver's decisions on exact call sequences; the real conversation with
+ur_rtde is tested against the emulator in tests/integration/ur/.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from cellcal.devices.geometry.vendor_poses import pose_from_xarm, pose_to_ur, po
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.drivers.ur.arm import URArm
+from cellcal.drivers.ur.codes import FLAG_NO_WAIT
 
 HOST = "192.168.56.101"
 # The real classes, kept before the fixtures patch the module attributes.
@@ -75,6 +78,10 @@ class FakeController:
         self.tcp: list[float] | None = None
         self.receives: list[Any] = []
         self.stops: list[float] = []
+        self.uploads = 0
+        self.probes = 0
+        self.operation = 0
+        self.control_flags: list[Any] = []
 
     # -- receive side
     def make_receive(self, *args: Any, **kwargs: Any) -> Any:
@@ -97,6 +104,7 @@ class FakeController:
         r.getSafetyMode.side_effect = lambda: self.safety
         r.getRobotMode.side_effect = lambda: self.robot
         r.getRuntimeState.side_effect = lambda: 2 if self.program else 1
+        r.getRobotStatus.side_effect = lambda: (1 if self.robot in (5, 7) else 0) | (2 if self.program else 0)
         r.isProtectiveStopped.side_effect = lambda: self.safety == 3
         r.isEmergencyStopped.side_effect = lambda: self.safety in (6, 7)
         r.isConnected.return_value = True  # a stale interface keeps saying True
@@ -107,9 +115,19 @@ class FakeController:
         r.frozen_ts = self.timestamp
         r.dead = True
 
+    def probe(self, host: str, timeout: float) -> float:
+        """Stands in for the driver's plain-socket stream probe (``URArm._probe``)."""
+        assert host == HOST and timeout > 0
+        self.probes += 1
+        return self.timestamp
+
     # -- control side
     def make_control(self, hostname: str, *args: Any, **kwargs: Any) -> Any:
         assert hostname == HOST
+        for sig in pybind_signatures(REAL_CONTROL.__init__):
+            sig.bind(None, hostname, *args, **kwargs)  # raises TypeError on a wrong constructor call
+            break
+        self.control_flags.append(kwargs.get("flags"))
         c = strict_autospec(REAL_CONTROL)
         c.isConnected.return_value = True
 
@@ -119,6 +137,7 @@ class FakeController:
             if not self.program or self.safety != 1 or self.robot != 7:
                 return False
             self.motion, self.polls_left = list(pose), 3
+            self.operation += 1
             return True
 
         def progress() -> Any:
@@ -134,16 +153,17 @@ class FakeController:
                     if self.polls_left <= 0:
                         self.pose, self.motion = self.motion, None
             status.isAsyncOperationRunning.return_value = self.motion is not None
+            status.operationId.return_value = self.operation
             return status
 
         def set_tcp(offset: list[float]) -> bool:
             self.tcp = list(offset)
             return True
 
-        def reupload() -> bool:
-            if self.safety != 1:
-                return False
-            self.program = True
+        def reupload() -> bool:  # ur_rtde 1.6.5 returns at once; the program shows up in the stream later
+            self.uploads += 1
+            if self.safety == 1 and self.robot == 7:
+                self.program = True
             return True
 
         c.moveL.side_effect = move_l
@@ -188,7 +208,7 @@ def vendor(mocker: Any, ctl: FakeController) -> FakeController:
 def robot(vendor: FakeController) -> Any:
     arm = URArm.from_config({"backend": "ur", "host": HOST, "stale_after_s": 0.05})
     clock = FakeClock()
-    arm._clock, arm._sleep = clock, clock.sleep
+    arm._clock, arm._sleep, arm._probe = clock, clock.sleep, vendor.probe
     arm.connect(timeout=2.0)
     yield arm
     arm.close()
@@ -246,12 +266,12 @@ def test_protective_stop_in_the_middle_of_a_plan(robot: URArm, ctl: FakeControll
         robot.move_linear(plan[1], speed=0.2, acceleration=1.0)
     assert err.value.code == 3
     assert not robot.status().can_move and robot.status().error_code == 3
-    # the next move: moveL returns False; the reason is read from the status calls
+    # the next move is refused before anything is sent, the reason read from the receive interface
     with pytest.raises(VendorError, match="protective stop"):
         robot.move_linear(plan[2], speed=0.2, acceleration=1.0)
-    assert len(ctl.moves) == 3
+    assert len(ctl.moves) == 2
     robot.clear_errors()                                # unlock + re-upload the control script
-    assert robot.status().ok and ctl.program
+    assert robot.status().ok and ctl.program and ctl.uploads == 2
     robot.move_linear(plan[3], speed=0.2, acceleration=1.0)
     assert robot.get_pose().is_close(plan[3], atol_m=1e-12, atol_rad=1e-12)
 
@@ -276,7 +296,7 @@ def test_stale_receive_stream_is_rebuilt(robot: URArm, ctl: FakeController) -> N
     ctl.pose = [0.31, -0.1, 0.45, math.pi, 0.0, 0.0]    # the arm has moved meanwhile
     robot._sleep(0.2)                                   # longer than stale_after_s
     pose = robot.get_pose()
-    assert robot.receive_rebuilds == 1
+    assert robot.receive_rebuilds == 1 and ctl.probes == 1   # the stream was checked before rebuilding
     assert ctl.receives[-1] is not first and first.disconnect.called
     assert pose.translation[0] == pytest.approx(0.31)
 
@@ -299,15 +319,18 @@ def test_motion_timeout_stops_the_arm(robot: URArm, ctl: FakeController) -> None
 def _running_status(running: bool) -> Any:
     status = strict_autospec(REAL_ASYNC_STATUS)
     status.isAsyncOperationRunning.return_value = running
+    status.operationId.return_value = 99
     return status
 
 
-def test_controller_that_disappears(robot: URArm, ctl: FakeController) -> None:
+def test_no_command_on_a_control_link_that_reports_itself_down(robot: URArm, ctl: FakeController) -> None:
+    # ur_rtde 1.6.5 blocks forever in moveL / stopL once its control link has dropped
     robot._control.isConnected.return_value = False
-    robot._control.moveL.side_effect = None
-    robot._control.moveL.return_value = False
-    with pytest.raises(DeviceConnectionError, match="connection lost"):
+    with pytest.raises(DeviceConnectionError, match="control connection is lost"):
         robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=0.1, acceleration=1.0)
+    with pytest.raises(DeviceConnectionError, match="control connection is lost"):
+        robot.stop()
+    assert ctl.moves == [] and ctl.stops == []
 
 
 def test_remote_control_off_is_reported(vendor: FakeController, mocker: Any) -> None:
@@ -324,9 +347,9 @@ def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeCon
     release = threading.Event()
     late: list[Any] = []
 
-    def slow_control(hostname: str, *args: Any) -> Any:
+    def slow_control(hostname: str, *args: Any, **kwargs: Any) -> Any:
         release.wait(5.0)
-        c = vendor.make_control(hostname)
+        c = vendor.make_control(hostname, *args, **kwargs)
         late.append(c)
         return c
 
@@ -390,3 +413,46 @@ def test_example_configs_validate_without_touching_hardware(name: str, mocker: A
         source=cfg.source, section="camera", document=cfg.document, seed=cfg.cell.seed))
     assert isinstance(arm, URArm) and not arm.connected and not camera.connected
     assert arm.config.max_speed_m_s <= cfg.safety.max_speed_m_s
+
+
+# ---------------------------------------------------------------- what the real ur_rtde 1.6.5 taught
+def test_control_interface_opens_without_waiting_and_the_driver_starts_the_script(robot: URArm,
+                                                                                   ctl: FakeController) -> None:
+    # ur_rtde's constructors hold the GIL: waiting for the script inside one cannot be timed out
+    assert int(REAL_CONTROL.FLAG_NO_WAIT) == FLAG_NO_WAIT and not FLAG_NO_WAIT & int(REAL_CONTROL.FLAG_UPLOAD_SCRIPT)
+    assert ctl.control_flags == [FLAG_NO_WAIT]
+    assert ctl.uploads == 1 and ctl.tcp == [0.0] * 6
+
+
+def test_a_script_that_never_runs_is_a_connect_timeout(vendor: FakeController) -> None:
+    vendor.robot, vendor.program = 5, False              # IDLE: programs cannot run...
+    arm = URArm.from_config({"host": HOST})
+    clock = FakeClock()
+    arm._clock, arm._sleep = clock, clock.sleep
+    arm._ready_for_program = lambda receive: True        # ...but the driver is told it can: upload, wait
+    with pytest.raises(DeviceTimeoutError, match=r"control script did not start in time \(program state 1 STOPPED"):
+        arm.connect(timeout=1.5)
+    assert clock.t - 1000.0 == pytest.approx(1.5, abs=0.05) and vendor.uploads == 1 and not arm.connected
+
+
+def test_connects_in_protective_stop_and_clear_errors_retries_the_refused_unlock(vendor: FakeController) -> None:
+    vendor.safety, vendor.program = 3, False             # a protective stop also stops the program
+    arm = URArm.from_config({"host": HOST})
+    clock = FakeClock()
+    arm._clock, arm._sleep = clock, clock.sleep
+    arm.connect(timeout=2.0)                             # no script yet: status says why
+    assert vendor.uploads == 0 and arm.status().error_code == 3
+    dash = arm._dash.client
+    refusals = iter([RuntimeError("Unlock protective stop failure: Cannot unlock protective stop until 5s after "
+                                  "occurrence")] * 3)
+
+    def unlock() -> None:
+        error = next(refusals, None)
+        if error is not None:
+            raise error
+        vendor.safety = 1
+
+    dash.unlockProtectiveStop.side_effect = unlock
+    arm.clear_errors(timeout=5.0)
+    assert dash.unlockProtectiveStop.call_count == 4 and vendor.uploads == 1 and arm.status().ok
+    arm.close()

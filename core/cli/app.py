@@ -1,7 +1,8 @@
-"""The ``cellcal`` console command: dispatches to one module per subcommand.
+"""The ``cellcal`` command's implementation: the parser, the dispatch, the exit statuses.
 
 Each subcommand module has ``register(subparsers)`` (adds its parser, sets
 ``func=run``) and ``run(args) -> int``; exit statuses are in :mod:`cellcal.core.cli.exits`.
+The entry point :func:`cellcal.core.cli.main` imports this module once it handles Ctrl-C.
 """
 
 from __future__ import annotations
@@ -14,23 +15,26 @@ from collections.abc import Sequence
 from importlib import import_module
 
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+from cellcal.core.cli.text import one_line
 from cellcal.devices.errors import (
     CalibrationError,
     CalibrationQualityError,
     CellcalError,
     ConfigError,
+    OutputError,
 )
+
+__all__ = ["SUBCOMMANDS", "build_parser", "exit_status", "run_command"]
 
 #: Subcommand modules, in the order they appear in ``cellcal --help``.
 SUBCOMMANDS = ("calibrate", "monitor", "study", "record", "devices", "paper")
-
 
 
 class _Parser(argparse.ArgumentParser):
     """argparse parser whose usage errors are one line and exit with status 2."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+        self.exit(EXIT_USAGE, one_line(f"{self.prog}: error: {message}") + "\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,12 +54,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``cellcal`` command; returns the exit status."""
+def exit_status(exc: CellcalError) -> int:
+    """The exit status of a run that ended in ``exc`` (README, "Exit status").
+
+    2 for bad input (configuration, data file, an output path that cannot be used);
+    1 for everything that failed at run time (devices, safety, a quality gate, a full
+    disk, another run holding the output).
+    """
+    if isinstance(exc, OutputError):
+        return EXIT_USAGE if exc.bad_path else EXIT_FAILURE
+    if isinstance(exc, CalibrationQualityError):
+        return EXIT_FAILURE
+    if isinstance(exc, (ConfigError, CalibrationError)):
+        return EXIT_USAGE
+    return EXIT_FAILURE
+
+
+def run_command(argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` (None: ``sys.argv``), run the subcommand, turn its errors into one line; the exit status."""
+    with contextlib.suppress(AttributeError, ValueError, OSError):  # a path of undecodable bytes still prints
+        sys.stdout.reconfigure(errors="backslashreplace")  # type: ignore[union-attr]
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        code = int(args.func(args))
+        return int(args.func(args))
     except KeyboardInterrupt:
         print("cellcal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -64,17 +86,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the interpreter's final flush
         return EXIT_OK
-    except CalibrationQualityError as exc:
-        print(f"cellcal: error: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    except (ConfigError, CalibrationError) as exc:
-        print(f"cellcal: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
     except CellcalError as exc:
-        print(f"cellcal: error: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    return code
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+        print(one_line(f"cellcal: error: {exc}"), file=sys.stderr)
+        return exit_status(exc)

@@ -1,0 +1,243 @@
+"""The flatness gate: local planes over image regions must agree with the global fit.
+
+Two kinds of region (ADR 0007, "Flatness"): the cells of a grid over the image, each
+with a local plane through its inliers (a crease, a bend or a slight step inside the
+fitted surface), and large connected off-plane regions that are planar themselves (the
+other side of a roof, a raised half, a second table), which the robust fit rejected as
+clutter. Local planes are weighted least squares of the orthogonal residual ``w`` on the
+in-plane coordinates ``(u, v)`` of the global fit; a region departs by the largest
+``|w|`` of its local plane at the corners of its extent (the rectangle with the region's
+(weighted) mean and ``sqrt(3)`` standard deviations), beyond ``flatness_sigma`` of its own sigma.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+F32 = NDArray[np.float32]
+
+#: A cell needs this many points for a local plane.
+MIN_CELL_POINTS = 30
+#: A region counts as one surface when its robust residual scale is at most this many
+#: times the noise the fit found for its pixels.
+PLANAR_NOISE_FACTOR = 3.0
+#: ... and when its local plane keeps at least this share of its pixels.
+PLANAR_SHARE = 0.8
+
+_K3 = np.ones((3, 3), np.uint8)
+_CORNERS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]]) * math.sqrt(3.0)
+
+
+@dataclass(frozen=True)
+class Flatness:
+    """The worst departure of a local plane from the global fit.
+
+    Attributes:
+        excess_m: Largest departure beyond ``flatness_sigma`` of its sigma, metres (>= 0).
+        where: The region it was found in, for messages ("" when none departs).
+    """
+
+    excess_m: float
+    where: str
+
+
+@dataclass(frozen=True)
+class PlaneFrame:
+    """The global fit as coordinates ``(u, v)`` in the plane and ``w = n·p + offset`` across it."""
+
+    n: FloatArray
+    e1: FloatArray
+    e2: FloatArray
+    offset: float
+
+    def uvw(self, p: F32, along_ray: bool = True) -> FloatArray:
+        """(3, N) in-plane coordinates and orthogonal residual of points ``p`` (3, N), float64.
+
+        With ``along_ray`` the in-plane coordinates are where the pixel's ray meets the
+        plane (exact): the measured point's range noise would leak into them and bias the
+        local slopes by O(noise²) (errors in variables, ADR 0007 "Model"). Without, they
+        are the measured point's projection, in which another plane is linear (regions
+        far off the fit, where that bias is negligible).
+        """
+        out = np.stack([self.e1, self.e2, self.n]) @ p.astype(np.float64)
+        w = out[2] + self.offset                          # orthogonal residual of the measured point
+        if along_ray:
+            out[:2] *= -self.offset / out[2]              # the ray's point on the plane: p * t / |p|
+        out[2] = w
+        return out
+
+
+def _moments(uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp], n_cells: int) -> FloatArray:
+    """Per cell: the count and the 9 weighted least-squares sums of w on (u, v, 1), shape (10, C)."""
+    u, v, w = uvw
+    wu, wv = wt * u, wt * v
+    cols = (wt, wu, wv, wu * u, wu * v, wv * v, wt * w, wu * w, wv * w)
+    sums = [np.bincount(cell, minlength=n_cells).astype(np.float64)]
+    sums += [np.bincount(cell, weights=c, minlength=n_cells).astype(np.float64) for c in cols]
+    return np.stack(sums)
+
+
+def _excess(a: FloatArray, b: FloatArray, centre: FloatArray, half: FloatArray, scale: FloatArray,
+            k_sigma: float) -> FloatArray:
+    """Per region, the largest ``|w| - k sigma`` of the local plane ``A θ = b`` at its extent's corners.
+
+    Args:
+        a: (R, 3, 3) normal matrices; b: (R, 3) right-hand sides.
+        centre, half: (R, 2) centre and half-size of each extent in (u, v).
+        scale: (R,) noise scale of each region (its covariance is ``scale² A⁻¹``).
+    """
+    ok = np.linalg.det(a) > 1e-300
+    eye = np.broadcast_to(np.eye(3), a.shape)
+    cov = np.linalg.inv(np.where(ok[:, None, None], a, eye))
+    theta = np.einsum("rij,rj->ri", cov, b)
+    uv = centre[:, None, :] + _CORNERS[None, :, :] * half[:, None, :]          # (R, 4, 2)
+    g = np.concatenate([uv, np.ones((*uv.shape[:2], 1))], axis=2)             # (R, 4, 3)
+    dev = np.abs(np.einsum("rkj,rj->rk", g, theta))
+    sigma = scale[:, None] * np.sqrt(np.maximum(np.einsum("rki,rij,rkj->rk", g, cov, g), 0.0))
+    out: FloatArray = np.where(ok, (dev - k_sigma * sigma).max(axis=1), -np.inf)
+    return out
+
+
+def _blocks(grid: tuple[int, int]) -> tuple[FloatArray, list[str]]:
+    """Regions made of grid cells: each cell, the image's halves and quarters. (cells, regions) 0/1, names."""
+    cols, rows = grid
+    c = np.arange(cols * rows) % cols
+    r = np.arange(cols * rows) // cols
+    masks = [np.arange(cols * rows) == k for k in range(cols * rows)]
+    names = [f"image cell column {k % cols + 1}, row {k // cols + 1} of {cols}x{rows}" for k in range(cols * rows)]
+    sides = []
+    if cols >= 2:
+        sides += [("left", c < cols // 2), ("right", c >= cols // 2)]
+    if rows >= 2:
+        sides += [("top", r < rows // 2), ("bottom", r >= rows // 2)]
+    for name, m in sides:
+        masks.append(m)
+        names.append(f"the {name} half of the image")
+    if cols >= 2 and rows >= 2:
+        for (vn, vm), (hn, hm) in itertools.product(sides[2:], sides[:2]):
+            masks.append(vm & hm)
+            names.append(f"the {vn}-{hn} quarter of the image")
+    return np.stack(masks, axis=1).astype(np.float64), names
+
+
+def grid_flatness(uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp], grid: tuple[int, int],
+                  scale: float, k_sigma: float) -> Flatness:
+    """Local planes of the inliers of each grid cell, and of the image's halves and quarters.
+
+    Args:
+        uvw: (3, N) coordinates of inliers (:meth:`PlaneFrame.uvw`), metres.
+        wt: Their weights ``1 / sigma_orth²`` up to the factor ``scale²``.
+        cell: Their cell index, ``row * columns + column``.
+        grid: ``(columns, rows)``.
+        scale: Noise scale: ``sigma_orth = scale / sqrt(wt)``.
+        k_sigma: Uncertainty multiple not counted.
+    """
+    cols, rows = grid
+    blocks, names = _blocks(grid)
+    mom = _moments(uvw, wt, cell, cols * rows) @ blocks          # sums over each region's cells
+    use = np.flatnonzero(mom[0] >= MIN_CELL_POINTS)
+    if use.size == 0:
+        return Flatness(0.0, "")
+    _, sw, swu, swv, swuu, swuv, swvv, sww, swuw, swvw = mom[:, use]
+    centre = np.stack([swu, swv], axis=1) / sw[:, None]    # weighted mean and spread of the region's points
+    half = np.sqrt(np.maximum(np.stack([swuu, swvv], axis=1) / sw[:, None] - centre ** 2, 0.0))
+    a = np.stack([np.stack([swuu, swuv, swu], 1), np.stack([swuv, swvv, swv], 1), np.stack([swu, swv, sw], 1)], 1)
+    e = _excess(a, np.stack([swuw, swvw, sww], axis=1), centre, half, np.full(use.size, scale), k_sigma)
+    k = int(np.argmax(e))
+    if not e[k] > 0:
+        return Flatness(0.0, "")
+    return Flatness(float(e[k]), names[int(use[k])])
+
+
+def _robust_local_plane(uvw: FloatArray) -> tuple[FloatArray, float, BoolArray]:
+    """Least squares of w on (u, v), twice trimmed at 3 robust sigmas: (θ, robust sigma, kept)."""
+    u, v, w = uvw
+    x = np.stack([u, v, np.ones_like(u)], axis=1)
+    keep = np.ones(u.size, dtype=bool)
+    theta = np.zeros(3)
+    rs = math.inf
+    for _ in range(3):
+        theta = np.linalg.lstsq(x[keep], w[keep], rcond=None)[0]
+        r = w - x @ theta
+        rs = 1.4826 * float(np.median(np.abs(r[keep]))) + 1e-12
+        keep = np.abs(r) < 3.0 * rs
+        if np.count_nonzero(keep) < MIN_CELL_POINTS:
+            break
+    return theta, rs, keep
+
+
+def region_flatness(frame: PlaneFrame, p: F32, noise_orth: FloatArray, labels: NDArray[np.int32],
+                    sizes: NDArray[np.int64], min_pixels: int, k_sigma: float, area: int = 1,
+                    n_valid: int = 0) -> Flatness:
+    """Large, planar, connected off-plane regions against the global fit.
+
+    Args:
+        frame: The global fit's coordinates.
+        p: (3, N) points of one frame's off-plane pixels.
+        noise_orth: Their orthogonal noise sigma as fitted, metres (N,).
+        labels: Their connected-region label (0: none).
+        sizes: Pixels per label (of the map the labels come from).
+        min_pixels: Regions smaller than this (in ``sizes`` units) are clutter.
+        k_sigma: Uncertainty multiple not counted.
+        area: Image pixels per pixel of the label map (it may be subsampled).
+        n_valid: Valid pixels of the frame (for the message).
+    """
+    worst, where = 0.0, ""
+    for lab in np.flatnonzero(sizes >= min_pixels):
+        if lab == 0:
+            continue
+        sel = labels == lab
+        if np.count_nonzero(sel) < MIN_CELL_POINTS:
+            continue
+        uvw = frame.uvw(p[:, sel], along_ray=False)
+        theta, rs, keep = _robust_local_plane(uvw)
+        if (rs > PLANAR_NOISE_FACTOR * float(np.median(noise_orth[sel])) or np.mean(keep) < PLANAR_SHARE
+                or np.count_nonzero(keep) < MIN_CELL_POINTS):
+            continue                                   # not one surface (clutter of several heights)
+        k = uvw[:, keep]
+        x = np.stack([k[0], k[1], np.ones(k.shape[1])])
+        a = x @ x.T
+        e = float(_excess(a[None], (a @ theta)[None], k[:2].mean(axis=1)[None], k[:2].std(axis=1)[None],
+                          np.array([rs]), k_sigma)[0])
+        if e > worst:
+            pixels = int(sizes[lab]) * area
+            share = f", {100.0 * pixels / n_valid:.0f} % of the valid ones" if n_valid else ""
+            worst, where = e, f"a planar region of {pixels} pixels off the fitted plane{share}"
+    return Flatness(worst, where)
+
+
+def off_plane_regions(off_plane: NDArray[np.uint8], step: int = 1) -> tuple[NDArray[np.int32], NDArray[np.int64]]:
+    """Connected (8-neighbour) regions of off-plane pixels after a 3x3 opening: labels (H, W), sizes.
+
+    With ``step`` > 1 the map is subsampled by ``step`` first (labels are then spread back
+    to every pixel; sizes count subsampled pixels).
+    """
+    small = np.ascontiguousarray(off_plane[::step, ::step])
+    opened = cv2.morphologyEx(small, cv2.MORPH_OPEN, _K3)
+    _, found, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+    labels = np.asarray(found, dtype=np.int32)
+    sizes = np.asarray(stats[:, cv2.CC_STAT_AREA], dtype=np.int64)
+    sizes[0] = 0
+    if step > 1:                                          # back to every pixel (blocks of step x step)
+        h, w = off_plane.shape
+        big = cv2.resize(labels, (labels.shape[1] * step, labels.shape[0] * step), interpolation=cv2.INTER_NEAREST)
+        labels = np.asarray(big, dtype=np.int32)[:h, :w]
+    return labels, sizes
+
+
+def grid_cells(pixels: NDArray[np.intp], shape: tuple[int, int], grid: tuple[int, int]) -> NDArray[np.intp]:
+    """Cell ``row * columns + column`` of a ``(columns, rows)`` grid for each flat pixel index."""
+    h, w = shape
+    cols, rows = grid
+    r = (pixels // w) * rows // h
+    c = (pixels % w) * cols // w
+    out: NDArray[np.intp] = r * cols + c
+    return out

@@ -1,0 +1,143 @@
+"""Mixed pixels found where they are: rings around depth edges whose residuals are biased.
+
+A pixel whose footprint (or the optics' spill) straddles a depth edge returns a mix of
+both surfaces. On the plane's side of an edge that mix stays within the noise band but
+is biased toward the other surface, and with many pixels the bias exceeds the interval.
+Method and rationale: docs/adr/0007-full-frame-fit.md ("Mixed pixels").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+BoolArray = NDArray[np.bool_]
+F32 = NDArray[np.float32]
+
+_K3 = np.ones((3, 3), np.uint8)
+#: Pixels beyond every examined ring needed for their mean to be the reference.
+MIN_REFERENCE = 1000
+#: A band of rings matters when its residuals could move the fit by this many of its standard errors.
+RELEVANT_PULL = 0.1
+
+
+@dataclass
+class EdgeReport:
+    """What the last clean-up dropped.
+
+    Attributes:
+        margin_px: Rings (chessboard pixels) dropped around outlier patches.
+        floor_px: Rings dropped around any patch (outliers or invalid), whatever the data say.
+        n_dropped: Inliers dropped.
+    """
+
+    margin_px: int = 0
+    floor_px: int = 0
+    n_dropped: int = 0
+
+
+def _open(mask: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """3x3 opening: solid patches stay, isolated pixels and thin lines go."""
+    return np.asarray(cv2.morphologyEx(mask, cv2.MORPH_OPEN, _K3), dtype=np.uint8)
+
+
+def _distance(patches: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Chessboard distance (pixels, saturating at 255) of every pixel to the nearest patch pixel."""
+    if not patches.any():
+        return np.full(patches.shape, 255, np.uint8)
+    out = cv2.distanceTransform(np.uint8(1) - patches, cv2.DIST_C, 3, dstType=cv2.CV_8U)
+    return np.asarray(out, dtype=np.uint8)
+
+
+class EdgeClean:
+    """``(inliers, z) -> keep``: drops inliers near solid patches of outliers or invalid pixels.
+
+    Per frame (pooled order of points), outliers and invalid pixels are opened with a
+    3x3 square (isolated ones go: noise tails and random flying pixels do not mark an
+    edge). Every inlier within ``floor_px`` of a patch is dropped. Around the outlier
+    patches, bands of ``floor_px`` rings beyond the floor (pooled over the frames) are
+    dropped while the sum of their normalised residuals exceeds ``ring_sigma`` standard
+    errors: the data say how far the mixing reaches, which scales with the resolution
+    (the optics' spill is an angle) and with the height of the jump over the noise.
+
+    Args:
+        masks: Per frame, the flat (H*W,) mask of the pixels that became points.
+        shape: ``(H, W)``.
+        floor_px: Rings always dropped.
+        max_px: Farthest ring examined.
+        ring_sigma: Significance of a biased ring, standard errors.
+        scale: Robust scale of the normalised residuals (z / scale is standard normal).
+    """
+
+    def __init__(self, masks: list[BoolArray], shape: tuple[int, int], floor_px: int, max_px: int,
+                 ring_sigma: float, scale: float = 1.0) -> None:
+        self.masks = masks
+        self.shape = shape
+        self.floor_px = floor_px
+        self.max_px = min(max(max_px, floor_px), 250)
+        self.ring_sigma = ring_sigma
+        self.scale = scale
+        self.report = EdgeReport(floor_px=floor_px)
+        self.invalid = [(~m).astype(np.uint8) for m in masks]
+
+    def margin_keep(self) -> int:
+        """How many points lie farther than ``floor_px`` from the solid patches of invalid pixels."""
+        h, w = self.shape
+        return sum(int(np.count_nonzero(_distance(_open(inv.reshape(h, w))).reshape(-1)[m] > self.floor_px))
+                   for m, inv in zip(self.masks, self.invalid, strict=True))
+
+    def __call__(self, inliers: BoolArray, z: F32) -> BoolArray:
+        h, w = self.shape
+        dist = np.empty(inliers.size, dtype=np.uint8)
+        keep = np.empty(inliers.size, dtype=bool)
+        start = 0
+        for m, invalid in zip(self.masks, self.invalid, strict=True):   # per frame: distances to the patches
+            k = int(np.count_nonzero(m))
+            outlier = np.zeros(h * w, dtype=np.uint8)
+            outlier[m] = ~inliers[start:start + k]
+            # outliers and invalid pixels together: a wall seen at grazing incidence is both
+            keep[start:start + k] = _distance(_open((outlier | invalid).reshape(h, w))).reshape(-1)[m] > self.floor_px
+            dist[start:start + k] = _distance(_open(outlier.reshape(h, w))).reshape(-1)[m]
+            start += k
+        sel = inliers & keep
+        near = np.flatnonzero(sel & (dist <= self.max_px))
+        size = self.max_px + 2                     # the last bin: every pixel beyond max_px (the reference)
+        ring = dist[near]
+        sums = np.bincount(ring, weights=z[near], minlength=size).astype(np.float64)
+        counts = np.bincount(ring, minlength=size).astype(np.float64)
+        counts[-1] = float(np.count_nonzero(sel)) - counts.sum()
+        sums[-1] = float(np.dot(z, sel.astype(np.float32))) - sums.sum()
+        margin = self._margin(sums, counts, float(np.count_nonzero(inliers)))
+        keep &= dist > margin
+        self.report = EdgeReport(margin, self.floor_px, int(np.count_nonzero(inliers & ~keep)))
+        return keep
+
+    def _margin(self, sums: NDArray[np.float64], counts: NDArray[np.float64], n_total: float) -> int:
+        """The outer edge of an unbroken run of biased bands of rings beyond the floor.
+
+        Bands are ``floor_px`` rings wide (the mixing reaches farther in pixels at a higher
+        resolution; a band holds enough pixels to show it). A band is biased when the sum
+        of its residuals is significant (``ring_sigma`` standard errors) and large enough
+        to move the fit by ``RELEVANT_PULL`` of its own standard error, both measured
+        against the mean residual of the pixels beyond every band (contamination pulls the
+        fit itself, which shifts every residual).
+        """
+        width = max(self.floor_px, 1)
+        margin = self.floor_px
+        n_ref, s_ref = float(counts[-1]), float(sums[-1])
+        if n_ref < MIN_REFERENCE:                  # few pixels far from every patch: all of them
+            n_ref, s_ref = float(counts.sum()), float(sums.sum())
+        mean_ref = s_ref / max(n_ref, 1.0)         # residual level of the clean plane (the fit may be pulled)
+        while margin + width <= self.max_px:
+            band = slice(margin + 1, margin + width + 1)
+            n = float(counts[band].sum())
+            excess = abs(float(sums[band].sum()) - n * mean_ref)
+            noise = math.sqrt(n * (1.0 + n / max(n_ref, 1.0)))
+            if n < 1 or excess <= self.scale * max(self.ring_sigma * noise, RELEVANT_PULL * math.sqrt(n_total)):
+                break
+            margin += width
+        return margin

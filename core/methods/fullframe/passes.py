@@ -1,0 +1,248 @@
+"""Gauss-Newton passes of the range model over camera-frame points (float32, in place).
+
+Method and rationale: docs/adr/0007-full-frame-fit.md ("Model", "Weighting", "Uncertainty").
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import ndtr
+
+from cellcal.core.methods.fullframe.settings import MIN_POINTS
+from cellcal.devices.errors import CalibrationError
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+F32 = NDArray[np.float32]
+
+#: ``(inliers, whitened residuals) -> points allowed to stay inliers`` (image-space clean-up).
+KeepMask = Callable[[BoolArray, F32], BoolArray]
+
+_SQRT_2PI = math.sqrt(2.0 * math.pi)
+
+
+def basis(n: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Two unit vectors completing the unit vector ``n`` to a right-handed orthonormal basis."""
+    x, y, z = float(n[0]), float(n[1]), float(n[2])
+    # e1 = normalise(ex - x n), or normalise(ey - y n) when n is close to ex
+    e1 = np.array([1.0 - x * x, -x * y, -x * z]) if abs(x) < 0.8 else np.array([-y * x, 1.0 - y * y, -y * z])
+    e1 /= math.sqrt(float(e1 @ e1))
+    a, b, c = float(e1[0]), float(e1[1]), float(e1[2])
+    return e1, np.array([y * c - z * b, z * a - x * c, x * b - y * a])   # e2 = n x e1
+
+
+def truncation(c: float) -> tuple[float, float]:
+    """For a Gaussian cut at ``±c`` sigma: (variance factor of the kept part, covariance factor).
+
+    The first divides the inlier mean square to estimate sigma^2; the second multiplies
+    the sandwich covariance of the hard-rejection estimator (its derivative loses the
+    ``2 c phi(c)`` of the points crossing the cut).
+    """
+    p = 2.0 * float(ndtr(c)) - 1.0                          # kept probability 2 Phi(c) - 1
+    jump = 2.0 * c * math.exp(-0.5 * c * c) / _SQRT_2PI     # 2 c phi(c)
+    kept_var = (p - jump) / p                               # E[z^2 | |z| < c]
+    bread = p - jump
+    return kept_var, (p / bread) ** 2 if bread > 0 else 1.0
+
+
+def step_plane(n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float, step: FloatArray
+               ) -> tuple[FloatArray, float]:
+    """Apply a step ``(d_e1, d_e2, d_offset)``: the new unit normal and offset."""
+    n_new = n + step[0] * e1 + step[1] * e2                 # tangent move of the normal ...
+    return n_new / np.linalg.norm(n_new), offset + float(step[2])   # ... back onto the sphere
+
+
+@dataclass(frozen=True)
+class Cutoff:
+    """Hard inlier cut-off on the normalised range residual: ``k_sig`` scales, within [lo, hi]."""
+
+    k_sig: float
+    lo: float                 # min_inlier_threshold_m at the median pixel's noise
+    hi: float                 # max_inlier_threshold_m at the median pixel's noise
+    kept_var: float           # variance factor of a Gaussian cut at ±k_sig (see truncation)
+    cov_factor: float         # covariance factor of the hard-rejection estimator
+
+    def at(self, scale: float) -> float:
+        """The cut-off for a robust scale ``scale`` of the normalised residuals."""
+        return min(max(self.k_sig * scale, self.lo), self.hi)
+
+
+@dataclass(frozen=True)
+class Model:
+    """How range residuals are normalised: the noise model's exponent, or given sigmas."""
+
+    weighted: bool
+    exponent: float
+    sigma: F32 | None = None
+
+    def subset(self, sigma: F32 | None) -> Model:
+        """The same model with the sigmas of a subset of the points."""
+        return Model(self.weighted, self.exponent, sigma)
+
+
+@dataclass
+class Pass:
+    """Sums of one Gauss-Newton pass over a point set."""
+
+    step: FloatArray          # (d_e1, d_e2, d_offset)
+    hessian: FloatArray       # J^T W J
+    n_inliers: int
+    z2_sum: float             # sum of squared normalised residuals of the inliers
+
+
+@dataclass
+class FinalPass(Pass):
+    """The last pass over every point: also the sandwich meat, the residual sums and the inliers."""
+
+    meat: FloatArray          # sum (w rho)^2 J J^T
+    ortho2_sum: float         # sum of squared orthogonal residuals of the inliers, m^2
+    model_ortho2_sum: float   # sum over the inliers of the squared orthogonal noise shape
+    inliers: BoolArray
+    radial: tuple[FloatArray, FloatArray]   # (4x4 J^T W J, J^T W rho) with the radial column
+
+
+def residuals(b0: F32, dm: F32, offset: float, thr: float, model: Model
+              ) -> tuple[F32, F32, F32, F32 | None, BoolArray]:
+    """Whitened range residuals of points with ``b0 = p·n`` (N,) and ranges ``dm``.
+
+    Returns ``1/cos``, the predicted range ``t``, the whitened residual ``z``, the
+    inverse sigma (None when unweighted) and the inlier mask ``|z| < thr`` (in front).
+    """
+    f32 = np.float32
+    inv_c = np.divide(dm, b0)                  # 1 / cos(ray, normal), negative in front
+    t = inv_c * f32(-offset)                   # predicted range along the ray
+    z = np.subtract(dm, t)                     # range residual rho ...
+    if model.sigma is not None:
+        isig: F32 | None = np.divide(f32(1.0), model.sigma)
+    elif model.weighted:                       # 1 / (t^e / sqrt|cos|)
+        isig = np.multiply(t, inv_c)
+        np.abs(isig, out=isig)
+        if model.exponent == 1.5:
+            np.sqrt(isig, out=isig)
+            isig *= t
+        else:
+            np.power(isig, f32(0.5), out=isig)
+            isig *= np.abs(t) ** f32(model.exponent - 1.0) * t
+        np.divide(f32(1.0), isig, out=isig)
+    else:
+        isig = None
+    if isig is not None:
+        z *= isig                              # ... whitened
+    inl = np.abs(z) < f32(thr)                 # inliers: within the cut-off ...
+    inl &= t > 0                               # ... and the plane in front along the ray
+    return inv_c, t, z, isig, inl
+
+
+def gram(cols: Sequence[F32]) -> FloatArray:
+    """Symmetric matrix of the dot products of the columns (float64 sums)."""
+    k = len(cols)
+    out = np.empty((k, k))
+    for i in range(k):
+        for j in range(i, k):
+            out[i, j] = out[j, i] = float(np.dot(cols[i], cols[j]))
+    return out
+
+
+def _solve(h: FloatArray, g: FloatArray) -> FloatArray:
+    try:
+        return np.asarray(-np.linalg.solve(h, g), dtype=np.float64)   # Gauss-Newton step
+    except np.linalg.LinAlgError:
+        raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
+
+
+def _columns(b: F32, dm: F32, inv_c: F32, t: F32, isig: F32) -> tuple[F32, F32, F32]:
+    """Whitened, masked Jacobian columns (t reused in place); ``isig`` already masked."""
+    t *= inv_c
+    t /= dm
+    t *= isig                                  # q = t / (|p| cos) / sigma
+    a1 = np.multiply(t, b[1])
+    a2 = np.multiply(t, b[2], out=t)
+    a3 = np.multiply(inv_c, isig, out=inv_c)
+    return a1, a2, a3
+
+
+def gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
+            thr: float, model: Model) -> Pass:
+    """One reweighted Gauss-Newton pass of the range model over points ``p`` (3, N).
+
+    The range along the ray ``r = p / |p|`` predicted by the plane is
+    ``t = -offset / (r·n)``; the residual ``rho = |p| - t`` has the Jacobian
+    ``(t (r·e1) / (r·n), t (r·e2) / (r·n), 1 / (r·n))`` with respect to the normal's
+    tangent steps along ``e1``, ``e2`` and the offset. Everything is whitened by the
+    point's noise sigma and masked to the inliers, in place on a few float32 buffers.
+    """
+    b = np.stack([n, e1, e2]).astype(np.float32) @ p     # (3, N): p·n, p·e1, p·e2
+    inv_c, t, z, isig, inl = residuals(b[0], dm, offset, thr, model)
+    n_in = int(np.count_nonzero(inl))
+    if n_in < MIN_POINTS:
+        raise CalibrationError(f"full-frame fit: only {n_in} of {dm.size} points lie near the start plane; "
+                               "no plane is defined")
+    z *= inl
+    isig = inl.astype(np.float32) if isig is None else np.multiply(isig, inl, out=isig)
+    cols = _columns(b, dm, inv_c, t, isig)
+    h = gram(cols)
+    g = np.array([float(np.dot(c, z)) for c in cols])   # J^T W rho
+    return Pass(_solve(h, g), h, n_in, float(np.dot(z, z)))
+
+
+def final_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
+               thr: float, model: Model, keep: KeepMask | None) -> FinalPass:
+    """The pass over every point: step, sandwich meat, inliers, residual sums and the radial column.
+
+    ``keep`` (if given) sees the inlier mask and the whitened residuals (units of the noise
+    model) and returns the points allowed to stay.
+    The radial column is the squared image radius ``(x² + y²) / z²`` of each point over its
+    largest value: a range bias growing toward the border (ADR 0007, "Multipath").
+    """
+    f32 = np.float32
+    b = np.stack([n, e1, e2]).astype(f32) @ p
+    inv_c, t, z, isig, inl = residuals(b[0], dm, offset, thr, model)
+    n_near = int(np.count_nonzero(inl))
+    if keep is not None:
+        inl &= keep(inl, z)                    # image-space clean-up of the inliers
+    n_in = int(np.count_nonzero(inl))
+    if n_in < MIN_POINTS:
+        raise CalibrationError(_few_inliers(dm.size, n_near, n_in, keep is not None))
+    unweighted_shape = _model_shape(t, inv_c, model, inl) if isig is None else None
+    z *= inl
+    isig = inl.astype(f32) if isig is None else np.multiply(isig, inl, out=isig)
+    rad = np.divide(dm, p[2])
+    np.square(rad, out=rad)
+    rad -= f32(1.0)                            # squared image radius (x² + y²) / z² = |p|² / z² - 1
+    rad *= isig / f32(max(float(rad.max()), 1e-12))
+    cols = _columns(b, dm, inv_c, t, isig)
+    h4 = gram((*cols, rad))
+    g4 = np.array([float(np.dot(c, z)) for c in (*cols, rad)])
+    meat = gram([np.multiply(c, z) for c in cols])        # sum (w rho)^2 J J^T
+    if unweighted_shape is None:                          # orthogonal noise shape sigma |cos| = 1 / a3
+        inv_a3 = np.zeros_like(z)
+        np.divide(f32(1.0), cols[2], out=inv_a3, where=inl)
+        model_ortho2 = float(np.dot(inv_a3, inv_a3))
+    else:
+        model_ortho2 = unweighted_shape
+    ortho = np.add(b[0], f32(offset), out=b[1])           # orthogonal residual p·n + offset ...
+    ortho *= inl                                          # ... of the inliers
+    return FinalPass(_solve(h4[:3, :3], g4[:3]), h4[:3, :3].copy(), n_in, float(np.dot(z, z)), meat,
+                     float(np.dot(ortho, ortho)), model_ortho2, inl, (h4, g4))
+
+
+def _model_shape(t: F32, inv_c: F32, model: Model, inl: BoolArray) -> float:
+    """Sum over the inliers of the squared orthogonal noise shape ``t^e sqrt|cos|`` (unweighted fits)."""
+    f32 = np.float32
+    out = np.abs(t) ** f32(model.exponent)
+    out /= np.sqrt(np.abs(inv_c))
+    out *= inl
+    return float(np.dot(out, out))
+
+
+def _few_inliers(n_points: int, n_near: int, n_left: int, edge: bool) -> str:
+    """What happened when too few inliers are left for a plane."""
+    if n_near >= MIN_POINTS and edge:
+        return (f"full-frame fit: {n_points} valid pixels, {n_near} near the plane, {n_left} left after the "
+                "edge margin (pixels next to invalid or off-plane patches, edge_margin_deg); no plane is defined")
+    return f"full-frame fit: {n_points} valid points, only {n_near} near the plane; no plane is defined"

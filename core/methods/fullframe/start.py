@@ -1,0 +1,148 @@
+"""The robust start of the full-frame fit: the best triplet plane, a scale from below, reweighting passes.
+
+The answer must not depend on which triplets were drawn (ADR 0007, "Robustness"): the
+triplets are scored on a fixed subsample, and the reweighting passes start with a scale
+below the noise and grow it to the smallest self-consistent one (the contaminated,
+wider fixed points of hard rejection lie above it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import ndtri
+
+from cellcal.core.methods.fullframe.passes import Cutoff, Model, Pass, basis, gn_pass, step_plane, truncation
+from cellcal.core.methods.fullframe.settings import FullFrameSettings
+from cellcal.devices.errors import CalibrationError
+
+FloatArray = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+#: Seed of the fixed subsample's jitter (and of the triplets when ``seed`` is None).
+FIXED_SEED = 0x5EED
+#: Points whose second principal variance is below this fraction of the first lie along a line.
+LINE_RATIO = 1e-4
+
+
+def fixed_subsample(n_points: int, limit: int) -> NDArray[np.intp]:
+    """Indices of at most ``limit`` points, one at a fixed random place in each of ``limit`` equal strata."""
+    if n_points <= limit:
+        return np.arange(n_points)
+    start = (np.arange(limit) * n_points) // limit
+    width = np.diff(np.append(start, n_points))
+    jitter = np.random.default_rng(FIXED_SEED).random(limit)
+    return start + (jitter * width).astype(np.intp)
+
+
+def _triplet_planes(sub: FloatArray, count: int, seed: int | None) -> tuple[FloatArray, FloatArray]:
+    """Unit normals (K, 3) and offsets (K,) of planes through random triplets of ``sub`` (m, 3)."""
+    rng = np.random.default_rng(FIXED_SEED if seed is None else seed)
+    idx = rng.integers(0, sub.shape[0], size=(3, count))
+    a = sub[idx[0]]
+    u = sub[idx[1]] - a
+    v = sub[idx[2]] - a
+    nrm = np.cross(u, v)
+    length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))
+    ok = length > 1e-9 * np.einsum("ij,ij->i", u, u)    # drop (nearly) collinear triplets
+    if not ok.any():
+        raise CalibrationError("full-frame fit: the points are collinear or coincident; no plane is defined")
+    nrm = nrm[ok] / length[ok, None]
+    return nrm, -np.einsum("ij,ij->i", nrm, a[ok])
+
+
+def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings) -> tuple[FloatArray, float]:
+    """The start plane: the triplet plane with the smallest ``hypothesis_quantile`` of residuals.
+
+    Residuals are orthogonal distances over ``range^e`` (weighted), over the given sigmas,
+    or plain (unweighted). Returns the unit normal (toward the camera) and the offset.
+    """
+    idx = fixed_subsample(p.shape[1], settings.sample_points)
+    sub = p[:, idx].T.astype(np.float64)
+    if model.sigma is not None:
+        inv_norm = 1.0 / model.sigma[idx].astype(np.float64)
+    elif model.weighted:
+        inv_norm = dm[idx].astype(np.float64) ** -settings.noise_distance_exponent
+    else:
+        inv_norm = np.ones(idx.size)
+    spread = np.linalg.eigvalsh(np.cov(sub.T)) if sub.shape[0] > 3 else np.zeros(3)
+    if not spread[1] > LINE_RATIO * spread[2]:
+        raise CalibrationError(f"full-frame fit: the {p.shape[1]} valid points lie along a line (one image row "
+                               "or column?); no plane is defined")
+    nrm, off = _triplet_planes(sub, settings.hypotheses, settings.seed)
+    m = idx.size
+    h = min(max(int(settings.hypothesis_quantile * m), 3), m)
+    res = np.abs(nrm.astype(np.float32) @ sub.T.astype(np.float32) + off.astype(np.float32)[:, None])
+    res *= inv_norm.astype(np.float32)[None, :]           # (hypotheses, points), rows contiguous
+    score = np.partition(res, h - 1, axis=1)[:, h - 1]    # the quantile of each hypothesis
+    k = int(np.argmin(score))
+    n, d = nrm[k], float(off[k])
+    if d < 0 or (d == 0 and n[2] > 0):                   # normal toward the camera
+        n, d = -n, -d
+    return np.asarray(n, dtype=np.float64), d
+
+
+def initial_scale(p: F32, dm: F32, model: Model, n: FloatArray, offset: float,
+                  settings: FullFrameSettings) -> tuple[float, Cutoff]:
+    """A scale at or below the noise's, from the start plane's residuals, and the cut-off.
+
+    The ``q`` quantile of |z| is divided by the Gaussian quantile of ``q / 0.5``: exact when
+    half of the points are inliers (the least the inlier gate accepts), an underestimate
+    when more are. The passes then grow it to the smallest self-consistent scale.
+    """
+    k0 = max(1, p.shape[1] // 1024)
+    p0, d0 = p[:, ::k0], dm[::k0]
+    inv_c = d0 / (n.astype(np.float32) @ p0)   # 1 / cos(ray, normal)
+    t = inv_c * np.float32(-offset)            # predicted range along the ray
+    z = d0 - t                                 # range residual ...
+    sig_med = 1.0
+    if model.sigma is not None or model.weighted:
+        if model.sigma is not None:
+            sig = model.sigma[::k0]
+        else:                                  # ... or by the noise model t^e / sqrt|cos|
+            sig = (np.abs(t) ** np.float32(model.exponent) / np.sqrt(np.abs(inv_c))).astype(np.float32)
+        z /= sig                               # ... normalised
+        mid = sig.size // 2
+        sig_med = max(float(np.partition(sig, mid)[mid]), 1e-12)   # median pixel's sigma
+    q = settings.hypothesis_quantile
+    az = np.abs(z)
+    kq = min(int(q * az.size), az.size - 1)
+    level = min(q / 0.5, 0.98)
+    s = float(np.partition(az, kq)[kq]) / float(ndtri(0.5 + level / 2.0))   # |z| quantile -> Gaussian sigma
+    k_sig = settings.inlier_threshold_sigma
+    kept_var, cov_factor = truncation(k_sig)
+    cutoff = Cutoff(k_sig, settings.min_inlier_threshold_m / sig_med, settings.max_inlier_threshold_m / sig_med,
+                    kept_var, cov_factor)
+    return s, cutoff
+
+
+def _converged(it: Pass, s: float, s_new: float, floor_scale: float) -> bool:
+    """The step is a small fraction of the parameters' (subsample) sigma and the scale has settled.
+
+    Noise-free data: the cut-off sits at its floor (``floor_scale``) and the scale never settles
+    in relative terms. The full-data pass after the loop finishes the job.
+    """
+    try:
+        sd = np.sqrt(np.abs(np.diag(np.linalg.inv(it.hessian)))) * max(s_new, floor_scale)   # parameter sigmas
+    except np.linalg.LinAlgError:
+        sd = np.full(3, np.inf)
+    settled = abs(s_new - s) <= 0.01 * s or max(s, s_new) <= floor_scale
+    return bool(np.all(np.abs(it.step) <= 0.1 * sd)) and settled
+
+
+def refine(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float, cutoff: Cutoff,
+           settings: FullFrameSettings) -> tuple[FloatArray, float, float]:
+    """Reweighted Gauss-Newton passes (on the subsample) until converged: normal, offset, scale."""
+    e1, e2 = basis(n)
+    for _ in range(settings.max_iterations):
+        it = gn_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model)
+        n, offset = step_plane(n, e1, e2, offset, it.step)
+        e1, e2 = basis(n)
+        s_new = math.sqrt(it.z2_sum / it.n_inliers / cutoff.kept_var)   # inlier RMS, truncation-corrected
+        converged = _converged(it, s, s_new, cutoff.lo / cutoff.k_sig)
+        s = s_new
+        if converged:
+            break
+    return n, offset, s

@@ -1,0 +1,93 @@
+"""Is the controller streaming RTDE data? Asked with plain sockets and a deadline (:func:`probe_stream`).
+
+ur_rtde's Python constructors hold the GIL while they connect, so a constructor that
+waits on a controller which accepts the connection but sends no data blocks the whole
+interpreter for ur_rtde's own 2.5 s, whatever the caller's timeout. The driver asks
+this small RTDE client first (protocol 2: ``V``, one-field ``O``, ``S``, first ``U``);
+framing from ``shared/spec/protocols.md`` C2. Rationale: docs/adr/0017-ur-emulator.md.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+import time
+
+from cellcal.devices.errors import DeviceConnectionError, DeviceTimeoutError, ProtocolError
+
+RTDE_PORT = 30004
+_HEADER = struct.Struct(">HB")
+_V, _O, _S, _U = 86, 79, 83, 85
+#: Rate asked for: every controller generation offers 125 Hz.
+PROBE_FREQUENCY_HZ = 125.0
+
+
+def _read_message(sock: socket.socket, deadline: float) -> tuple[int, bytes]:
+    head = _read_exact(sock, _HEADER.size, deadline)
+    size, msg_type = _HEADER.unpack(head)
+    if size < _HEADER.size:
+        raise ProtocolError(f"rtde probe: message size {size} is smaller than its header")
+    return msg_type, _read_exact(sock, size - _HEADER.size, deadline)
+
+
+def _read_exact(sock: socket.socket, n: int, deadline: float) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise TimeoutError
+        sock.settimeout(remaining)
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError("the controller closed the connection")
+        buf += chunk
+    return buf
+
+
+def _request(sock: socket.socket, msg_type: int, payload: bytes, deadline: float) -> bytes:
+    """Send one request and return the payload of its reply (skipping text messages)."""
+    sock.sendall(_HEADER.pack(_HEADER.size + len(payload), msg_type) + payload)
+    while True:
+        reply_type, reply = _read_message(sock, deadline)
+        if reply_type == msg_type:
+            return reply
+        if reply_type != 77:  # 'M' text messages may come at any time
+            raise ProtocolError(f"rtde probe: reply type {reply_type} to request {chr(msg_type)!r}")
+
+
+def _conversation(sock: socket.socket, deadline: float) -> float:
+    if _request(sock, _V, struct.pack(">H", 2), deadline)[:1] != b"\x01":
+        raise ProtocolError("rtde probe: the controller refused RTDE protocol version 2")
+    setup = _request(sock, _O, struct.pack(">d", PROBE_FREQUENCY_HZ) + b"timestamp", deadline)
+    if len(setup) < 2 or setup[0] == 0 or setup[1:] != b"DOUBLE":
+        raise ProtocolError(f"rtde probe: output setup refused ({setup[1:]!r})")
+    if _request(sock, _S, b"", deadline)[:1] != b"\x01":
+        raise ProtocolError("rtde probe: the controller refused to start the data stream")
+    while True:
+        msg_type, payload = _read_message(sock, deadline)
+        if msg_type == _U and len(payload) == 9:
+            return float(struct.unpack(">d", payload[1:])[0])
+
+
+def probe_stream(host: str, timeout: float, port: int = RTDE_PORT) -> float:
+    """Connect to RTDE, ask for the timestamp and wait for one data package; returns the timestamp (s).
+
+    Args:
+        host: Controller address.
+        timeout: Seconds for the whole exchange.
+        port: RTDE port.
+
+    Raises:
+        DeviceConnectionError: If the port cannot be reached or closes.
+        DeviceTimeoutError: If no data package arrives within ``timeout`` (a silent stream).
+        ProtocolError: If a reply does not follow the protocol.
+    """
+    deadline = time.monotonic() + timeout
+    try:
+        with socket.create_connection((host, port), timeout=max(0.001, timeout)) as sock:
+            return _conversation(sock, deadline)
+    except TimeoutError:  # socket.timeout is TimeoutError
+        raise DeviceTimeoutError(f"ur {host}: the RTDE port {port} sent no data within {timeout:.3g} s "
+                                 "(stream frozen?)") from None
+    except OSError as exc:
+        raise DeviceConnectionError(f"ur {host}: RTDE port {port}: {exc}") from None
