@@ -169,7 +169,7 @@ def test_frozen_receive_streams(emu: UREmulatorProcess, make_arm: Callable[..., 
         time.sleep(0.3)                                           # > stale_after_s
         target = shifted(HOME, dz=-0.03)
         arm.move_linear(target, speed=0.25, acceleration=1.2, timeout=MOVE_TIMEOUT_S)
-        assert arm.receive_rebuilds == 1 and arm.get_pose().distance_to(target) < 1e-4
+        assert arm.receive_rebuilds == 1 and arm.get_pose().distance_to(target) < 1e-3  # arrival tolerance
         # frozen for every new connection too, in the middle of a move: the move ends stopped
         emu.call("set_time_scale", time_scale=1.0)
         stops = commands(emu, 33)

@@ -92,10 +92,10 @@ def test_clutter_of_boxes_with_flying_pixels_is_rejected(width: int, height: int
 def test_1280x800_clutter_with_mixed_pixels_stays_within_its_intervals() -> None:
     base = ToFSetup(width=1280, height=800, flying=0.5)
     zs = []
-    for layout in range(2):
+    for layout in range(1):
         st = with_(base, boxes=scattered_boxes(0.4, 20 + layout, base))
         rend = render(st)
-        for k in range(4):
+        for k in range(8):
             res = fit_full_frame(draw(rend, np.random.default_rng(k)))
             assert res.passed and tilt_error_deg(res, st) < 0.01
             zs.append(z_scores(res, st))
