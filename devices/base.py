@@ -83,6 +83,15 @@ class Device(ABC):
         return cls(config, context)  # type: ignore[call-arg]
 
     @classmethod
+    def unavailable_reason(cls) -> str | None:
+        """Why this backend cannot be used on this machine (a missing SDK), or None if it can.
+
+        Must be cheap (``importlib.util.find_spec``, never an SDK import): ``cellcal devices``
+        calls it for every backend it lists.
+        """
+        return None
+
+    @classmethod
     def discover(cls, timeout: float = 2.0) -> list[DeviceInfo] | None:
         """Devices of this backend that can be reached now (``cellcal devices --scan``).
 

@@ -7,6 +7,7 @@
     ├── DeviceError                 anything a device did or failed to do
     │   ├── DeviceConnectionError   could not connect, or the link dropped
     │   ├── DeviceTimeoutError      an I/O call exceeded its timeout
+    │   │   └── BackendOverrunError a backend call overran its timeout and was abandoned
     │   ├── NotConnectedError       device used before connect() / after close()
     │   ├── ProtocolError           malformed bytes on a vendor wire
     │   ├── VendorError             the device reported an error code
@@ -15,7 +16,8 @@
     ├── MonitorError                a monitored camera keeps failing
     ├── SafetyError                 a command outside the safety envelope
     ├── CalibrationError            bad input to, or failure of, a calibration
-    │   └── CalibrationQualityError a result failed a quality gate
+    │   ├── CalibrationQualityError a result failed a quality gate
+    │   └── FrameError              a Frame's arrays do not have its intrinsics' shape or dtypes
     ├── RecordingError              a recording cannot be written or replayed
     │   ├── RecordingFileError      (also a ConfigError) unreadable or foreign file
     │   ├── ReplayMismatchError     (also a DeviceError) replay asked for something else
@@ -70,12 +72,18 @@ class MissingDependencyError(CellcalError, ImportError):
         what: The missing module or SDK, e.g. ``"depthai"``.
         extra: The extra that installs it, e.g. ``"oak"``.
         package: The distribution that declares the extra (a vendor package names its own).
+        reason: Why it cannot be installed here (no wheel for this Python or platform); replaces
+            the install hint when given.
     """
 
-    def __init__(self, what: str, extra: str, *, package: str = "cellcal"):
+    def __init__(self, what: str, extra: str, *, package: str = "cellcal", reason: str | None = None):
         self.extra = extra
         self.package = package
-        super().__init__(f"{what} is not installed; install it with: pip install '{package}[{extra}]'")
+        self.reason = reason
+        if reason:
+            super().__init__(f"{what} is not available for this Python: {reason}")
+        else:
+            super().__init__(f"{what} is not installed; install it with: pip install '{package}[{extra}]'")
 
 
 class DeviceError(CellcalError):
@@ -88,6 +96,14 @@ class DeviceConnectionError(DeviceError, builtins.ConnectionError):
 
 class DeviceTimeoutError(DeviceError, builtins.TimeoutError):
     """A device I/O call did not complete within its timeout."""
+
+
+class BackendOverrunError(DeviceTimeoutError):
+    """A backend call did not return within its timeout plus a grace period; the caller abandoned it.
+
+    Raised by callers that do not trust a backend to honour its timeout (the calibrator,
+    the monitor). The message names the backend and the call.
+    """
 
 
 class NotConnectedError(DeviceError):
@@ -147,6 +163,14 @@ class CalibrationQualityError(CalibrationError):
         self.threshold = threshold
         text = f"quality gate '{gate}' failed: {value:.6g} vs threshold {threshold:.6g}"
         super().__init__(f"{text}; {message}" if message else text)
+
+
+class FrameError(CalibrationError):
+    """A :class:`~cellcal.devices.types.Frame` was built from arrays of the wrong shape or dtype.
+
+    A ``CalibrationError`` (what ``Frame`` raised before this class existed), so existing
+    handlers still catch it; the conformance kit reports it under ``camera.frame-layout``.
+    """
 
 
 class UsbBackendMissingError(CellcalError):

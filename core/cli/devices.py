@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import json
+import signal
+import subprocess
+import sys
 from typing import Any
 
 from cellcal.core.cli.argtypes import real
+from cellcal.core.cli.text import one_line
 from cellcal.devices.errors import CellcalError
-from cellcal.devices.registry import default_registry
 
 
 def register(sub: Any) -> None:
@@ -20,28 +24,81 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Print the registry; with ``--scan`` ask every backend to discover devices."""
+    from cellcal.devices.registry import default_registry  # the interfaces (numpy), not for `cellcal --help`
+
     registry = default_registry()
     entries = registry.entries()
     width = max((len(e.name) for e in entries), default=4)
     for kind in ("camera", "arm"):
         print(f"{kind}s:")
         for e in (e for e in entries if e.kind == kind):
-            print(f"  {e.name:<{width}}  {e.target}  [{e.origin}]")
+            note = _unavailable(registry, e.kind, e.name)
+            print(f"  {e.name:<{width}}  {e.target}  [{e.origin}]" + (f"  (unavailable: {note})" if note else ""))
     if not args.scan:
         return 0
     print("scan:")
     for e in entries:
-        try:
-            cls = registry.get(e.kind, e.name)
-            found = cls.discover(args.timeout)
-        except CellcalError as exc:
-            print(f"  {e.kind} {e.name}: unavailable: {exc}")
-            continue
-        if found is None:
-            continue
-        if not found:
-            print(f"  {e.kind} {e.name}: no devices found")
-        for info in found:
-            extra = ", ".join(f"{k}={v}" for k, v in info.extra.items())
-            print(f"  {e.kind} {e.name}: {info.vendor} {info.model} {info.serial} {extra}".rstrip())
+        for line in scan_lines(e.kind, e.name, args.timeout):
+            print(f"  {e.kind} {e.name}: {line}")
     return 0
+
+
+def scan_lines(kind: str, name: str, timeout: float) -> list[str]:
+    """What one backend's discovery found, as report lines (run in a child process).
+
+    The child's stderr (SDK chatter) is kept out of the report; a child that dies (a
+    native abort in an SDK) or overruns ``timeout`` plus its start-up allowance is one line.
+    """
+    cmd = [sys.executable, "-m", "cellcal.core.cli.scan_child", kind, name, repr(timeout)]
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, errors="backslashreplace",
+                              timeout=timeout + _CHILD_STARTUP_S, check=False)
+    except subprocess.TimeoutExpired:
+        return [f"unavailable: discovery did not finish within {timeout + _CHILD_STARTUP_S:g} s"]
+    reply = _reply(done.stdout)
+    if reply is None:
+        how = (f"signal {signal.Signals(-done.returncode).name}" if done.returncode < 0
+               else f"exit status {done.returncode}")
+        return [f"unavailable: discovery crashed ({how}){_last_line(done.stderr)}"]
+    if "error" in reply:
+        return [f"unavailable: {one_line(str(reply['error']))}"]
+    found = reply.get("found")
+    if found is None:
+        return ["no discovery (this backend cannot look for devices; configure its address)"]
+    if not found:
+        return ["no devices found"]
+    lines = []
+    for d in found:
+        extra = ", ".join(f"{k}={v}" for k, v in dict(d.get("extra", {})).items())
+        lines.append(one_line(f"{d.get('vendor', '')} {d.get('model', '')} {d.get('serial', '')} {extra}".rstrip()))
+    return lines
+
+
+def _unavailable(registry: Any, kind: str, name: str) -> str | None:
+    """Why backend ``name`` cannot be used here (its own cheap check), or None."""
+    try:
+        return registry.get(kind, name).unavailable_reason()  # type: ignore[no-any-return]
+    except CellcalError as exc:  # the backend's module does not even load
+        return one_line(str(exc))
+
+
+#: Seconds a scan child may take beyond its discovery timeout (interpreter start, imports).
+_CHILD_STARTUP_S = 10.0
+
+
+def _reply(stdout: str) -> dict[str, Any] | None:
+    """The child's JSON reply (its last stdout line), or None if it printed none."""
+    for line in reversed(stdout.splitlines()):
+        try:
+            value = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(value, dict):
+            return value
+    return None
+
+
+def _last_line(stderr: str) -> str:
+    """``: <last stderr line>`` of a crashed child, or nothing."""
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    return f": {one_line(lines[-1])}" if lines else ""

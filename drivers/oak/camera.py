@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import importlib.util
 import logging
 import time
 from dataclasses import dataclass, field
@@ -145,6 +146,13 @@ class OakCamera(Camera3D):
         self._identity: dict[str, str] = {}
 
     # ------------------------------------------------------------ discovery
+    @classmethod
+    def unavailable_reason(cls) -> str | None:
+        """None if depthai can be imported; else the install hint (no import of depthai here)."""
+        if importlib.util.find_spec("depthai") is not None:
+            return None
+        return str(MissingDependencyError("depthai", "oak"))
+
     @classmethod
     def discover(cls, timeout: float = 2.0) -> list[DeviceInfo] | None:
         """OAK devices reachable now: from depthai, else from USB enumeration (pyusb).

@@ -28,7 +28,6 @@ from cellcal.devices.errors import (
     CellcalError,
     DeviceConnectionError,
     DeviceTimeoutError,
-    MissingDependencyError,
     MotionError,
     ProtocolError,
     SafetyError,
@@ -39,6 +38,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 from cellcal.drivers._blocking import BoundedCaller
 
+from . import availability
 from .codes import (
     FLAG_NO_WAIT,
     ROBOT_MODE_RUNNING,
@@ -181,13 +181,18 @@ class URArm(RobotArm):
         #: The controller turned a new connection away: treat every link to it as down.
         self._link_down = False
 
+    @classmethod
+    def unavailable_reason(cls) -> str | None:
+        """Why ur_rtde cannot be used here (not installed, no wheel for this Python), or None."""
+        return availability.unavailable_reason()
+
     # ------------------------------------------------------------ life cycle
     def _connect(self, timeout: float) -> None:
         try:
             import rtde_control
             import rtde_receive
         except ImportError:
-            raise MissingDependencyError("ur_rtde", "ur") from None
+            raise availability.missing_error() from None
         self._rtde_control, self._rtde_receive = rtde_control, rtde_receive
         try:
             self._open_interfaces(self._clock() + timeout)
