@@ -7,11 +7,14 @@ import json
 import signal
 import subprocess
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import real
 from cellcal.core.cli.text import one_line
 from cellcal.devices.errors import CellcalError
+
+if TYPE_CHECKING:
+    from cellcal.devices.registry import Kind, Registry
 
 
 def register(sub: Any) -> None:
@@ -74,10 +77,10 @@ def scan_lines(kind: str, name: str, timeout: float) -> list[str]:
     return lines
 
 
-def _unavailable(registry: Any, kind: str, name: str) -> str | None:
+def _unavailable(registry: Registry, kind: Kind, name: str) -> str | None:
     """Why backend ``name`` cannot be used here (its own cheap check), or None."""
     try:
-        return registry.get(kind, name).unavailable_reason()  # type: ignore[no-any-return]
+        return registry.get(kind, name).unavailable_reason()
     except CellcalError as exc:  # the backend's module does not even load
         return one_line(str(exc))
 

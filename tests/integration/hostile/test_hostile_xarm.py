@@ -12,6 +12,7 @@ calibration run. ``pytest -s`` prints the figures per case.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import random
@@ -19,6 +20,7 @@ import select
 import struct
 import threading
 import time
+import tracemalloc
 import tty
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -44,6 +46,13 @@ SHORTFALL_MM = 70.0
 #: MOVE_RELATIVE, MOVE_LINE_AA, MOVE_SERVO_CART_AA).
 MOTION_REGISTERS = frozenset({21, 22, 23, 24, 25, 27, 28, 29, 30, 83, 92, 93})
 MOVE_LINE, SET_STATE, GET_TCP_POSE = 21, 12, 41
+
+
+#: Bytes of random noise the ``flood`` fake sends in all; the driver must hold a bounded part of it.
+FLOOD_BYTES = 64 * 1024 * 1024
+_NOISE = random.Random(7).randbytes(64 * 1024)
+#: Peak memory the driver (and the fake) may trace above the start of a case, bytes.
+MEMORY_BOUND = 4 * 1024 * 1024
 
 
 # ---------------------------------------------------------------------- the fake, from the wire facts
@@ -83,7 +92,8 @@ class HostileXArm:
     (sent 0.35 s late, after the driver's reply timeout), ``lagging`` (from MOVE_LINE on,
     every reply answers the request before), ``lagging_from_connect``, ``short`` (every
     move ends 70 mm before its target, reported done), ``jumping`` (each pose read is off
-    by 20-60 mm). A move takes effect in every case.
+    by 20-60 mm), ``flood`` (after confirming MOVE_LINE, the line carries nothing but
+    random bytes, :data:`FLOOD_BYTES` in all). A move takes effect in every case.
     """
 
     misbehaviour: str
@@ -92,6 +102,8 @@ class HostileXArm:
     motion: Motion | None = None
     stopped: bool = False
     lagging: bool = False
+    flooding: bool = False
+    flooded: int = 0
 
     def __post_init__(self) -> None:
         self.lagging = self.misbehaviour == "lagging_from_connect"
@@ -191,11 +203,19 @@ class HostileXArm:
                 return b""
             if m == "lagging":
                 self.lagging = True
+            if m == "flood":
+                self.flooding = True
+                os.set_blocking(self._master, False)
         if self.lagging:
             frame, self._held = (self._held or b""), frame
         return frame
 
     # -------------------------------------------------------------- serving
+    def _flood(self) -> None:
+        """As many random bytes as the line takes now (never blocking the fake)."""
+        with contextlib.suppress(BlockingIOError):
+            self.flooded += os.write(self._master, _NOISE)
+
     def _requests(self, buf: bytearray) -> Iterator[tuple[int, bytes]]:
         while True:
             start = buf.find(b"\xaa\x55")
@@ -219,6 +239,8 @@ class HostileXArm:
             self._later = [(t, f) for t, f in self._later if t > time.monotonic()]
             for frame in due:
                 os.write(self._master, frame)
+            if self.flooding and self.flooded < FLOOD_BYTES:
+                self._flood()
             ready, _, _ = select.select([self._master], [], [], 0.01)
             if not ready:
                 continue
@@ -272,6 +294,8 @@ def test_healthy_fake_moves_once_and_arrives() -> None:
 @pytest.mark.parametrize("case", CASES, ids=[c.misbehaviour for c in CASES])
 def test_hostile_xarm(case: Case) -> None:
     threads, fds = all_threads(), open_fds()
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
     fake = HostileXArm(case.misbehaviour)
     drv = _driver(fake.path)
     t0 = time.monotonic()
@@ -290,8 +314,12 @@ def test_hostile_xarm(case: Case) -> None:
     finally:
         drv.close()
         fake.close()
+        peak = tracemalloc.get_traced_memory()[1] - base
+        tracemalloc.stop()
     print(f"\n{case.misbehaviour}: {type(err.value).__name__} after {elapsed:.2f} s, "
-          f"{fake.motion_commands()} motion command(s), {fake.stops()} stop(s): {err.value}")
+          f"{fake.motion_commands()} motion command(s), {fake.stops()} stop(s), peak {peak / 1e6:.2f} MB, "
+          f"{fake.flooded / 1e6:.1f} MB of noise: {err.value}")
+    assert peak < MEMORY_BOUND, f"peak traced memory {peak / 1e6:.1f} MB"
     assert "\n" not in str(err.value)
     assert elapsed <= MOVE_TIMEOUT_S + 1.0, f"took {elapsed:.2f} s"
     assert not busy, f"the driver left threads running: {busy}"
@@ -301,6 +329,33 @@ def test_hostile_xarm(case: Case) -> None:
     else:
         assert fake.motion_commands() == 1, f"{fake.motion_commands()} motion commands for one move_linear"
         assert fake.stops() >= 1, "the arm was never told to stop"
+    leaked_threads, leaked_fds = leftovers(threads, fds)
+    assert not leaked_threads and not leaked_fds
+
+
+def test_noise_flood_costs_no_memory_and_no_second_move() -> None:
+    """Random bytes pouring in between replies: CRC-checked frames still get through, memory stays flat."""
+    threads, fds = all_threads(), open_fds()
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    fake = HostileXArm("flood")
+    try:
+        with _driver(fake.path) as drv:
+            t0 = time.monotonic()
+            drv.move_linear(_target(), speed=0.2, acceleration=2.0, timeout=MOVE_TIMEOUT_S)
+            elapsed = time.monotonic() - t0
+            # the arrival check read the pose through the noise: the fake really is there
+            assert fake.pose == pytest.approx([420.0, 0.0, 400.0, math.pi, 0.0, 0.0], abs=1e-3)
+    finally:
+        fake.close()
+        peak = tracemalloc.get_traced_memory()[1] - base
+        tracemalloc.stop()
+    print(f"\nflood: arrived after {elapsed:.2f} s through {fake.flooded / 1e6:.1f} MB of noise, "
+          f"peak {peak / 1e6:.2f} MB")
+    assert fake.flooded > 256 * 1024, "the fake did not get its noise onto the line"
+    assert peak < MEMORY_BOUND, f"peak traced memory {peak / 1e6:.1f} MB"
+    assert elapsed <= MOVE_TIMEOUT_S + 1.0
+    assert fake.motion_commands() == 1 and fake.stops() == 0
     leaked_threads, leaked_fds = leftovers(threads, fds)
     assert not leaked_threads and not leaked_fds
 
