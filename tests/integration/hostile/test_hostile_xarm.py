@@ -48,8 +48,8 @@ MOTION_REGISTERS = frozenset({21, 22, 23, 24, 25, 27, 28, 29, 30, 83, 92, 93})
 MOVE_LINE, SET_STATE, GET_TCP_POSE = 21, 12, 41
 
 
-#: Bytes of random noise the ``flood`` fake sends in all; the driver must hold a bounded part of it.
-FLOOD_BYTES = 64 * 1024 * 1024
+#: Seconds the ``flood`` fake pours random bytes onto the line (as much as the pty takes).
+FLOOD_S = 1.0
 _NOISE = random.Random(7).randbytes(64 * 1024)
 #: Peak memory the driver (and the fake) may trace above the start of a case, bytes.
 MEMORY_BOUND = 4 * 1024 * 1024
@@ -93,7 +93,7 @@ class HostileXArm:
     every reply answers the request before), ``lagging_from_connect``, ``short`` (every
     move ends 70 mm before its target, reported done), ``jumping`` (each pose read is off
     by 20-60 mm), ``flood`` (after confirming MOVE_LINE, the line carries nothing but
-    random bytes, :data:`FLOOD_BYTES` in all). A move takes effect in every case.
+    random bytes for :data:`FLOOD_S`). A move takes effect in every case.
     """
 
     misbehaviour: str
@@ -104,6 +104,7 @@ class HostileXArm:
     lagging: bool = False
     flooding: bool = False
     flooded: int = 0
+    flood_until: float = 0.0
 
     def __post_init__(self) -> None:
         self.lagging = self.misbehaviour == "lagging_from_connect"
@@ -204,7 +205,7 @@ class HostileXArm:
             if m == "lagging":
                 self.lagging = True
             if m == "flood":
-                self.flooding = True
+                self.flooding, self.flood_until = True, time.monotonic() + FLOOD_S
                 os.set_blocking(self._master, False)
         if self.lagging:
             frame, self._held = (self._held or b""), frame
@@ -239,7 +240,7 @@ class HostileXArm:
             self._later = [(t, f) for t, f in self._later if t > time.monotonic()]
             for frame in due:
                 os.write(self._master, frame)
-            if self.flooding and self.flooded < FLOOD_BYTES:
+            if self.flooding and time.monotonic() < self.flood_until:
                 self._flood()
             ready, _, _ = select.select([self._master], [], [], 0.01)
             if not ready:
