@@ -1,4 +1,4 @@
-"""UFACTORY xArm 5/6/7 over serial: backend class :class:`XArmArm`, entry point ``arms: xarm`` (extra ``xarm``)."""
+"""UFACTORY xArm 5/6/7 over serial (extra ``xarm``) or TCP: backend :class:`XArmArm`, entry point ``arms: xarm``."""
 
 from cellcal.drivers.xarm.arm import XArmArm
 

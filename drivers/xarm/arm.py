@@ -1,13 +1,15 @@
-"""UFACTORY xArm 5/6/7 as a :class:`RobotArm`, over RS-485/USB serial.
+"""UFACTORY xArm 5/6/7 as a :class:`RobotArm`, over RS-485/USB serial or Ethernet (TCP).
 
 SI units on the API; millimetres and radians only on the wire (converted through
 :mod:`cellcal.devices.geometry.vendor_poses`). Poses are of the tool flange: the
 controller's TCP offset is assumed to be zero. A motion command is sent once and never
-again; what happens when its reply is missing or foreign is ADR 0016.
+again; what happens when its reply is missing or foreign is ADR 0016, the TCP transport
+and its report stream ADR 0019.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import struct
 import time
@@ -51,18 +53,26 @@ from .registers import (
     parse_version,
     unpack_floats,
 )
+from .report import ArmReport, ReportStream
+from .tcp_transport import TcpTransport
 from .transport import SerialTransport
+
+log = logging.getLogger(__name__)
 
 _MM = 1000.0
 #: Largest |coordinate| of a TCP pose reply taken as real, mm (no xArm reaches 10 m).
 MAX_POSE_MM = 10_000.0
 #: Largest |angle| of a pose or joint reply taken as real, rad.
 MAX_ANGLE_RAD = 4.0 * math.pi
-_LINK_ERRORS = (ProtocolError, DeviceTimeoutError)
+#: A request failed on the link (over TCP a lost connection too): the arm's state is unknown.
+_LINK_ERRORS = (ProtocolError, DeviceTimeoutError, DeviceConnectionError)
+#: Serial port used when neither ``port`` nor ``host`` is given.
+DEFAULT_SERIAL_PORT = "/dev/ttyUSB0"
+_TCP_PORT_RANGE = {"ge": 1, "le": 65535}
 
 
 class XArmArm(RobotArm):
-    """xArm over a serial line (backend ``"xarm"``).
+    """xArm over a serial line or TCP (backend ``"xarm"``; ``host`` selects TCP).
 
     A motion is one MOVE_LINE followed by state polling (GET_STATE, GET_CMDNUM,
     GET_ERROR) until the arm reports it is idle with an empty queue; the base class then
@@ -84,7 +94,15 @@ class XArmArm(RobotArm):
     class Config:
         """The ``[arm]`` section for ``backend = "xarm"``; every quantity in the range a real xArm cell has."""
 
-        port: str = field(default="/dev/ttyUSB0", metadata={"doc": "serial device path or pyserial URL"})
+        port: str | None = field(default=None, metadata={
+            "doc": f"serial device path or pyserial URL (default {DEFAULT_SERIAL_PORT} unless host is given)"})
+        host: str | None = field(default=None, metadata={"max_len": 253,
+                                                         "doc": "controller address; selects TCP instead of serial"})
+        tcp_port: int = field(default=502, metadata={**_TCP_PORT_RANGE, "doc": "TCP control port (with host)"})
+        report_port: int = field(default=30002, metadata={
+            "ge": 0, "le": 65535, "doc": "TCP port of the rich report stream (with host); 0 = do not read it"})
+        report_stale_s: float = field(default=1.0, metadata={
+            "ge": 0.05, "le": 10, "doc": "report silence after which it is stalled and the registers are read, s"})
         baudrate: int = field(default=2_000_000, metadata={"ge": 1200, "le": 12_000_000,
                                                            "doc": "line speed, baud (8N1)"})
         axes: Literal[5, 6, 7] = field(default=6, metadata={"doc": "axis count of the arm"})
@@ -112,6 +130,14 @@ class XArmArm(RobotArm):
             "doc": "run motion enable, mode 0, state 0 on connect when no error is pending"})
 
         def __post_init__(self) -> None:
+            if self.port is not None and self.host is not None:
+                raise ConfigError(f"both port ({self.port!r}, serial) and host ({self.host!r}, TCP) are given; "
+                                  "keep one of them")
+            if self.host is not None and not self.host.strip():
+                raise ConfigError("host is empty; give the controller's address (or use port for serial)", key="host")
+            if self.report_port == self.tcp_port:
+                raise ConfigError(f"report_port {self.report_port} is the control port tcp_port; the rich report is "
+                                  "on 30002 (0 = do not read it)", key="report_port")
             if self.default_speed_m_s > self.max_speed_m_s:
                 raise ConfigError(f"default_speed_m_s {self.default_speed_m_s} exceeds max_speed_m_s "
                                   f"{self.max_speed_m_s}")
@@ -123,17 +149,18 @@ class XArmArm(RobotArm):
         super().__init__()
         self.config = config or XArmArm.Config()
         self.context = context
-        self._transport: SerialTransport | None = None
+        self._transport: SerialTransport | TcpTransport | None = None
+        self._report: ReportStream | None = None
         self._version: VersionInfo | None = None
         self._robot_sn = ""
         self._box_sn = ""
 
     # ------------------------------------------------------------------ wire helpers
     @property
-    def transport(self) -> SerialTransport:
+    def transport(self) -> SerialTransport | TcpTransport:
         """The open transport (for diagnostics and tests)."""
         if self._transport is None:
-            raise DeviceConnectionError("xarm: serial transport is not open")
+            raise DeviceConnectionError("xarm: transport is not open")
         return self._transport
 
     @property
@@ -177,15 +204,50 @@ class XArmArm(RobotArm):
         return max(deadline - time.monotonic(), self.config.reply_timeout_s)
 
     # ------------------------------------------------------------------ life cycle
+    @property
+    def where(self) -> str:
+        """The serial port, or ``host:tcp_port``."""
+        cfg = self.config
+        return f"{cfg.host}:{cfg.tcp_port}" if cfg.host is not None else (cfg.port or DEFAULT_SERIAL_PORT)
+
+    def latest_report(self) -> ArmReport | None:
+        """The newest checked report of the TCP report stream, if it is healthy and fresh."""
+        report = self._report
+        return report.latest(self.config.report_stale_s) if report is not None else None
+
+    def _open_transport(self, timeout: float) -> None:
+        cfg = self.config
+        reply_timeout = min(cfg.reply_timeout_s, timeout)
+        if cfg.host is None:
+            self._transport = SerialTransport(self.where, cfg.baudrate, reply_timeout_s=reply_timeout,
+                                              retries=cfg.retries)
+            self._transport.open()
+            return
+        self._transport = TcpTransport(cfg.host, cfg.tcp_port, reply_timeout_s=reply_timeout, retries=cfg.retries,
+                                       connect_timeout_s=timeout)
+        self._transport.open(timeout)
+
+    def _start_report(self, deadline: float) -> None:
+        """Read the report stream (TCP only); without a first good report the registers are polled."""
+        cfg = self.config
+        if cfg.host is None or not cfg.report_port:
+            return
+        self._report = ReportStream(cfg.host, cfg.report_port, stale_after_s=cfg.report_stale_s,
+                                    connect_timeout_s=max(0.05, min(2.0, deadline - time.monotonic())))
+        self._report.start()
+        try:
+            self._report.wait_newer(0, deadline)
+        except CellcalError as exc:
+            log.warning("xarm: report stream not available, state is polled (it keeps trying): %s", exc)
+
     def _connect(self, timeout: float) -> None:
         cfg = self.config
-        self._transport = SerialTransport(cfg.port, cfg.baudrate, reply_timeout_s=min(cfg.reply_timeout_s, timeout),
-                                          retries=cfg.retries)
-        self._transport.open()
+        deadline = time.monotonic() + timeout
+        self._open_transport(timeout)
         reply = self._call(Reg.GET_VERSION, expect_len=VERSION_LEN, timeout=timeout)
         self._version = parse_version(decode_text(reply.data))
         if self._version.axes is not None and self._version.axes != cfg.axes:
-            raise DeviceConnectionError(f"xarm: configured for {cfg.axes} axes but the arm at {cfg.port!r} reports "
+            raise DeviceConnectionError(f"xarm: configured for {cfg.axes} axes but the arm at {self.where!r} reports "
                                         f"{self._version.axes} ({self._version.text!r})")
         try:
             sn = self._call(Reg.GET_ROBOT_SN, expect_len=VERSION_LEN)
@@ -196,9 +258,13 @@ class XArmArm(RobotArm):
             error, _warn = self._read_error()
             if error == 0:
                 self._enable_sequence()
+        self._start_report(max(deadline, time.monotonic() + cfg.reply_timeout_s))
 
     def _close(self) -> None:
         transport, self._transport = self._transport, None
+        report, self._report = self._report, None
+        if report is not None:
+            report.close()
         if transport is not None:
             transport.close()
 
@@ -208,7 +274,8 @@ class XArmArm(RobotArm):
         return DeviceInfo(backend=self.backend_name, vendor="UFACTORY", model=f"xArm {self.config.axes}",
                           serial=self._robot_sn, firmware=fw,
                           extra={"version": v.text if v else "", "control_box_sn": self._box_sn,
-                                 "port": self.config.port, "move_line_layout": self._layout()})
+                                 "port": self.where, "transport": "serial" if self.config.host is None else "tcp",
+                                 "move_line_layout": self._layout()})
 
     def _layout(self) -> str:
         if self.config.move_line_layout != "auto":
@@ -251,8 +318,12 @@ class XArmArm(RobotArm):
         return q
 
     def _status(self, timeout: float) -> ArmStatus:
-        error, warn = self._read_error()
-        state = self._read_state()
+        report = self.latest_report()
+        if report is not None and report.state in tuple(ArmState):  # pushed, checked and fresh: no polling
+            error, warn, state = report.error, report.warning, report.state
+        else:
+            error, warn = self._read_error()
+            state = self._read_state()
         not_ready = state in (ArmState.STOPPED, ArmState.STOPPING)
         if error:
             message = codes.error_meaning(error)
@@ -306,7 +377,10 @@ class XArmArm(RobotArm):
     def _wait_idle(self, deadline: float, timeout: float, target: Pose, start: Pose) -> None:
         """Poll until the arm is idle with an empty queue; stop it and raise on timeout or lost contact."""
         idle_seen = 0
+        seq = 0
         while True:
+            if idle_seen == 0:
+                seq = self._follow_report(seq, deadline)
             try:
                 error, _warn = self._read_error(self._bounded(deadline))
                 state = self._read_state(self._bounded(deadline)) if not error else 0
@@ -329,6 +403,26 @@ class XArmArm(RobotArm):
                 raise DeviceTimeoutError(f"xarm: motion not finished within {timeout:.3g} s; "
                                          f"{self._stop_quietly(time.monotonic() + self.config.stop_timeout_s)}")
             time.sleep(min(self.config.poll_interval_s, max(0.0, deadline - time.monotonic())))
+
+    def _follow_report(self, seq: int, deadline: float) -> int:
+        """While the report stream shows the arm moving, wait on it instead of polling registers.
+
+        Returns when a report says the arm is not moving (the registers then confirm the
+        end), the stream fails or stalls (the registers take over), or ``deadline`` passes.
+        Returns the sequence number of the last report seen.
+        """
+        stream = self._report
+        if stream is None:
+            return seq
+        while time.monotonic() < deadline:
+            try:
+                report = stream.wait_newer(seq, min(deadline, time.monotonic() + self.config.report_stale_s))
+            except CellcalError:
+                return seq
+            seq = report.seq
+            if not report.moving:
+                return seq
+        return seq
 
     def _unconfirmed(self, reason: str, target: Pose, start: Pose) -> MotionError:
         """After a motion command without a valid reply: find out what the arm does, stop it unless idle.

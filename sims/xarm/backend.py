@@ -1,8 +1,9 @@
-"""Backend ``xarm-emulated``: the real ``xarm`` driver talking to the xArm emulator on a pty.
+"""Backend ``xarm-emulated``: the real ``xarm`` driver talking to the xArm emulator on a pty or over TCP.
 
-Every call goes through the whole serial stack (framing, CRC, state polling, unit
-conversion) against the same simulated world a ``sim`` camera sees. An emulated config
-is the simulated one with ``backend = "xarm-emulated"``.
+Every call goes through the whole wire stack (serial: framing, CRC; TCP: transaction ids,
+the report stream; both: state polling, unit conversion) against the same simulated world
+a ``sim`` camera sees. An emulated config is the simulated one with
+``backend = "xarm-emulated"`` (and ``transport = "tcp"`` for Ethernet).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from cellcal.devices.types import ArmStatus, DeviceInfo
 from cellcal.sims.arm import SimArm, SimArmConfig
 
 from .emulator import XArmEmulator
+from .tcp_server import XArmTcpServer
 
 DRIVER_BACKEND = "xarm"
 """Registry name of the driver the emulated arm connects (never imported by name: sims
@@ -32,6 +34,10 @@ depend on devices only)."""
 _OWN_FIELDS: list[tuple[str, Any, Any]] = [
     ("axes", Literal[5, 6, 7], dataclasses.field(default=5, metadata={"doc": "axis count the emulator reports"})),
     ("firmware", str, dataclasses.field(default="2.5.0", metadata={"doc": "firmware version reported, X.Y.Z"})),
+    ("transport", Literal["serial", "tcp"], dataclasses.field(
+        default="serial", metadata={"doc": "serial: a pty; tcp: control and report ports on 127.0.0.1 (free ports)"})),
+    ("report_hz", float, dataclasses.field(default=50.0, metadata={"ge": 0.5, "le": 1000,
+                                                                   "doc": "report stream rate over TCP, 1/s"})),
     ("reply_timeout_s", float, dataclasses.field(
         default=0.5, metadata={"ge": 0.001, "le": 10, "doc": "driver per-attempt reply timeout, s"})),
     ("retries", int, dataclasses.field(default=2, metadata={"ge": 0, "le": 10,
@@ -104,23 +110,33 @@ class EmulatedXArmArm(RobotArm):
         sim_cfg = SimArmConfig(**{name: getattr(self.config, name) for name in _SIM_NAMES})
         self.sim_arm = SimArm(sim_cfg, context)
         self.emulator: XArmEmulator | None = None
+        self.server: XArmTcpServer | None = None
         self.driver: RobotArm | None = None
         #: Fault injection (tests): called with the started emulator before the driver connects.
         self.on_emulator_started: Callable[[XArmEmulator], None] | None = None
 
     @property
     def path(self) -> str:
-        """The emulator's pty path ("" when not connected)."""
+        """The emulator's pty path ("" when not connected or over TCP)."""
         return self.emulator.path if self.emulator is not None else ""
+
+    def _wire_section(self) -> dict[str, Any]:
+        """Start the emulator on the configured transport; the driver's section keys that reach it."""
+        assert self.emulator is not None
+        if self.config.transport == "tcp":
+            self.server = XArmTcpServer(self.emulator, report_hz=self.config.report_hz)
+            tcp_port, report_port = self.server.start()
+            return {"host": self.server.host, "tcp_port": tcp_port, "report_port": report_port}
+        return {"port": self.emulator.start()}
 
     def _connect(self, timeout: float) -> None:
         cfg = self.config
         self.sim_arm.connect(timeout)
         self.emulator = XArmEmulator(self.sim_arm, axes=cfg.axes, firmware=_parse_firmware(cfg.firmware))
-        path = self.emulator.start()
+        wire = self._wire_section()
         if self.on_emulator_started is not None:
             self.on_emulator_started(self.emulator)
-        section = {"backend": DRIVER_BACKEND, "port": path, "axes": cfg.axes, "reply_timeout_s": cfg.reply_timeout_s,
+        section = {"backend": DRIVER_BACKEND, **wire, "axes": cfg.axes, "reply_timeout_s": cfg.reply_timeout_s,
                    "retries": cfg.retries, "poll_interval_s": cfg.poll_interval_s}
         self.driver = default_registry().create_arm(section, self.context)
         self.driver.default_motion_timeout_s = self.default_motion_timeout_s
@@ -130,8 +146,11 @@ class EmulatedXArmArm(RobotArm):
     def _close(self) -> None:
         driver, self.driver = self.driver, None
         emulator, self.emulator = self.emulator, None
+        server, self.server = self.server, None
         if driver is not None:
             driver.close()
+        if server is not None:
+            server.close()
         if emulator is not None:
             emulator.close()
         self.sim_arm.close()

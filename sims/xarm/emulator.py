@@ -28,6 +28,7 @@ from cellcal.devices.geometry.vendor_poses import pose_from_xarm, pose_to_xarm
 from cellcal.devices.pose import Pose
 from cellcal.sims.arm import ERROR_OUT_OF_REACH
 
+from .tcp_wire import ReportValues
 from .wire import (
     EVERY_JOINT,
     EXTENDED_LINE_REPLY_BYTES,
@@ -49,7 +50,7 @@ from .wire import (
     text_field,
 )
 
-FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall", "lag"]
+FaultKind = Literal["corrupt_crc", "drop", "truncate", "stall", "lag", "stale_id"]
 
 
 class ArmModel(Protocol):
@@ -77,7 +78,9 @@ class ArmModel(Protocol):
 
 
 @dataclass
-class _Fault:
+class InjectedFault:
+    """One fault queued by :meth:`XArmEmulator.inject`."""
+
     kind: FaultKind
     register: int | None
     stall_s: float
@@ -153,7 +156,7 @@ class XArmEmulator:
         self._enabled = start_ready
         self._ready = start_ready
         self._mode = 0
-        self._faults: deque[_Fault] = deque()
+        self._faults: deque[InjectedFault] = deque()
         self._held: bytes | None = None  # a reply held back by a "lag" fault
         self._scheduled: _ScheduledError | None = None
         self._master = -1
@@ -177,7 +180,10 @@ class XArmEmulator:
             Register.GET_TCP_POSE: self._get_tcp_pose,
             Register.GET_JOINT_POS: self._get_joint_pos,
             Register.GET_TCP_POSE_AA: self._get_tcp_pose_aa,
+            Register.SET_FEEDBACK_TYPE: self._set_feedback_type,
         }
+        self.feedback_type = 0
+        """Last SET_FEEDBACK_TYPE value (the SDK asks for motion-finish feedback; none is sent)."""
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> str:
@@ -229,11 +235,17 @@ class XArmEmulator:
         half the frame; ``stall`` delays the reply by ``stall_s`` seconds; ``lag``
         holds the reply back and sends it in answer to the next request instead of that
         one's, which is held in turn (replies one request behind, as long as lag faults
-        last; the first reply after them goes out right behind the held one).
+        last; the first reply after them goes out right behind the held one). Over TCP only:
+        ``stale_id`` sends the reply with the previous request's transaction id (the reply
+        the client waits for never comes); ``corrupt_crc`` garbles the protocol id.
         """
         with self._lock:
             for _ in range(count):
-                self._faults.append(_Fault(kind, None if register is None else int(register), float(stall_s)))
+                self._faults.append(InjectedFault(kind, None if register is None else int(register), float(stall_s)))
+
+    def take_fault(self, register: int) -> InjectedFault | None:
+        """The next injected fault that applies to a reply to ``register`` (removed from the queue)."""
+        return self._next_fault(register)
 
     def pending_faults(self) -> int:
         """Injected faults not yet applied."""
@@ -394,6 +406,24 @@ class XArmEmulator:
             sched.armed = True
         return 0, extra
 
+    def _set_feedback_type(self, p: bytes) -> tuple[int, bytes]:
+        if len(p) != 1:
+            return FLAG_INVALID, b""
+        self.feedback_type = p[0]
+        return 0, b""
+
+    def report_values(self) -> ReportValues:
+        """What the controller's report says now (noise-free pose: reports do not draw read-back noise)."""
+        with self._lock:
+            code, warn = self._errors()
+            pose = np.asarray(pose_to_xarm(self.arm.true_flange_pose()), dtype=np.float64)
+            joints = np.asarray(self.arm.joint_positions(), dtype=np.float64).ravel()[:JOINT_REPLY_FLOATS]
+            moving = self.arm.is_moving()
+            return ReportValues(state=self._state_value(), mode=self._mode,
+                                cmdnum=1 if moving and self._ready else 0, joints=tuple(float(v) for v in joints),
+                                pose=tuple(float(v) for v in pose), error=code, warning=warn,
+                                enabled=self._enabled, axes=self.axes, arm_type=self.axes)
+
     def _get_tcp_pose(self, _p: bytes) -> tuple[int, bytes]:
         values = np.asarray(pose_to_xarm(self.arm.get_pose()), dtype=np.float64)
         self.last_reported_pose = tuple(float(v) for v in values.astype(np.float32))
@@ -410,8 +440,8 @@ class XArmEmulator:
         return 0, floats(list(joints))
 
     # ------------------------------------------------------------------ serving
-    def handle(self, request: Command) -> bytes:
-        """Execute one request and return the reply frame (before fault injection)."""
+    def execute(self, request: Command) -> tuple[int, bytes]:
+        """Execute one request; returns the reply's STATE flags and data (any transport)."""
         with self._lock:
             self.requests[request.register] = self.requests.get(request.register, 0) + 1
             handler = self._handlers.get(request.register)
@@ -419,9 +449,13 @@ class XArmEmulator:
                 flags, data = FLAG_INVALID, b""
             else:
                 flags, data = handler(request.params)
-            return reply_frame(self._state_byte() | flags, data)
+            return self._state_byte() | flags, data
 
-    def _next_fault(self, register: int) -> _Fault | None:
+    def handle(self, request: Command) -> bytes:
+        """Execute one request and return the serial reply frame (before fault injection)."""
+        return reply_frame(*self.execute(request))
+
+    def _next_fault(self, register: int) -> InjectedFault | None:
         with self._lock:
             for i, fault in enumerate(self._faults):
                 if fault.register is None or fault.register == register:

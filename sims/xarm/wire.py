@@ -54,6 +54,7 @@ class Register(IntEnum):
     GET_TCP_POSE = 41
     GET_JOINT_POS = 42
     GET_TCP_POSE_AA = 91
+    SET_FEEDBACK_TYPE = 254
 
 
 class RobotState(IntEnum):

@@ -14,6 +14,7 @@ import threading
 import tty
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from cellcal.devices.errors import ProtocolError
 from cellcal.drivers.xarm.protocol import (
@@ -173,3 +174,110 @@ class ScriptedPeer:
                 out = self.answer(request)
                 if out:
                     os.write(self._master, out)
+
+
+class ScriptedTcpPeer:
+    """A controller on a loopback TCP port answering each request with ``answer(tid, request)`` (b"" = no reply).
+
+    For the TCP transport's unit tests: the requests received are in :attr:`requests` as
+    ``(transaction_id, Request)``. One client at a time; a context manager.
+
+    Args:
+        answer: Called on the serving thread for every request frame.
+    """
+
+    def __init__(self, answer: Callable[[int, Request], bytes]):
+        import socket
+
+        self.answer = answer
+        self.requests: list[tuple[int, Request]] = []
+        self._stop = threading.Event()
+        self._server = socket.socket()
+        self._server.bind(("127.0.0.1", 0))
+        self._server.listen(1)
+        self.port = self._server.getsockname()[1]
+        self._thread = threading.Thread(target=self._serve, name="scripted-xarm-tcp", daemon=True)
+
+    def __enter__(self) -> ScriptedTcpPeer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        self._server.close()
+
+    def registers(self) -> list[int]:
+        """The register of every request received, in order."""
+        return [r.register for _, r in self.requests]
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._server], [], [], 0.01)
+            if ready:
+                client, _ = self._server.accept()
+                with client:
+                    self._talk(client)
+
+    def _talk(self, client: object) -> None:
+        import socket
+
+        assert isinstance(client, socket.socket)
+        buf = b""
+        while not self._stop.is_set():
+            ready, _, _ = select.select([client], [], [], 0.01)
+            if not ready:
+                continue
+            chunk = client.recv(4096)
+            if not chunk:
+                return
+            buf += chunk
+            while len(buf) >= 6 and len(buf) >= 6 + int.from_bytes(buf[4:6], "big"):
+                end = 6 + int.from_bytes(buf[4:6], "big")
+                tid, request = int.from_bytes(buf[:2], "big"), Request(buf[6], buf[7:end])
+                buf = buf[end:]
+                self.requests.append((tid, request))
+                out = self.answer(tid, request)
+                if out:
+                    client.sendall(out)
+
+
+def tcp_reply(tid: int, register: int, state: int = 0, data: bytes = b"", protocol: int = 2) -> bytes:
+    """A reply frame of the TCP protocol: tid, protocol, length, REG echo, STATE, data."""
+    return (tid.to_bytes(2, "big") + protocol.to_bytes(2, "big") + (len(data) + 2).to_bytes(2, "big")
+            + bytes([register, state]) + data)
+
+
+def bounded_call(fn: Callable[[], Any], timeout: float) -> Any:
+    """Run ``fn`` (a vendor SDK call without a timeout) in a thread; fail the test if it does not return in time."""
+    out: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            out["value"] = fn()
+        except BaseException as exc:  # re-raised in the caller
+            out["error"] = exc
+
+    t = threading.Thread(target=run, name="sdk-call", daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), f"SDK call did not return within {timeout} s"
+    if "error" in out:
+        raise out["error"]
+    return out.get("value")
+
+
+def sdk_refuses_an_out_of_workspace_move(sdk: Any, sim: Any) -> None:
+    """With xarm-python-sdk's ``XArmAPI`` enabled and ready: a target 1.5 m out ends in controller
+    error 21 (the SDK returns non-zero), the simulated arm ``sim`` does not move, and
+    ``clean_error`` clears the error."""
+    import math
+
+    start = sim.true_flange_pose()
+    code = bounded_call(lambda: sdk.set_position(1500, 0, 300, math.pi, 0, 0, speed=200, mvacc=2000,
+                                                 is_radian=True, wait=True, timeout=10), 20.0)
+    assert code != 0
+    assert sdk.get_err_warn_code()[1][0] == 21
+    assert sim.true_flange_pose().distance_to(start) == 0.0
+    assert sdk.clean_error() == 0
+    assert sdk.get_err_warn_code()[1][0] == 0

@@ -1,4 +1,4 @@
-"""``python -m cellcal.sims.xarm``: prints the pty path first, serves until terminated."""
+"""``python -m cellcal.sims.xarm``: prints the pty path first (TCP: a ``ready`` line), serves until terminated."""
 
 from __future__ import annotations
 
@@ -17,30 +17,42 @@ from cellcal.drivers.xarm.arm import XArmArm
 
 def _first_line(proc: subprocess.Popen[str], timeout: float) -> str:
     assert proc.stdout is not None
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if sel.select(timeout=0.1):
-            return proc.stdout.readline().strip()
-        if proc.poll() is not None:
-            break
-    pytest.fail("emulator printed no path in time")
+    with selectors.DefaultSelector() as sel:  # closed here, not whenever the garbage collector runs
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if sel.select(timeout=0.1):
+                return proc.stdout.readline().strip()
+            if proc.poll() is not None:
+                break
+    pytest.fail("emulator printed nothing in time")
 
 
-@pytest.mark.parametrize("axes", [5, 7])
-def test_module_prints_pty_path_and_serves(axes: int) -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "cellcal.sims.xarm", "--axes", str(axes), "--time-scale", "0"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def _moves_where_told(cfg: XArmArm.Config, axes: int) -> None:
+    with XArmArm(cfg) as drv:
+        assert drv.info().model == f"xArm {axes}"
+        start = drv.get_pose()
+        target = Pose(start.rotation, start.translation + np.array([0.02, -0.03, -0.05]))
+        drv.move_linear(target, speed=0.2, acceleration=2.0, timeout=10.0)
+        assert drv.get_pose().distance_to(target) < 1e-3
+
+
+@pytest.mark.parametrize(("axes", "tcp"), [(5, False), (7, False), (5, True)], ids=["pty-5", "pty-7", "tcp-5"])
+def test_module_prints_where_it_serves_and_serves(axes: int, tcp: bool) -> None:
+    extra = ["--tcp-port", "0", "--report-port", "0"] if tcp else []
+    proc = subprocess.Popen([sys.executable, "-m", "cellcal.sims.xarm", "--axes", str(axes), "--time-scale", "0",
+                             *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        path = _first_line(proc, 30.0)
-        assert path.startswith("/dev/pts/") or path.startswith("/dev/tty")
-        with XArmArm(XArmArm.Config(port=path, axes=axes)) as drv:  # type: ignore[arg-type]
-            assert drv.info().model == f"xArm {axes}"
-            start = drv.get_pose()
-            target = Pose(start.rotation, start.translation + np.array([0.02, -0.03, -0.05]))
-            drv.move_linear(target, speed=0.2, acceleration=2.0, timeout=10.0)
-            assert drv.get_pose().distance_to(target) < 1e-3
+        line = _first_line(proc, 30.0)
+        if tcp:  # "ready 127.0.0.1 tcp=P report=Q" once both ports listen
+            assert line.startswith("ready 127.0.0.1 ")
+            ports = dict(w.split("=") for w in line.split()[2:])
+            cfg = XArmArm.Config(host="127.0.0.1", tcp_port=int(ports["tcp"]), report_port=int(ports["report"]),
+                                 axes=axes)  # type: ignore[arg-type]
+        else:
+            assert line.startswith("/dev/pts/") or line.startswith("/dev/tty")
+            cfg = XArmArm.Config(port=line, axes=axes)  # type: ignore[arg-type]
+        _moves_where_told(cfg, axes)
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -50,4 +62,4 @@ def test_module_prints_pty_path_and_serves(axes: int) -> None:
             proc.communicate()
             raise
     assert proc.returncode == 0, err
-    assert out.strip() == ""  # nothing after the path on stdout
+    assert out.strip() == ""  # nothing after the first line on stdout

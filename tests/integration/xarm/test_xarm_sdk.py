@@ -13,11 +13,11 @@ from __future__ import annotations
 import math
 import os
 import threading
-from collections.abc import Callable, Iterator
-from typing import Any
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from xarm_wire_helpers import bounded_call, sdk_refuses_an_out_of_workspace_move
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.pose import Pose
@@ -27,25 +27,6 @@ from cellcal.sims.arm import SimArm, SimArmConfig
 from cellcal.sims.xarm.emulator import XArmEmulator
 
 xarm_wrapper = pytest.importorskip("xarm.wrapper")
-
-
-def _bounded(fn: Callable[[], Any], timeout: float) -> Any:
-    """Run ``fn`` in a thread; fail the test instead of hanging if it does not return in time."""
-    out: dict[str, Any] = {}
-
-    def run() -> None:
-        try:
-            out["value"] = fn()
-        except BaseException as exc:  # re-raised in the caller
-            out["error"] = exc
-
-    t = threading.Thread(target=run, name="sdk-call", daemon=True)
-    t.start()
-    t.join(timeout)
-    assert not t.is_alive(), f"SDK call did not return within {timeout} s"
-    if "error" in out:
-        raise out["error"]
-    return out.get("value")
 
 
 @pytest.fixture(params=[(2, 5, 0), (1, 10, 0)], ids=["fw2.5.0-common-move-line", "fw1.10.0-legacy-move-line"])
@@ -68,7 +49,7 @@ def emulator(request: pytest.FixtureRequest) -> Iterator[tuple[SimArm, XArmEmula
 def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
         emulator: tuple[SimArm, XArmEmulator]) -> None:
     sim, emu = emulator
-    sdk = _bounded(lambda: xarm_wrapper.XArmAPI(emu.path, is_radian=True), 10.0)
+    sdk = bounded_call(lambda: xarm_wrapper.XArmAPI(emu.path, is_radian=True), 10.0)
     try:
         assert sdk.connected
         code, version = sdk.get_version()
@@ -82,12 +63,12 @@ def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
         assert sdk.motion_enable(enable=True) == 0
         assert sdk.set_mode(0) == 0
         assert sdk.set_state(0) == 0
-        assert _bounded(lambda: sdk.get_state(), 5.0) == (0, 2)
+        assert bounded_call(lambda: sdk.get_state(), 5.0) == (0, 2)
         sdk._arm._is_sync = True  # see the module docstring
 
         target_mm_rad = [320.0, -60.0, 380.0, math.pi - 0.2, 0.1, 0.4]
-        code = _bounded(lambda: sdk.set_position(*target_mm_rad, speed=200, mvacc=2000, is_radian=True,
-                                                 wait=True, timeout=20), 30.0)
+        code = bounded_call(lambda: sdk.set_position(*target_mm_rad, speed=200, mvacc=2000, is_radian=True,
+                                                     wait=True, timeout=20), 30.0)
         assert code == 0
         assert emu.requests[Reg.MOVE_LINE] == 1
         assert emu.last_move is not None and emu.last_move.common == (emu.firmware >= (1, 11, 100))
@@ -97,7 +78,7 @@ def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
         assert code == 0
         assert sdk.get_err_warn_code()[1] == [0, 0]
     finally:
-        _bounded(sdk.disconnect, 10.0)
+        bounded_call(sdk.disconnect, 10.0)
     assert not sdk.connected
 
     target = Pose.from_xyz_rpy(np.asarray(target_mm_rad[:3]) / 1000.0, target_mm_rad[3:])
@@ -113,19 +94,12 @@ def test_official_sdk_reads_moves_and_agrees_with_the_cellcal_driver(
 
 def test_official_sdk_sees_an_out_of_workspace_error(emulator: tuple[SimArm, XArmEmulator]) -> None:
     sim, emu = emulator
-    sdk = _bounded(lambda: xarm_wrapper.XArmAPI(emu.path, is_radian=True), 10.0)
+    sdk = bounded_call(lambda: xarm_wrapper.XArmAPI(emu.path, is_radian=True), 10.0)
     try:
         sdk.motion_enable(enable=True)
         sdk.set_mode(0)
         sdk.set_state(0)
         sdk._arm._is_sync = True  # see the module docstring
-        start = sim.true_flange_pose()
-        code = _bounded(lambda: sdk.set_position(1500, 0, 300, math.pi, 0, 0, speed=200, mvacc=2000,
-                                                 is_radian=True, wait=True, timeout=10), 20.0)
-        assert code != 0
-        assert sdk.get_err_warn_code()[1][0] == 21
-        assert sim.true_flange_pose().distance_to(start) == 0.0
-        assert sdk.clean_error() == 0
-        assert sdk.get_err_warn_code()[1][0] == 0
+        sdk_refuses_an_out_of_workspace_move(sdk, sim)
     finally:
-        _bounded(sdk.disconnect, 10.0)
+        bounded_call(sdk.disconnect, 10.0)
