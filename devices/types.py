@@ -14,9 +14,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import CalibrationError
+from .errors import CalibrationError, FrameError
 from .jsonsafe import json_safe
 
+#: Lens models of :class:`Intrinsics`: OpenCV's pinhole + Brown–Conrady, and OpenCV's fisheye.
+LENS_MODELS = ("brown", "fisheye")
+#: Coefficients a fisheye model leaves at 0.
+_NOT_FISHEYE = ("p1", "p2", "k5", "k6", "s1", "s2", "s3", "s4")
 #: Order of the OpenCV distortion vector (14 terms; tauX/tauY unsupported and always 0).
 OPENCV_DISTORTION_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4")
 
@@ -36,6 +40,12 @@ class Intrinsics:
         k4, k5, k6: Rational radial denominators (OpenCV rational model), usually 0.
         p1, p2: Decentering (tangential) coefficients.
         s1, s2, s3, s4: Thin-prism coefficients.
+        model: ``"brown"`` (the above, OpenCV's ``calib3d`` model) or ``"fisheye"``
+            (OpenCV's ``cv2.fisheye`` / Kannala–Brandt model: ``theta_d = theta (1 + k1 theta^2
+            + k2 theta^4 + k3 theta^6 + k4 theta^8)``, only k1..k4 used; wide-angle heads
+            such as the O3R225). Project and back-project through
+            :mod:`cellcal.devices.geometry.camera_model`, which handles both; :attr:`distortion`
+            is the Brown vector only.
     """
 
     width: int
@@ -56,9 +66,16 @@ class Intrinsics:
     s2: float = 0.0
     s3: float = 0.0
     s4: float = 0.0
+    model: str = "brown"
 
     def __post_init__(self) -> None:
+        if self.model not in LENS_MODELS:
+            raise CalibrationError(f"Intrinsics.model must be one of {', '.join(LENS_MODELS)}, got {self.model!r}")
+        if self.model == "fisheye" and any(getattr(self, n) != 0 for n in _NOT_FISHEYE):
+            raise CalibrationError("fisheye intrinsics use only k1..k4; p1, p2, k5, k6, s1..s4 must be 0")
         for f in fields(self):
+            if f.name == "model":
+                continue
             value = getattr(self, f.name)
             if f.name in ("width", "height"):
                 if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
@@ -114,9 +131,9 @@ class Intrinsics:
         coeffs = dict(zip(OPENCV_DISTORTION_ORDER, d[:12].tolist(), strict=False))
         return cls(width=width, height=height, fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], **coeffs)
 
-    def to_dict(self) -> dict[str, float | int]:
-        """JSON-friendly dict of all fields."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+    def to_dict(self) -> dict[str, float | int | str]:
+        """JSON-friendly dict of all fields (``model`` only when it is not the default ``"brown"``)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "model" or self.model != "brown"}
 
 
 @dataclass(frozen=True)
@@ -166,6 +183,8 @@ class Frame:
         timestamp: Acquisition time, seconds since the Unix epoch.
         sequence: Frame counter from the device (monotonic per stream).
         confidence: Raw vendor confidence / status image, if the device sends one.
+        metadata: Per-frame vendor facts, JSON data only (e.g. the device's own clock
+            reading ``device_timestamp_s``, an O3R's measurement block in a cycling mode).
     """
 
     distance: NDArray[np.float32]
@@ -176,6 +195,7 @@ class Frame:
     timestamp: float
     sequence: int
     confidence: NDArray[Any] | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         h, w = self.intrinsics.height, self.intrinsics.width
@@ -188,11 +208,11 @@ class Frame:
         for name, arr, shape, dtype in checks:
             if not isinstance(arr, np.ndarray) or arr.shape != shape or arr.dtype != dtype:
                 got = (getattr(arr, "shape", None), getattr(arr, "dtype", type(arr).__name__))
-                raise CalibrationError(
+                raise FrameError(
                     f"Frame.{name} must be {np.dtype(dtype).name} of shape {shape}, got {got}"
                 )
         if self.confidence is not None and self.confidence.shape != (h, w):
-            raise CalibrationError(f"Frame.confidence must have shape {(h, w)}, got {self.confidence.shape}")
+            raise FrameError(f"Frame.confidence must have shape {(h, w)}, got {self.confidence.shape}")
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -56,6 +56,48 @@ def _as_points(values: ArrayLike, dim: int, what: str) -> FloatArray:
     return arr
 
 
+#: OpenCV's lengths of a distortion vector, shortest first.
+_OPENCV_DISTORTION_LENGTHS = (4, 5, 8, 12)
+#: Points per ``cv2.projectPoints`` call: its Python binding always forms the Jacobian
+#: (2 rows per point, 14-22 columns), which this bounds to a few MB.
+_PROJECT_CHUNK = 1 << 15
+
+
+def _short_distortion(intr: Intrinsics) -> FloatArray:
+    """The distortion vector without its trailing zero terms (OpenCV's shortest valid length).
+
+    Same pixels, and ``projectPoints`` forms 14 or 15 Jacobian columns instead of 22.
+    """
+    dist = intr.distortion
+    nonzero = np.flatnonzero(dist)
+    needed = int(nonzero[-1]) + 1 if nonzero.size else 0
+    length = next(n for n in _OPENCV_DISTORTION_LENGTHS if n >= needed)
+    return dist[:length]
+
+
+def _fisheye_coefficients(intr: Intrinsics) -> FloatArray:
+    """OpenCV's fisheye distortion vector ``(k1, k2, k3, k4)``."""
+    return np.array([intr.k1, intr.k2, intr.k3, intr.k4], dtype=np.float64)
+
+
+def _project_fisheye(intr: Intrinsics, xy: FloatArray, *, jacobian: bool = False
+                     ) -> tuple[FloatArray, FloatArray | None]:
+    """:func:`_project_normalized` for the fisheye model, with ``cv2.fisheye.projectPoints``.
+
+    Its Jacobian columns are (fx, fy, cx, cy, k1..k4, rvec, tvec, skew): with zero rvec/tvec
+    the derivative with respect to tvec's x and y (columns 11, 12) is d(u, v)/d(x, y).
+    """
+    n = xy.shape[0]
+    obj = np.empty((n, 1, 3), dtype=np.float64)
+    obj[:, 0, :2] = xy
+    obj[:, 0, 2] = 1.0
+    uv, jac = cv2.fisheye.projectPoints(obj, _ZERO3, _ZERO3, intr.camera_matrix, _fisheye_coefficients(intr))
+    pixels = np.asarray(uv, dtype=np.float64).reshape(n, 2)
+    if not jacobian:
+        return pixels, None
+    return pixels, np.asarray(jac, dtype=np.float64).reshape(n, 2, -1)[:, :, 11:13]
+
+
 def _project_normalized(intr: Intrinsics, xy: FloatArray, *, jacobian: bool = False
                         ) -> tuple[FloatArray, FloatArray | None]:
     """Project normalized undistorted coordinates (x/z, y/z) to pixels with OpenCV.
@@ -64,16 +106,22 @@ def _project_normalized(intr: Intrinsics, xy: FloatArray, *, jacobian: bool = Fa
     With zero rvec/tvec the Jacobian with respect to tvec's x and y equals the
     derivative with respect to the point's x and y (the point has z = 1).
     """
+    if intr.model == "fisheye":
+        return _project_fisheye(intr, xy, jacobian=jacobian)
     n = xy.shape[0]
-    obj = np.empty((n, 1, 3), dtype=np.float64)
-    obj[:, 0, :2] = xy
-    obj[:, 0, 2] = 1.0
-    uv, jac = cv2.projectPoints(obj, _ZERO3, _ZERO3, intr.camera_matrix, intr.distortion)
-    pixels = uv.reshape(n, 2).astype(np.float64)
-    if not jacobian:
-        return pixels, None
-    j = np.asarray(jac, dtype=np.float64).reshape(n, 2, -1)[:, :, 3:5]
-    return pixels, j
+    dist = _short_distortion(intr)
+    pixels = np.empty((n, 2), dtype=np.float64)
+    jac_xy = np.empty((n, 2, 2), dtype=np.float64) if jacobian else None
+    for lo in range(0, n, _PROJECT_CHUNK):  # chunks bound the Jacobian OpenCV forms anyway
+        hi = min(n, lo + _PROJECT_CHUNK)
+        obj = np.empty((hi - lo, 1, 3), dtype=np.float64)
+        obj[:, 0, :2] = xy[lo:hi]
+        obj[:, 0, 2] = 1.0
+        uv, jac = cv2.projectPoints(obj, _ZERO3, _ZERO3, intr.camera_matrix, dist)
+        pixels[lo:hi] = uv.reshape(hi - lo, 2)
+        if jac_xy is not None:
+            jac_xy[lo:hi] = np.asarray(jac, dtype=np.float64).reshape(hi - lo, 2, -1)[:, :, 3:5]
+    return pixels, jac_xy
 
 
 def normalized_to_pixels(intrinsics: Intrinsics, xy: ArrayLike) -> FloatArray:
@@ -115,6 +163,8 @@ def project(intrinsics: Intrinsics, points_cam: ArrayLike) -> FloatArray:
         raise CalibrationError(
             f"{int(behind.sum())} point(s) have z <= 0 and cannot be projected "
             f"(first: row {first}, z={pts[first, 2]:.6g} m)")
+    if intrinsics.model == "fisheye":
+        return _project_fisheye(intrinsics, pts[:, :2] / pts[:, 2:3])[0]
     uv, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), _ZERO3, _ZERO3,
                               intrinsics.camera_matrix, intrinsics.distortion)
     out: FloatArray = uv.reshape(-1, 2).astype(np.float64)
@@ -127,30 +177,41 @@ def _undistort(intr: Intrinsics, uv: FloatArray, iterations: int = 6
 
     The lens model is pinhole with Brown–Conrady radial / decentering / thin-prism
     distortion and the rational radial terms, evaluated with OpenCV
-    (``cv2.projectPoints``). Its inverse seeds with ``cv2.undistortPoints``
-    (fixed-point iteration) and polishes with a few vectorised Newton steps using
+    (``cv2.projectPoints``). Its inverse seeds with ``cv2.undistortPointsIter``
+    (fixed-point iteration to 1e-12 px), checks every pixel with one projection and
+    polishes only the pixels above 1e-10 px with a few vectorised Newton steps using
     OpenCV's Jacobian of ``projectPoints``, so that ``project(pixel_rays(uv)) == uv`` to
     well below 1e-6 px.
     """
-    if not intr.has_distortion:
+    if not intr.has_distortion and intr.model == "brown":
         xy = np.column_stack(((uv[:, 0] - intr.cx) / intr.fx, (uv[:, 1] - intr.cy) / intr.fy))
         return xy, np.zeros(uv.shape[0])
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
     src = uv.reshape(-1, 1, 2)
     iterate = getattr(cv2, "undistortPointsIter", None)  # OpenCV 4.x name; 5.x folds it in
-    if iterate is not None:
+    if intr.model == "fisheye":  # OpenCV's fisheye inverse seeds; the check and Newton polish below are shared
+        seed = cv2.fisheye.undistortPoints(src, intr.camera_matrix, _fisheye_coefficients(intr), criteria=criteria)
+    elif iterate is not None:
         seed = iterate(src, intr.camera_matrix, intr.distortion, None, None, criteria)
     else:
-        seed = cv2.undistortPoints(src, intr.camera_matrix, intr.distortion, None, None, None,
-                                   criteria)
+        seed = cv2.undistortPoints(src, intr.camera_matrix, intr.distortion, None, None, None,  # type: ignore[call-overload]
+                                   criteria)  # OpenCV 5's signature; 4.x's stubs do not know it
     xy = np.asarray(seed, dtype=np.float64).reshape(-1, 2)
-    resid = np.full(uv.shape[0], np.inf)
+    proj, _ = _project_normalized(intr, xy)     # one check of every pixel
+    resid = np.hypot(proj[:, 0] - uv[:, 0], proj[:, 1] - uv[:, 1])
+    todo = ~(resid < 1e-10)                      # the seed did not converge there (or NaN)
+    if np.any(todo):
+        xy[todo], resid[todo] = _newton(intr, uv[todo], xy[todo], iterations)
+    return xy, resid
+
+
+def _newton(intr: Intrinsics, uv: FloatArray, xy: FloatArray, iterations: int) -> tuple[FloatArray, FloatArray]:
+    """Newton steps on OpenCV's projection and its Jacobian; (xy, final pixel residual)."""
     for _ in range(iterations):
         proj, jac = _project_normalized(intr, xy, jacobian=True)
         assert jac is not None
         err = proj - uv
-        resid = np.hypot(err[:, 0], err[:, 1])
-        if np.all(resid < 1e-10):
+        if np.all(np.hypot(err[:, 0], err[:, 1]) < 1e-10):
             break
         det = jac[:, 0, 0] * jac[:, 1, 1] - jac[:, 0, 1] * jac[:, 1, 0]
         ok = np.abs(det) > 1e-300
@@ -161,8 +222,7 @@ def _undistort(intr: Intrinsics, uv: FloatArray, iterations: int = 6
         xy = xy - step
     proj, _ = _project_normalized(intr, xy)
     err = proj - uv
-    resid = np.hypot(err[:, 0], err[:, 1])
-    return xy, resid
+    return xy, np.hypot(err[:, 0], err[:, 1])
 
 
 def pixels_to_normalized(intrinsics: Intrinsics, uv: ArrayLike) -> FloatArray:

@@ -48,6 +48,12 @@ class O3RConfig:
         "ge": 4096, "le": 256 * 1024 * 1024, "doc": "cap on one XML-RPC reply, bytes"})
     xyz_frame: Literal["optical", "user"] = field(default="optical",
                                                   metadata={"doc": "XYZ in the optical frame or ifm's user frame"})
+    set_timeout_s: float = field(default=15.0, metadata={"ge": 1.0, "le": 600.0,
+                                                         "doc": "timeout of one XML-RPC set (state changes), s"})
+    first_frame_timeout_s: float = field(default=10.0, metadata={
+        "ge": 0.01, "le": 600.0, "doc": "longest wait for the first frame after a state change, s"})
+    clock_tolerance_s: float = field(default=30.0, metadata={
+        "ge": 0.001, "le": 1e9, "doc": "device clock this far from host time is not Unix time (receive time used), s"})
 
     def __post_init__(self) -> None:
         if not self.port and self.pcic_port == 0:
@@ -63,11 +69,19 @@ class O3RCamera(Camera3D):
     """ifm O3R 3D head over PCIC/TCP.
 
     On connect the port's PCIC TCP port, type and state are read over XML-RPC; the
-    port must be a 3D port and not in CONF. ``trigger = "free_run"`` wants the port in
-    RUN (``capture`` returns the newest frame received after the previous capture,
-    never one older than the timeout); ``"software"`` wants IDLE (``capture`` sends one
-    PCIC ``t`` and returns exactly the frame it produced). With ``set_state = true``
-    the driver switches a port between RUN and IDLE itself.
+    port must be a 3D port. ``trigger = "free_run"`` wants the port in RUN (``capture``
+    returns the newest frame received after the previous capture, never one older than
+    the timeout); ``"software"`` wants IDLE (``capture`` sends one PCIC ``t`` and
+    returns exactly the frame it produced). With ``set_state = true`` the driver
+    switches a port in RUN, IDLE or CONF to the state it needs itself (as ifm's own
+    examples do); the ``set`` has its own timeout (``set_timeout_s``, 15 s as in ifm3d:
+    a VPU answers only once the head has changed state) and the first frame after it is
+    awaited for up to ``first_frame_timeout_s``.
+
+    Time: ``Frame.timestamp`` is the device's time when its clock is Unix time (SNTP set
+    up on the VPU), else the receive time; ``Frame.metadata`` keeps the device time and
+    the TOF_INFO facts of the frame (version, mode, the measurement block and its range
+    in a cycling mode), see :class:`~.decode.FrameDecoder`.
 
     XYZ: the model-0 (or fisheye 2) unit vectors of TOF_INFO times the radial
     distance, in the camera optical frame (``xyz_frame = "optical"``, what
@@ -88,7 +102,9 @@ class O3RCamera(Camera3D):
         self.default_timeout_s = max(2.0, self.config.io_timeout_s)
         self._rpc: O3RConfigClient | None = None
         self._stream: PcicStream | None = None
-        self._decoder = FrameDecoder(apply_extrinsic=self.config.xyz_frame == "user")
+        self._decoder = FrameDecoder(apply_extrinsic=self.config.xyz_frame == "user",
+                                     clock_tolerance_s=self.config.clock_tolerance_s)
+        self._state_changed = False
         self._port_info: PortInfo | None = None
         self._firmware = ""
         self._last_mono = 0.0
@@ -114,7 +130,8 @@ class O3RCamera(Camera3D):
     def _set_up_port(self, deadline: float) -> PortInfo:
         """Read (and check) the port's configuration, switch its state if needed; all before ``deadline``."""
         cfg = self.config
-        rpc = O3RConfigClient(cfg.host, cfg.xmlrpc_port, cfg.io_timeout_s, cfg.max_rpc_reply_bytes)
+        rpc = O3RConfigClient(cfg.host, cfg.xmlrpc_port, cfg.io_timeout_s, cfg.max_rpc_reply_bytes,
+                              set_timeout_s=cfg.set_timeout_s)
         info = rpc.port_info(cfg.port, timeout=deadline - time.monotonic())
         if info.type != "3D":
             raise ConfigError(f"O3R {cfg.host} {cfg.port} is a {info.type} port; the o3r backend needs a 3D port",
@@ -122,15 +139,15 @@ class O3RCamera(Camera3D):
         if not cfg.pcic_port and info.pcic_port == cfg.xmlrpc_port:
             raise ProtocolError(f"O3R {cfg.host}: /ports/{cfg.port}/data/pcicTCPPort is {info.pcic_port}, the "
                                 f"XML-RPC port; it does not answer as PCIC")
-        if info.state == "CONF":
-            raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in state CONF (sends no data); "
-                                        f"set it to RUN or IDLE")
         want = "RUN" if cfg.trigger == "free_run" else "IDLE"
         if info.state != want:
             if not cfg.set_state:
-                raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in {info.state}, trigger "
+                why = " (sends no data)" if info.state == "CONF" else ""
+                raise DeviceConnectionError(f"O3R {cfg.host} {cfg.port} is in {info.state}{why}, trigger "
                                             f"'{cfg.trigger}' needs {want} (or set_state = true)")
-            rpc.set_state(cfg.port, want, timeout=deadline - time.monotonic())
+            # the set has its own, longer timeout: the VPU answers once the head has switched
+            rpc.set_state(cfg.port, want, timeout=cfg.set_timeout_s)
+            self._state_changed = True
         self._port_info = info
         self._firmware = rpc.firmware(timeout=deadline - time.monotonic())
         self._rpc = rpc
@@ -154,11 +171,14 @@ class O3RCamera(Camera3D):
     def _capture(self, timeout: float) -> Frame:
         stream = self._stream
         assert stream is not None
+        if self._state_changed:  # a head just switched state: its first frame takes a while
+            timeout = max(timeout, self.config.first_frame_timeout_s)
         if self.config.trigger == "software":
             raw = stream.trigger(timeout)
         else:
             raw = stream.next_frame(timeout, self._last_mono)
         self._last_mono = raw.received_mono
+        self._state_changed = False
         decoded = self._decoder.decode(raw.payload, raw.chunks, offset=raw.offset, received_at=raw.received_epoch)
         self._last_info = decoded.tof_info
         self._last_intr = decoded.frame.intrinsics

@@ -7,8 +7,11 @@ float32 outputs. Unit vectors are cached per (model, image size).
 
 from __future__ import annotations
 
+import logging
+import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +33,12 @@ from .tofinfo import TofInfo, intrinsics_from_models, optic_to_user, parse_tof_i
 
 #: Confidence bit marking an invalid pixel.
 CONF_INVALID_BIT = 1
+#: Confidence pixel formats ifm devices send: 8U (older firmware) and 16U.
+CONFIDENCE_FORMATS = (0, 2)
+#: Default largest |device clock - receive time| still taken as Unix time, seconds.
+DEFAULT_CLOCK_TOLERANCE_S = 30.0
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -51,14 +60,23 @@ class DecodedFrame:
 class FrameDecoder:
     """Turns validated image payloads into frames; caches unit vectors.
 
+    Time: a VPU without SNTP stamps frames with its own clock (time since boot, or
+    whatever it was set to), not Unix time. When a frame's device time is more than
+    ``clock_tolerance_s`` from its receive time, ``Frame.timestamp`` is the receive
+    time; the device time is always kept in ``Frame.metadata["device_timestamp_s"]``
+    and the choice in ``metadata["timestamp_source"]`` (logged once per decoder).
+
     Args:
         apply_extrinsic: If True, XYZ is transformed by extrinsicOpticToUser (ifm's
             user frame, what ifm3d's XYZ buffer holds); if False (default) XYZ stays in
             the camera optical frame, which is what :class:`Frame` documents.
+        clock_tolerance_s: Largest device-vs-receive clock difference taken as Unix time, s.
     """
 
-    def __init__(self, apply_extrinsic: bool = False) -> None:
+    def __init__(self, apply_extrinsic: bool = False, clock_tolerance_s: float = DEFAULT_CLOCK_TOLERANCE_S) -> None:
         self.apply_extrinsic = apply_extrinsic
+        self.clock_tolerance_s = clock_tolerance_s
+        self._clock_logged = False
         self._uv_key: tuple[object, ...] | None = None
         self._uv: NDArray[np.float32] | None = None
         self._intr_key: tuple[object, ...] | None = None
@@ -91,7 +109,8 @@ class FrameDecoder:
             payload: The whole payload.
             chunks: Its chunk list from :func:`walk_chunks` (computed if None).
             offset: Stream offset of ``payload[0]`` for error messages.
-            received_at: Epoch seconds used when the chunks carry no timestamp.
+            received_at: Receive time, epoch seconds: the frame time when the chunks carry
+                no timestamp or the device clock is not Unix time (None: now).
 
         Raises:
             ProtocolError: Missing distance or TOF_INFO chunk, mismatching image sizes (TOF_INFO header included),
@@ -106,14 +125,33 @@ class FrameDecoder:
         amplitude = self._amplitude_image(payload, by_type.get(CHUNK_NORM_AMPLITUDE), info, (h, w), offset)
         intr = self.intrinsics(info, w, h)
         xyz = self._xyz(info, distance)
+        timestamp, meta = self._timestamp(dist_c, received_at)
+        meta.update(_info_metadata(info, conf))
         frame = Frame(distance=distance, xyz=xyz, amplitude=amplitude, valid=valid,
-                      intrinsics=intr, timestamp=_timestamp_s(dist_c, received_at),
-                      sequence=int(dist_c.frame_count), confidence=conf)
+                      intrinsics=intr, timestamp=timestamp, sequence=int(dist_c.frame_count), confidence=conf,
+                      metadata=meta)
         return DecodedFrame(frame, info, int(dist_c.frame_count))
+
+    def _timestamp(self, dist_c: Chunk, received_at: float | None) -> tuple[float, dict[str, Any]]:
+        """Frame time (epoch seconds) and the clock metadata: device time if it is Unix time, else receive time."""
+        received = time.time() if received_at is None else float(received_at)
+        ts_ns = dist_c.timestamp_ns or (dist_c.timestamp_us * 1000)  # v1 headers carry only microseconds
+        if not ts_ns:  # the chunks carry no time at all
+            return received, {"timestamp_source": "receive", "device_timestamp_s": None}
+        device = ts_ns / 1e9
+        offset = device - received
+        if abs(offset) <= self.clock_tolerance_s:
+            return device, {"timestamp_source": "device", "device_timestamp_s": device}
+        if not self._clock_logged:
+            self._clock_logged = True
+            _log.warning("O3R clock reads %.3f s, %.0f s from this host's clock: not Unix time (set up SNTP on "
+                         "the VPU, /device/clock/sntp); frames are stamped with their receive time, the device "
+                         "time is kept in Frame.metadata['device_timestamp_s']", device, offset)
+        return received, {"timestamp_source": "receive", "device_timestamp_s": device}
 
     def _distance(self, payload: bytes | bytearray | memoryview, by_type: dict[int, Chunk], dist_c: Chunk,
                   info: TofInfo, offset: int
-                  ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.uint16] | None]:
+                  ) -> tuple[NDArray[np.float32], NDArray[np.bool_], NDArray[np.unsignedinteger[Any]] | None]:
         """Radial distance (metres, float32, NaN where invalid), validity and the raw confidence image.
 
         A pixel is invalid where its raw distance is 0 (no measurement) or, if the
@@ -129,12 +167,14 @@ class FrameDecoder:
         distance = np.multiply(raw, np.float32(info.distance_resolution_m), dtype=np.float32)
         # raw 0 = no measurement
         invalid = raw == 0
-        conf: NDArray[np.uint16] | None = None
+        conf: NDArray[np.unsignedinteger[Any]] | None = None
         conf_c = by_type.get(CHUNK_CONFIDENCE)
         if conf_c is not None:
-            conf = image_view(payload, conf_c, offset=offset, expect_format=(2,))  # type: ignore[assignment]
-            self._check_shape(conf_c, conf, (h, w), offset)  # type: ignore[arg-type]
+            # 8-bit (older firmware) or 16-bit confidence, kept as sent
+            conf = image_view(payload, conf_c, offset=offset,  # type: ignore[assignment]
+                              expect_format=CONFIDENCE_FORMATS)
             assert conf is not None
+            self._check_shape(conf_c, conf, (h, w), offset)
             # the confidence's invalid bit also marks a pixel invalid
             invalid |= (conf & CONF_INVALID_BIT) != 0
         # invalid pixels read NaN metres
@@ -204,9 +244,13 @@ def _required_chunks(chunks: list[Chunk], offset: int) -> tuple[dict[int, Chunk]
     return by_type, dist_c, info_c
 
 
-def _timestamp_s(dist_c: Chunk, received_at: float | None) -> float:
-    """Frame time, epoch seconds: the distance chunk's timestamp, else ``received_at``, else now."""
-    ts_ns = dist_c.timestamp_ns
-    # chunk timestamps are nanoseconds; 0 means the chunk carries none
-    timestamp = ts_ns / 1e9 if ts_ns else (received_at if received_at is not None else time.time())
-    return float(timestamp)
+def _info_metadata(info: TofInfo, conf: NDArray[np.unsignedinteger[Any]] | None) -> dict[str, Any]:
+    """The TOF_INFO facts a caller needs per frame (JSON data; NaN ranges as None)."""
+    def finite(v: float) -> float | None:
+        return v if math.isfinite(v) else None
+
+    return {"tof_info_version": info.version, "mode": info.mode, "imager": info.imager,
+            "measurement_block_index": info.measurement_block_index,
+            "measurement_range_min_m": finite(info.measurement_range_min_m),
+            "measurement_range_max_m": finite(info.measurement_range_max_m),
+            "confidence_bits": None if conf is None else 8 * conf.dtype.itemsize}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +30,7 @@ _HEAD = struct.Struct("<I2f3f6f")            # version, dist res, ampl res, 3 no
 _MODEL = struct.Struct("<I32f")
 _V2 = struct.Struct("<3Q3f")
 _V3 = struct.Struct("<f32s32s")
+_V4 = struct.Struct("<I2f")                  # measurement block index, range min / max (m)
 #: Largest plausible distance resolution, metres per count (65535 counts -> 655 m).
 MAX_DISTANCE_RESOLUTION_M = 0.01
 #: Largest plausible amplitude scale (keeps ``(a - 1)^2 x resolution`` finite in float32).
@@ -37,6 +39,9 @@ MAX_AMPLITUDE_RESOLUTION = 1e6
 MIN_SIZE_V1 = _HEAD.size + 2 * _MODEL.size               # 312
 MIN_SIZE_V2 = MIN_SIZE_V1 + _V2.size                     # 348
 MIN_SIZE_V3 = MIN_SIZE_V2 + _V3.size                     # 416
+MIN_SIZE_V4 = MIN_SIZE_V3 + _V4.size                     # 428
+#: Newest TOF_INFO version whose layout is known; later versions are read as this one.
+KNOWN_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -69,7 +74,7 @@ class TofInfo:
     """Decoded TOF_INFO.
 
     Attributes:
-        version: Structure version (1..3 understood; later versions are read as v3).
+        version: Structure version (1..4 understood; later versions are read as v4).
         distance_resolution_m: Metres per distance count.
         amplitude_resolution: Amplitude scale (``a² x`` this).
         amp_norm_factors: Three amplitude normalisation factors.
@@ -81,6 +86,10 @@ class TofInfo:
         illumination_temperature_c: Illumination temperature, °C (v3+), else NaN.
         mode: Imager mode name (v3+).
         imager: Imager name (v3+).
+        measurement_block_index: Sub-mode of a cycling mode (e.g. ``cyclic_4m_2m_4m_2m``)
+            this frame was measured in, 0..N-1; always 0 in non-cycling modes and before v4.
+        measurement_range_min_m, measurement_range_max_m: Measurement range of that
+            block, metres (v4+; NaN before).
     """
 
     version: int
@@ -95,6 +104,9 @@ class TofInfo:
     illumination_temperature_c: float = float("nan")
     mode: str = ""
     imager: str = ""
+    measurement_block_index: int = 0
+    measurement_range_min_m: float = float("nan")
+    measurement_range_max_m: float = float("nan")
 
 
 def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> TofInfo:
@@ -105,8 +117,9 @@ def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> 
     normalisation f32, extrinsicOpticToUser (transX/Y/Z m, rotX/Y/Z rad; 6 f32),
     intrinsic calibration (model id u32 + 32 f32), inverse intrinsic calibration (same),
     then for version >= 2 three exposure timestamps (u64 ns) and three exposure times
-    (f32 s), and for version >= 3 the illumination temperature (f32), mode and imager
-    names (32 chars each).
+    (f32 s), for version >= 3 the illumination temperature (f32), mode and imager
+    names (32 chars each), and for version >= 4 the measurement block index (u32) and
+    the block's measurement range min / max (f32, m). Later versions are read as 4.
 
     Args:
         data: The chunk's data bytes (after its header).
@@ -123,7 +136,7 @@ def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> 
     version = head[0]
     if version == 0:
         raise ProtocolError("TOF_INFO version 0 is not defined", offset=offset)
-    need = MIN_SIZE_V1 if version == 1 else MIN_SIZE_V2 if version == 2 else MIN_SIZE_V3
+    need = (MIN_SIZE_V1, MIN_SIZE_V2, MIN_SIZE_V3, MIN_SIZE_V4)[min(version, KNOWN_VERSION) - 1]
     if len(mv) < need:
         raise ProtocolError(f"TOF_INFO version {version} needs {need} bytes, got {len(mv)}", offset=offset)
     dist_res = float(head[1])
@@ -134,28 +147,48 @@ def parse_tof_info(data: bytes | bytearray | memoryview, *, offset: int = 0) -> 
     if not (np.isfinite(amp_res) and 0 <= amp_res <= MAX_AMPLITUDE_RESOLUTION):
         raise ProtocolError(f"TOF_INFO amplitudeResolution {amp_res!r} is not in [0, {MAX_AMPLITUDE_RESOLUTION:g}]",
                             offset=offset + 8)
-    m0 = _MODEL.unpack_from(mv, _HEAD.size)
-    m1 = _MODEL.unpack_from(mv, _HEAD.size + _MODEL.size)
-    ts: tuple[int, ...] = ()
-    et: tuple[float, ...] = ()
-    temp = float("nan")
-    mode = imager = ""
-    if version >= 2:
-        v2 = _V2.unpack_from(mv, MIN_SIZE_V1)
-        ts, et = tuple(int(x) for x in v2[:3]), tuple(float(x) for x in v2[3:])
-    if version >= 3:
-        t, mraw, iraw = _V3.unpack_from(mv, MIN_SIZE_V2)
-        temp = float(t)
-        mode = mraw.split(b"\0", 1)[0].decode("ascii", "replace")
-        imager = iraw.split(b"\0", 1)[0].decode("ascii", "replace")
+    intrinsic, inverse = _models(mv)
     return TofInfo(
         version=version, distance_resolution_m=dist_res, amplitude_resolution=amp_res,
         amp_norm_factors=(float(head[3]), float(head[4]), float(head[5])),
         extrinsic_optic_to_user=tuple(float(x) for x in head[6:12]),  # type: ignore[arg-type]
-        intrinsic=IntrinsicModel(int(m0[0]), tuple(float(x) for x in m0[1:])),
-        inverse_intrinsic=IntrinsicModel(int(m1[0]), tuple(float(x) for x in m1[1:])),
-        exposure_timestamps_ns=ts, exposure_times_s=et, illumination_temperature_c=temp,
-        mode=mode, imager=imager)
+        intrinsic=intrinsic, inverse_intrinsic=inverse, **_later_fields(mv, version))
+
+
+def _later_fields(mv: memoryview, version: int) -> dict[str, Any]:
+    """The fields versions 2 (exposures), 3 (temperature, mode, imager) and 4 (measurement block) add."""
+    out: dict[str, Any] = {}
+    if version >= 2:
+        v2 = _V2.unpack_from(mv, MIN_SIZE_V1)
+        out.update(exposure_timestamps_ns=tuple(int(x) for x in v2[:3]),
+                   exposure_times_s=tuple(float(x) for x in v2[3:]))
+    if version >= 3:
+        t, mraw, iraw = _V3.unpack_from(mv, MIN_SIZE_V2)
+        out.update(illumination_temperature_c=float(t), mode=mraw.split(b"\0", 1)[0].decode("ascii", "replace"),
+                   imager=iraw.split(b"\0", 1)[0].decode("ascii", "replace"))
+    if version >= 4:
+        block, rmin, rmax = _V4.unpack_from(mv, MIN_SIZE_V3)
+        out.update(measurement_block_index=int(block), measurement_range_min_m=float(rmin),
+                   measurement_range_max_m=float(rmax))
+    return out
+
+
+_MODELS_SEEN: dict[bytes, tuple[IntrinsicModel, IntrinsicModel]] = {}
+
+
+def _models(mv: memoryview) -> tuple[IntrinsicModel, IntrinsicModel]:
+    """The two intrinsic models of a TOF_INFO, parsed once per distinct byte content (they rarely change)."""
+    key = bytes(mv[_HEAD.size:MIN_SIZE_V1])
+    found = _MODELS_SEEN.get(key)
+    if found is None:
+        m0 = _MODEL.unpack_from(key, 0)
+        m1 = _MODEL.unpack_from(key, _MODEL.size)
+        found = (IntrinsicModel(int(m0[0]), tuple(float(x) for x in m0[1:])),
+                 IntrinsicModel(int(m1[0]), tuple(float(x) for x in m1[1:])))
+        if len(_MODELS_SEEN) >= 16:  # a bounded memo: heads seen by this process
+            _MODELS_SEEN.clear()
+        _MODELS_SEEN[key] = found
+    return found
 
 
 def unit_vectors(model: IntrinsicModel, width: int, height: int) -> NDArray[np.float32]:
@@ -223,24 +256,30 @@ def _unit_vectors(model: IntrinsicModel, p: NDArray[np.float32], width: int, hei
 
 
 def intrinsics_from_models(info: TofInfo, width: int, height: int) -> Intrinsics:
-    """OpenCV-convention :class:`Intrinsics` of the depth stream.
+    """OpenCV-convention :class:`Intrinsics` of the depth stream, from the inverse (ray -> pixel) model.
 
-    Uses the inverse (ray -> pixel) Bouguet model 1, which *is* OpenCV's projection:
-    ``cx = mx - 0.5``, ``cy = my - 0.5``, OpenCV ``k1, k2, k3 = k1, k2, k5`` and
-    ``p1, p2 = k3, k4``. The skew ``alpha`` has no place in :class:`Intrinsics` and is
-    dropped (O3R heads report 0). When the inverse model is not Bouguet (fisheye
-    O3R225 heads, model 3) the result is the pinhole part only (fx, fy, cx, cy, no
-    distortion) — adequate for pixel bookkeeping, not for projecting wide-angle rays.
-    The values are exactly the float32 numbers on the wire.
+    * Model 1 (Bouguet, O3R222/252) *is* OpenCV's Brown projection: ``cx = mx - 0.5``,
+      ``cy = my - 0.5``, OpenCV ``k1, k2, k3 = k1, k2, k5`` and ``p1, p2 = k3, k4``.
+    * Model 3 (fisheye, O3R225) *is* OpenCV's fisheye projection (``cv2.fisheye``):
+      ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``, pixel
+      ``f theta_d + (m - 0.5)``; ifm clamps theta at ``theta_max`` inside the polynomial,
+      which changes nothing within the image. The result has ``model = "fisheye"``.
+
+    The skew ``alpha`` has no place in :class:`Intrinsics` and is dropped (O3R heads
+    report 0). The values are exactly the float32 numbers on the wire. A stream whose
+    inverse model is neither falls back to the forward model's pinhole part.
     """
     model = info.inverse_intrinsic
     if model.model_id not in (MODEL_BOUGUET_INVERSE, MODEL_FISHEYE_INVERSE):
         model = info.intrinsic  # fall back to the forward model's pinhole part
     fx, fy, mx, my = model.params[:4]
+    k1, k2, k3, k4, k5 = model.params[5:10]
     if model.model_id == MODEL_BOUGUET_INVERSE:
-        k1, k2, k3, k4, k5 = model.params[5:10]
         return Intrinsics(width=width, height=height, fx=fx, fy=fy, cx=mx - 0.5, cy=my - 0.5,
                           k1=k1, k2=k2, k3=k5, p1=k3, p2=k4)
+    if model.model_id == MODEL_FISHEYE_INVERSE:  # k5 is theta_max here
+        return Intrinsics(width=width, height=height, fx=fx, fy=fy, cx=mx - 0.5, cy=my - 0.5,
+                          k1=k1, k2=k2, k3=k3, k4=k4, model="fisheye")
     return Intrinsics(width=width, height=height, fx=fx, fy=fy, cx=mx - 0.5, cy=my - 0.5)
 
 

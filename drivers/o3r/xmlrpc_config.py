@@ -30,6 +30,8 @@ RPC_PATH = "/api/rpc/v1/com.ifm.efector/"
 DEFAULT_MAX_REPLY = 4 * 1024 * 1024
 #: Deepest nesting of XML-RPC arrays/structs accepted (O3R replies are one string).
 MAX_DEPTH = 32
+#: Default deadline of one ``set`` (state changes and CONF-only settings are slow on a VPU; ifm3d allows 15 s).
+DEFAULT_SET_TIMEOUT_S = 15.0
 #: Longest fault text kept in an error message, characters.
 _MAX_FAULT_TEXT = 200
 #: What a malformed reply can raise inside the XML, XML-RPC and JSON parsers.
@@ -125,21 +127,24 @@ class O3RConfigClient:
         port: XML-RPC TCP port (80 on a real VPU).
         timeout_s: Deadline of one whole call (connect + request + full reply), seconds.
         max_reply_bytes: Cap on one reply body, bytes.
+        set_timeout_s: Deadline of one ``set`` call, seconds (its own, longer: a VPU
+            applies a state change or a CONF-only setting before it answers).
     """
 
     def __init__(self, host: str, port: int = 80, timeout_s: float = 2.0,
-                 max_reply_bytes: int = DEFAULT_MAX_REPLY) -> None:
+                 max_reply_bytes: int = DEFAULT_MAX_REPLY, set_timeout_s: float = DEFAULT_SET_TIMEOUT_S) -> None:
         self.host = host
         self.port = port
         self.timeout_s = timeout_s
         self.max_reply_bytes = max_reply_bytes
+        self.set_timeout_s = set_timeout_s
 
     def _where(self, method: str, params: tuple[Any, ...]) -> str:
         shown = ", ".join(_show_param(p) for p in params)
         return f"O3R XML-RPC {self.host}:{self.port} {method}({shown})"
 
     def call(self, method: str, *params: Any, timeout: float | None = None) -> Any:
-        """Call one XML-RPC method within ``min(timeout_s, timeout)`` seconds.
+        """Call one XML-RPC method within ``min(timeout_s, timeout)`` seconds (``set_timeout_s`` for ``set``).
 
         Raises:
             DeviceTimeoutError: The whole call did not finish in time.
@@ -147,7 +152,8 @@ class O3RConfigClient:
             VendorError: The device answered with an XML-RPC fault.
             ProtocolError: The answer is not one well-formed XML-RPC value, or exceeds the size cap.
         """
-        limit = self.timeout_s if timeout is None else min(self.timeout_s, timeout)
+        own = self.set_timeout_s if method == "set" else self.timeout_s
+        limit = own if timeout is None else min(own, timeout)
         where = self._where(method, params)
         if limit <= 0:
             raise DeviceTimeoutError(f"{where}: no time left for the call")
@@ -164,7 +170,7 @@ class O3RConfigClient:
         return parse_json_object(text, self._where("get", (list(pointers),)))
 
     def set(self, patch: dict[str, Any], *, timeout: float | None = None) -> None:
-        """Merge a partial configuration."""
+        """Merge a partial configuration, within ``set_timeout_s`` (or ``timeout`` if shorter)."""
         self.call("set", json.dumps(patch), timeout=timeout)
 
     def port_info(self, port: str, *, timeout: float | None = None) -> PortInfo:

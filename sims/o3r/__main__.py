@@ -1,8 +1,11 @@
-"""Run the O3R emulator standalone: ``python -m cellcal.sims.o3r --xmlrpc-port N --pcic-port M``.
+"""Run the O3R emulator standalone: ``python -m cellcal.sims.o3r [--pcic-base-port 50010] [--xmlrpc-port 80]``.
 
-Serves one simulated O3R222 3D head on ``port2`` (the shared simulated world's
-default scene, seen from the simulated arm's initial pose) on 127.0.0.1 and prints
-one line containing ``ready`` once both ports listen. Stop it with Ctrl-C / SIGTERM.
+Serves one simulated O3R222 head (3D on ``port2``, 2D on port0), the IMU on port6 and an
+application instance ``app0``, numbered as a VPU numbers them (50010 + N, 51010), on
+127.0.0.1 (the shared simulated world's default scene, seen from the simulated arm's
+initial pose), and prints one line containing ``ready`` once every port listens.
+``--frames per_pose`` renders once per arm pose and adds fresh noise per frame, which
+serves load rates (``--frame-rate 1000 --max-frame-rate 5000``). Stop it with Ctrl-C / SIGTERM.
 """
 
 from __future__ import annotations
@@ -13,29 +16,52 @@ import sys
 import threading
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the process exit status."""
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m cellcal.sims.o3r", description=__doc__.splitlines()[0])
     ap.add_argument("--xmlrpc-port", type=int, default=80, help="XML-RPC port (default 80; 0 = ephemeral)")
-    ap.add_argument("--pcic-port", type=int, default=50012, help="PCIC port of port2 (default 50012; 0 = ephemeral)")
+    ap.add_argument("--pcic-base-port", type=int, default=50010,
+                    help="PCIC port of port0 (default 50010); portN = base + N, port6 = base + 6, app0 = base + 1000")
+    ap.add_argument("--pcic-port", type=int, default=None,
+                    help="PCIC port of the 3D head alone (0 = ephemeral); the other ports are then ephemeral")
     ap.add_argument("--port-name", default="port2", help="VPU port of the 3D head")
     ap.add_argument("--state", choices=("RUN", "IDLE", "CONF"), default="RUN", help="initial port state")
     ap.add_argument("--frame-rate", type=float, default=20.0, help="frames per second in RUN")
+    ap.add_argument("--max-frame-rate", type=float, default=30.0, help="largest frame rate the VPU accepts")
+    ap.add_argument("--mode", default="standard_range4m", help="mode of the 3D head, e.g. cyclic_4m_2m_4m_2m")
+    ap.add_argument("--confidence-bits", type=int, choices=(8, 16), default=16, help="confidence image depth")
+    ap.add_argument("--header-version", type=int, choices=(1, 2, 3), default=None,
+                    help="one chunk header version for all chunks (default: the mix a real VPU sends)")
+    ap.add_argument("--tof-info-version", type=int, choices=(1, 2, 3, 4), default=4, help="TOF_INFO version")
+    ap.add_argument("--clock", choices=("boot", "unix"), default="boot", help="device clock (default: since boot)")
+    ap.add_argument("--state-change-s", type=float, default=0.3, help="how long a state change takes, s")
+    ap.add_argument("--frames", choices=("per_frame", "per_pose"), default="per_frame",
+                    help="render every frame, or once per arm pose with fresh noise per frame")
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated world")
     ap.add_argument("--no-noise", action="store_true", help="render noise-free frames")
     ap.add_argument("--no-distortion", action="store_true", help="pinhole lens")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the process exit status."""
+    args = _parser().parse_args(argv)
 
     from cellcal.devices.base import BackendContext
     from cellcal.sims.camera import SimCamera, SimCameraConfig
 
     from .emulator import O3REmulator
 
-    cfg = SimCameraConfig(noise=not args.no_noise, distortion=not args.no_distortion,
-                            frame_rate_hz=args.frame_rate)
+    per_pose = args.frames == "per_pose"
+    cfg = SimCameraConfig(noise=not (args.no_noise or per_pose), distortion=not args.no_distortion,
+                          frame_rate_hz=min(args.frame_rate, 1000.0))  # the sim's own clock step
     cam = SimCamera(cfg, BackendContext(seed=args.seed)).connect()
-    emu = O3REmulator(cam, xmlrpc_port=args.xmlrpc_port, pcic_port=args.pcic_port, port_name=args.port_name,
-                      state=args.state, frame_rate_hz=args.frame_rate)
+    base = None if args.pcic_port is not None else args.pcic_base_port
+    emu = O3REmulator(cam, xmlrpc_port=args.xmlrpc_port, pcic_port=args.pcic_port or 0, pcic_base_port=base,
+                      port_name=args.port_name, state=args.state, frame_rate_hz=args.frame_rate,
+                      max_frame_rate_hz=max(args.max_frame_rate, args.frame_rate), mode=args.mode,
+                      confidence_bits=args.confidence_bits, header_version=args.header_version,
+                      tof_info_version=args.tof_info_version, clock=args.clock, state_change_s=args.state_change_s,
+                      frames=args.frames, noise_scale=0.0 if args.no_noise else 1.0)
     try:
         emu.start()
     except OSError as exc:
@@ -43,8 +69,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
+    ports = " ".join(f"{name}={p.port}" for name, p in sorted(emu.ports.items()))
     print(f"O3R emulator ready: xmlrpc=127.0.0.1:{emu.xmlrpc_port} pcic=127.0.0.1:{emu.pcic_port} "
-          f"port={args.port_name} state={args.state}", flush=True)
+          f"port={args.port_name} state={args.state} ports: {ports}", flush=True)
     try:
         while not done.wait(0.5):
             pass

@@ -20,7 +20,7 @@ from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
 from ..camera import SimCamera, SimCameraConfig
 from .emulator import O3REmulator
-from .wire import O3RModels
+from .wire import DISTANCE_RESOLUTION_M, O3RModels
 
 DRIVER_BACKEND = "o3r"
 """Registry name of the driver the emulated camera connects (never imported by name: sims
@@ -60,9 +60,11 @@ class EmulatedO3RConfig(SimCameraConfig):
     trigger: Literal["software", "free_run"] = field(
         default="software", metadata={"doc": "IDLE + PCIC t per capture (deterministic) or RUN"})
     port_name: str = field(default="port2", metadata={"doc": "VPU port of the emulated 3D head"})
-    distance_resolution_m: float = field(default=0.000125, metadata={"gt": 0.0, "le": 0.01,
-                                                                     "doc": "metres per distance count on the wire"})
-    header_version: int = field(default=2, metadata={"ge": 1, "le": 3, "doc": "chunk header version"})
+    distance_resolution_m: float = field(default=DISTANCE_RESOLUTION_M, metadata={
+        "gt": 0.0, "le": 0.01, "doc": "metres per distance count on the wire (10/65535 as on a VPU)"})
+    header_version: int = field(default=0, metadata={
+        "ge": 0, "le": 3, "doc": "chunk header version for all chunks; 0 = the mix a real VPU sends"})
+    confidence_bits: Literal[8, 16] = field(default=16, metadata={"doc": "confidence image: 8 or 16 bit"})
     io_timeout_s: float = field(default=5.0, metadata={"gt": 0.0, "le": 600.0, "doc": "driver I/O timeout, s"})
 
 
@@ -104,15 +106,20 @@ class EmulatedO3RCamera(Camera3D):
         cfg = self.config
         self._captured = False
         self.sim.connect(timeout)
+        # the sim's clock is the device clock (clock "unix" + a driver that trusts it), so frames carry
+        # the simulated time exactly as the pure sim backend stamps them
         self.emulator = O3REmulator(self.sim, port_name=cfg.port_name,
                                     state="IDLE" if cfg.trigger == "software" else "RUN",
-                                    frame_rate_hz=cfg.frame_rate_hz, distance_resolution_m=cfg.distance_resolution_m,
-                                    header_version=cfg.header_version).start()
+                                    frame_rate_hz=cfg.frame_rate_hz, max_frame_rate_hz=max(30.0, cfg.frame_rate_hz),
+                                    distance_resolution_m=cfg.distance_resolution_m,
+                                    header_version=cfg.header_version or None, confidence_bits=cfg.confidence_bits,
+                                    clock="unix").start()
         if self.on_emulator_started is not None:
             self.on_emulator_started(self.emulator)
         section = {"backend": DRIVER_BACKEND, "host": "127.0.0.1", "xmlrpc_port": self.emulator.xmlrpc_port,
                    "port": cfg.port_name, "trigger": cfg.trigger, "set_state": False,
-                   "io_timeout_s": cfg.io_timeout_s, "connect_timeout_s": min(cfg.io_timeout_s, timeout)}
+                   "io_timeout_s": cfg.io_timeout_s, "connect_timeout_s": min(cfg.io_timeout_s, timeout),
+                   "clock_tolerance_s": 1e9}
         self.driver = default_registry().create_camera(section, BackendContext(section="camera.driver"))
         self.driver.connect(timeout)
 

@@ -1,43 +1,109 @@
 """The emulated O3R's JSON configuration tree and its ``get`` / ``set`` semantics.
 
 ``get(pointers)`` returns the sub-tree holding just the requested JSON pointers
-(``get([])`` the whole tree); ``set(json)`` merges a partial tree after checking
-that every key exists, that leaf types match, that ``state`` is RUN/IDLE/CONF and
-that the extrinsics are numbers.
+(``get([])`` the whole tree); ``set(json)`` merges a partial tree after checking every
+key against the tree and a schema-like table (:data:`RULES`): ``readOnly`` values
+refuse writes, CONF-only values (the mode) can be written only while their port is in
+CONF, ``state`` is RUN/IDLE/CONF and numbers stay in their range. Port numbering is a
+VPU's: ``portN`` serves PCIC on 50010 + N (port6 the IMU), application instances from
+51010 (ifm documentation, ``ports_overview.md``); the caller passes the bound numbers.
 """
 
 from __future__ import annotations
 
 import copy
+import fnmatch
 import json
 import threading
 from collections.abc import Callable, MutableSet, Sequence
+from collections.abc import Set as AbstractSet
+from dataclasses import dataclass
 from typing import Any
 
 FIRMWARE = "1.4.30"
 STATES = ("RUN", "IDLE", "CONF")
+#: Prefix of every fault text: the codes are this emulator's own, not ifm's.
+FAULT_LABEL = "cellcal O3R emulator"
+#: Fault codes (the emulator's own): unknown pointer / key, invalid value, malformed JSON, read-only,
+#: CONF-only setting written outside CONF.
+UNKNOWN, INVALID, MALFORMED, READ_ONLY, CONF_ONLY = 901000, 901001, 901002, 901003, 901004
+
+
+@dataclass(frozen=True)
+class Rule:
+    """How the schema treats the values at a pointer pattern (``*`` matches one key)."""
+
+    pattern: str
+    read_only: bool = False
+    conf_only: bool = False
+    minimum: float | None = None
+    maximum: float | None = None
+
+
+#: The schema-like table, first match wins; pointers matching nothing are writable.
+RULES: tuple[Rule, ...] = (
+    Rule("/device/info/name"), Rule("/device/info/description"),
+    Rule("/device/info/*", read_only=True), Rule("/device/swVersion/*", read_only=True),
+    Rule("/device/diagnostic/*", read_only=True), Rule("/device/state/*", read_only=True),
+    Rule("/ports/*/info/*", read_only=True), Rule("/ports/*/data/*", read_only=True),
+    Rule("/applications/instances/*/data/*", read_only=True),
+    Rule("/ports/*/mode", conf_only=True),
+    Rule("/ports/*/acquisition/framerate", minimum=0.1, maximum=30.0),
+    Rule("/ports/*/processing/extrinsicHeadToUser/rot*", minimum=-6.3, maximum=6.3),
+    Rule("/ports/*/processing/extrinsicHeadToUser/trans*", minimum=-100.0, maximum=100.0),
+)
+#: Modes a 3D head of the emulator accepts (the names of O3R222 modes).
+MODES_3D = ("standard_range2m", "standard_range4m", "extended_range4m", "cyclic_4m_2m_4m_2m")
 
 
 class ConfigTreeError(Exception):
-    """A rejected get/set; ``code`` is the XML-RPC fault code the XML-RPC layer answers with.
-
-    The codes are the emulator's own: 101000 unknown pointer / key, 101001 invalid
-    value, 101002 malformed JSON.
-    """
+    """A rejected get/set; ``code`` is the XML-RPC fault code (the emulator's own, see :data:`FAULT_LABEL`)."""
 
     def __init__(self, code: int, message: str) -> None:
-        super().__init__(message)
+        super().__init__(f"{FAULT_LABEL} (own code {code}): {message}")
         self.code = code
 
 
-def default_tree(*, port: str, pcic_port: int, width: int, height: int, state: str, frame_rate_hz: float
-                 ) -> dict[str, Any]:
-    """A realistic O3R tree: one 3D head on ``port``, a 2D head on ``port0``."""
+def rule_for(pointer: str, rules: Sequence[Rule] = RULES) -> Rule | None:
+    """The first rule whose pattern matches ``pointer`` (``*`` spans one key)."""
+    depth = pointer.count("/")
+    for rule in rules:
+        if rule.pattern.count("/") == depth and fnmatch.fnmatchcase(pointer, rule.pattern):
+            return rule
+    return None
+
+
+def _head(kind: str, pcic_port: int, state: str, serial: str, name: str, **features: Any) -> dict[str, Any]:
+    """One port node: its PCIC port, info (type and features), state and, for a camera head, its extrinsic."""
     zero = {"transX": 0.0, "transY": 0.0, "transZ": 0.0, "rotX": 0.0, "rotY": 0.0, "rotZ": 0.0}
+    node: dict[str, Any] = {"data": {"pcicTCPPort": int(pcic_port)},
+                            "info": {"features": {"type": kind, **features}, "name": name, "serialNumber": serial},
+                            "state": state}
+    if kind in ("2D", "3D"):
+        node["processing"] = {"extrinsicHeadToUser": dict(zero)}
+    return node
+
+
+def default_tree(*, port: str, pcic_ports: dict[str, int], width: int, height: int, state: str,
+                 frame_rate_hz: float, mode: str = "standard_range4m") -> dict[str, Any]:
+    """A VPU tree: the 3D head on ``port``, its 2D head on port0 (port1 if the 3D is port0), the IMU on port6
+    and one application instance ``app0``; ``pcic_ports`` maps each of those names to its bound PCIC port."""
+    two_d = "port1" if port == "port0" else "port0"
+    ports = {
+        two_d: _head("2D", pcic_ports[two_d], "RUN", "000000000001", "O3R222 2D",
+                     resolution={"width": 1280, "height": 800}),
+        port: _head("3D", pcic_ports[port], state, "000000000002", "O3R222 3D",
+                    resolution={"width": width, "height": height}, fov={"horizontal": 60, "vertical": 45}),
+        "port6": _head("IMU", pcic_ports["port6"], "RUN", "000000000003", "VPU IMU"),
+    }
+    ports[two_d].update(mode="standard_autoexposure2D", acquisition={"framerate": 10.0})
+    ports[port].update(mode=mode, acquisition={"framerate": float(frame_rate_hz)})
+    app = {"app0": {"class": "ods", "name": "", "ports": [port], "state": "CONF",
+                    "data": {"pcicTCPPort": int(pcic_ports["app0"])}}}
     return {
-        "applications": {"instances": {}},
+        "applications": {"instances": app},
         "device": {
-            "clock": {"currentTime": 0},
+            "clock": {"currentTime": 0, "sntp": {"active": False}},
             "diagnostic": {"data": {"pcicPort": 50009}, "temperatures": []},
             "info": {"name": "cellcal-emulator", "description": "emulated O3R VPU", "partNumber": "M04239",
                      "productCode": "OVP800", "serialNumber": "000000000000", "vendor": "ifm electronic gmbh",
@@ -46,35 +112,34 @@ def default_tree(*, port: str, pcic_port: int, width: int, height: int, state: s
             "state": {"errorMessage": "", "errorCode": 0},
             "swVersion": {"firmware": FIRMWARE, "kernel": "emulated", "l4t": "emulated"},
         },
-        "ports": {
-            "port0": {
-                "acquisition": {"framerate": 10.0},
-                "data": {"pcicTCPPort": 50010},
-                "info": {"features": {"type": "2D", "resolution": {"width": 1280, "height": 800}},
-                         "name": "O3R222 2D", "serialNumber": "000000000001"},
-                "mode": "standard_autoexposure2D",
-                "processing": {"extrinsicHeadToUser": dict(zero)},
-                "state": "RUN",
-            },
-            port: {
-                "acquisition": {"framerate": float(frame_rate_hz)},
-                "data": {"pcicTCPPort": int(pcic_port)},
-                "info": {"features": {"type": "3D", "resolution": {"width": width, "height": height},
-                                      "fov": {"horizontal": 60, "vertical": 45}},
-                         "name": "O3R222 3D", "serialNumber": "000000000002"},
-                "mode": "standard_range4m",
-                "processing": {"extrinsicHeadToUser": dict(zero)},
-                "state": state,
-            },
-        },
+        "ports": dict(sorted(ports.items())),
     }
+
+
+def schema_of(node: Any, pointer: str = "", rules: Sequence[Rule] = RULES) -> dict[str, Any]:
+    """A JSON-schema-like description of a tree, with ``readOnly`` as the rules say."""
+    if isinstance(node, dict):
+        return {"type": "object", "additionalProperties": False,
+                "properties": {k: schema_of(v, f"{pointer}/{k}", rules) for k, v in node.items()}}
+    kind = {bool: "boolean", int: "integer", float: "number", str: "string", list: "array"}.get(type(node), "null")
+    out: dict[str, Any] = {"type": kind}
+    rule = rule_for(pointer, rules)
+    if rule is not None:
+        out["readOnly"] = rule.read_only
+        if rule.conf_only:
+            out["description"] = "settable only while the port is in CONF"
+        if rule.minimum is not None:
+            out.update(minimum=rule.minimum, maximum=rule.maximum)
+    if pointer.endswith("/state") and pointer.startswith("/ports/"):
+        out["enum"] = list(STATES)
+    return out
 
 
 def _split(pointer: str) -> list[str]:
     if pointer in ("", "/"):
         return []
     if not pointer.startswith("/"):
-        raise ConfigTreeError(101000, f"JSON pointer must start with '/': {pointer!r}")
+        raise ConfigTreeError(UNKNOWN, f"JSON pointer must start with '/': {pointer!r}")
     return [p.replace("~1", "/").replace("~0", "~") for p in pointer[1:].split("/")]
 
 
@@ -84,12 +149,15 @@ class ConfigTree:
     Args:
         tree: Initial content.
         on_change: Called (outside the lock) with the set of changed pointers after a set.
+        rules: The schema-like table.
     """
 
-    def __init__(self, tree: dict[str, Any], on_change: Callable[[set[str]], None] | None = None) -> None:
+    def __init__(self, tree: dict[str, Any], on_change: Callable[[set[str]], None] | None = None,
+                 rules: Sequence[Rule] = RULES) -> None:
         self._tree = tree
         self._lock = threading.Lock()
         self._on_change = on_change
+        self.rules = tuple(rules)
 
     def resolve(self, pointer: str) -> Any:
         """Value at a pointer (a deep copy)."""
@@ -97,7 +165,7 @@ class ConfigTree:
             node: Any = self._tree
             for key in _split(pointer):
                 if not isinstance(node, dict) or key not in node:
-                    raise ConfigTreeError(101000, f"JSON pointer not found: {pointer}")
+                    raise ConfigTreeError(UNKNOWN, f"JSON pointer not found: {pointer}")
                 node = node[key]
             return copy.deepcopy(node)
 
@@ -109,7 +177,7 @@ class ConfigTree:
         out: dict[str, Any] = {}
         for ptr in pointers:
             if not isinstance(ptr, str):
-                raise ConfigTreeError(101000, f"JSON pointer must be a string, got {ptr!r}")
+                raise ConfigTreeError(UNKNOWN, f"JSON pointer must be a string, got {ptr!r}")
             keys = _split(ptr)
             value = self.resolve(ptr)
             if not keys:
@@ -120,45 +188,75 @@ class ConfigTree:
             node[keys[-1]] = value
         return json.dumps(out)
 
-    def set(self, text: str) -> None:
-        """Merge a partial JSON tree after validating all of it."""
+    def schema(self) -> str:
+        """JSON text of :func:`schema_of` the current tree."""
+        with self._lock:
+            return json.dumps(schema_of(self._tree, "", self.rules))
+
+    def set(self, text: str) -> set[str]:
+        """Merge a partial JSON tree after validating all of it; returns the changed pointers."""
         try:
             patch = json.loads(text)
         except (TypeError, ValueError) as exc:
-            raise ConfigTreeError(101002, f"malformed JSON: {exc}") from None
+            raise ConfigTreeError(MALFORMED, f"malformed JSON: {exc}") from None
         if not isinstance(patch, dict):
-            raise ConfigTreeError(101002, "set expects a JSON object")
+            raise ConfigTreeError(MALFORMED, "set expects a JSON object")
         changed: set[str] = set()
         with self._lock:
             staged = copy.deepcopy(self._tree)
             self._merge(staged, patch, "", changed)
+            self._check_conf_only(staged, changed)
             self._tree = staged
         if self._on_change and changed:
             self._on_change(changed)
+        return changed
+
+    def _check_conf_only(self, staged: dict[str, Any], changed: AbstractSet[str]) -> None:
+        """A CONF-only value may change only on a port that is in CONF before and after the set."""
+        for ptr in changed:
+            rule = rule_for(ptr, self.rules)
+            if rule is None or not rule.conf_only:
+                continue
+            port = ptr.split("/")[2]
+            before = self._tree["ports"][port]["state"]
+            if before != "CONF" or staged["ports"][port]["state"] != "CONF":
+                raise ConfigTreeError(CONF_ONLY, f"{ptr} can be set only while /ports/{port}/state is CONF "
+                                                 f"(it is {before})")
 
     def _merge(self, node: dict[str, Any], patch: dict[str, Any], path: str, changed: MutableSet[str]) -> None:
         for key, value in patch.items():
             here = f"{path}/{key}"
             if key not in node:
-                raise ConfigTreeError(101000, f"unknown key: {here}")
+                raise ConfigTreeError(UNKNOWN, f"unknown key: {here}")
             old = node[key]
             if isinstance(old, dict):
                 if not isinstance(value, dict):
-                    raise ConfigTreeError(101001, f"{here} must be an object")
+                    raise ConfigTreeError(INVALID, f"{here} must be an object")
                 self._merge(old, value, here, changed)
                 continue
-            if key == "state" and value not in STATES:
-                raise ConfigTreeError(101001, f"{here} must be one of {', '.join(STATES)}, got {value!r}")
-            if isinstance(old, bool) or isinstance(value, bool):
-                ok = isinstance(old, bool) and isinstance(value, bool)
-            elif isinstance(old, (int, float)):
-                ok = isinstance(value, (int, float))
-                value = float(value) if isinstance(old, float) else value
-            else:
-                ok = type(value) is type(old)
-            if not ok:
-                raise ConfigTreeError(101001, f"{here} must be {type(old).__name__}, got {value!r}")
-            if "/info/" in here or "/data/" in here or here.startswith("/device/swVersion"):
-                raise ConfigTreeError(101001, f"{here} is read-only")
-            node[key] = value
-            changed.add(here)
+            node[key] = self._checked(here, old, value)
+            if node[key] != old:
+                changed.add(here)
+
+    def _checked(self, here: str, old: Any, value: Any) -> Any:
+        """``value`` for ``here`` after the type, enum, range and read-only checks."""
+        if here.startswith("/ports/") and here.endswith("/state") and value not in STATES:
+            raise ConfigTreeError(INVALID, f"{here} must be one of {', '.join(STATES)}, got {value!r}")
+        if isinstance(old, bool) or isinstance(value, bool):
+            ok = isinstance(old, bool) and isinstance(value, bool)
+        elif isinstance(old, (int, float)):
+            ok = isinstance(value, (int, float))
+            value = float(value) if isinstance(old, float) else value
+        else:
+            ok = type(value) is type(old)
+        if not ok:
+            raise ConfigTreeError(INVALID, f"{here} must be {type(old).__name__}, got {value!r}")
+        rule = rule_for(here, self.rules)
+        if rule is not None and rule.read_only and value != old:
+            raise ConfigTreeError(READ_ONLY, f"{here} is read-only")
+        if rule is not None and rule.minimum is not None and not rule.minimum <= value <= (rule.maximum or 0):
+            raise ConfigTreeError(INVALID, f"{here} must be in {rule.minimum:g}..{rule.maximum:g}, got {value!r}")
+        if here.startswith("/ports/") and here.endswith("/mode") and isinstance(value, str) \
+                and old in MODES_3D and value not in MODES_3D:
+            raise ConfigTreeError(INVALID, f"{here} must be one of {', '.join(MODES_3D)}, got {value!r}")
+        return value

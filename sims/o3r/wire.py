@@ -1,28 +1,45 @@
 """Byte-level encoding of O3R frames for the emulator (written independently of the driver).
 
-Turns a cellcal :class:`Frame` into the O3R PCIC image payload (chunks 100, 101, 300,
-420) and encodes the camera's OpenCV intrinsics as O3R intrinsic models
-(:func:`models_from_intrinsics`). All values travel as float32.
+Chunk headers, TOF_INFO and chunk metadata as a real O3R writes them, and the camera's
+OpenCV intrinsics as O3R intrinsic models (:func:`models_from_intrinsics`). All values
+travel as float32. The frame encoder itself is :mod:`.encoder`.
 """
 
 from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.errors import CalibrationError
-from cellcal.devices.types import Frame, Intrinsics
+from cellcal.devices.types import Intrinsics
 
 CHUNK_IDS = {"RADIAL_DISTANCE_COMPRESSED": 100, "AMPLITUDE_COMPRESSED": 101, "CONFIDENCE": 300, "TOF_INFO": 420}
+#: Blob ids of an O3R 3D port the emulator accepts in a schema but does not produce (protocols.md A3).
+KNOWN_UNSERVED_IDS = frozenset({"RADIAL_DISTANCE_NOISE", "REFLECTIVITY", "JPEG_IMAGE", "RGB_INFO",
+                                "intrinsic_calibration", "inverse_intrinsic_calibration", "EXPOSURE_TIME",
+                                "EXTRINSIC_CALIB", "O3R_RESULT_JSON", "O3R_RESULT_ARRAY2D", "O3R_RESULT_IMU"})
 DEFAULT_CHUNKS = (100, 101, 300, 420)
 #: Pixel formats.
 FORMAT_8U = 0
 FORMAT_16U = 2
+#: Chunk header version per chunk type as in a real O3R capture (ifm3d's O3RBuffer.data): v3 with JSON
+#: metadata for distance and amplitude, v2 for confidence and TOF_INFO.
+REAL_HEADER_VERSIONS = {100: 3, 101: 3, 300: 2, 420: 2}
+#: Metres per distance count of a real O3R (10 m over 16 bits, as in both real captures).
+DISTANCE_RESOLUTION_M = 10.0 / 65535.0
+#: Amplitude scale per count^2 (the simulated camera's amplitude units; real heads report ~2e-8 in theirs).
+AMPLITUDE_RESOLUTION = 1e-6
+#: Amplitude normalisation factors and exposure times (s) as in the real captures' TOF_INFO.
+AMP_NORM_FACTORS = (0.0333333, 0.0025, 0.0002)
+EXPOSURE_TIMES_S = (2.0e-5, 4.0e-4, 5.0e-3)
+#: Imager of current O3R222 heads (the TOF_INFO v4 capture).
+IMAGER = "IRS2381C"
 
 
 def message(ticket: bytes | str, content: bytes) -> bytes:
@@ -43,9 +60,7 @@ def chunk(chunk_type: int, data: bytes, *, width: int, height: int, pixel_format
     elif header_version == 2:
         hsize = 48
     elif header_version == 3:
-        pad = (-len(metadata)) % 4
-        metadata = metadata + b"\0" * pad
-        hsize = 48 + len(metadata)
+        hsize = 48 + len(metadata)  # not padded: a real amplitude chunk has a 205-byte header
     else:
         raise ValueError(f"header_version must be 1, 2 or 3, got {header_version}")
     head = struct.pack("<9I", chunk_type, hsize + len(data), hsize, header_version, width, height, pixel_format,
@@ -64,6 +79,8 @@ class O3RModels:
     forward: tuple[float, ...]
     inverse: tuple[float, ...]
     fit_rms_rad: float = 0.0
+    forward_id: int = 0
+    inverse_id: int = 1
 
 
 def _pad32(values: Sequence[float]) -> tuple[float, ...]:
@@ -94,6 +111,8 @@ def models_from_intrinsics(intr: Intrinsics, rays: NDArray[np.float64] | None = 
         CalibrationError: If the intrinsics use terms the Bouguet model lacks
             (k4..k6, s1..s4), or distortion is present but no rays are given.
     """
+    if intr.model == "fisheye":
+        return _fisheye_models(intr, rays)
     extra = {n: getattr(intr, n) for n in ("k4", "k5", "k6", "s1", "s2", "s3", "s4") if getattr(intr, n) != 0}
     if extra:
         raise CalibrationError(f"O3R Bouguet model cannot carry OpenCV terms {sorted(extra)}")
@@ -127,83 +146,94 @@ def models_from_intrinsics(intr: Intrinsics, rays: NDArray[np.float64] | None = 
     return O3RModels(forward, inverse, float(np.sqrt(np.mean(resid ** 2))))
 
 
+def _fisheye_models(intr: Intrinsics, rays: NDArray[np.float64] | None) -> O3RModels:
+    """O3R fisheye models 2 (pixel -> ray) and 3 (ray -> pixel) of OpenCV fisheye intrinsics.
+
+    Model 3 is OpenCV's fisheye projection exactly (``k1..k4``, ``theta_max`` = the widest
+    pixel's angle); model 2 maps the distorted radius back, ``theta = theta_s (1 + k1'
+    theta_s^2 + ... + k4' theta_s^8)``, its coefficients the least-squares fit over the
+    pixel grid's exact rays.
+
+    Raises:
+        CalibrationError: Without the exact rays.
+    """
+    if rays is None:
+        raise CalibrationError("exact pixel rays are needed to fit the forward model of a fisheye lens")
+    f32 = np.float32
+    mx, my = intr.cx + 0.5, intr.cy + 0.5
+    fx, fy, mxf, myf = (float(f32(v)) for v in (intr.fx, intr.fy, mx, my))
+    ok = np.all(np.isfinite(rays), axis=2)
+    theta = np.arccos(np.clip(rays[..., 2][ok], -1.0, 1.0))              # true angle of each pixel's ray
+    gx = (np.arange(intr.width) + 0.5 - mxf) / fx
+    gy = (np.arange(intr.height) + 0.5 - myf) / fy
+    theta_s = np.hypot(*np.meshgrid(gx, gy))[ok]                          # distorted radius (model 2's input)
+    phi = theta_s ** 2
+    use = theta_s > 1e-9
+    # theta / theta_s - 1 = k1' phi + k2' phi^2 + k3' phi^3 + k4' phi^4
+    a = np.column_stack([phi, phi ** 2, phi ** 3, phi ** 4])[use]
+    coef, *_ = np.linalg.lstsq(a, theta[use] / theta_s[use] - 1.0, rcond=None)
+    resid = a @ coef - (theta[use] / theta_s[use] - 1.0)
+    theta_max = float(theta.max())
+    forward = _pad32([intr.fx, intr.fy, mx, my, 0.0, *coef, float(theta_s.max())])
+    inverse = _pad32([intr.fx, intr.fy, mx, my, 0.0, intr.k1, intr.k2, intr.k3, intr.k4, theta_max])
+    return O3RModels(forward, inverse, float(np.sqrt(np.mean((resid * theta_s[use]) ** 2))), 2, 3)
+
+
 def tof_info(*, distance_resolution_m: float, amplitude_resolution: float, models: O3RModels,
-             extrinsic_optic_to_user: Sequence[float] = (0, 0, 0, 0, 0, 0), version: int = 3,
-             timestamp_ns: int = 0, exposure_s: float = 0.001, temperature_c: float = 42.0,
-             mode: str = "standard_range4m", imager: str = "IRS2877C") -> bytes:
-    """TOF_INFO data (416 bytes for version 3; 348 for 2; 312 for 1)."""
-    out = struct.pack("<I2f3f6f", version, distance_resolution_m, amplitude_resolution, 1.0, 1.0, 1.0,
+             extrinsic_optic_to_user: Sequence[float] = (0, 0, 0, 0, 0, 0), version: int = 4,
+             timestamp_ns: int = 0, exposure_s: Sequence[float] = EXPOSURE_TIMES_S, temperature_c: float = 42.0,
+             mode: str = "standard_range4m", imager: str = IMAGER, block: int = 0,
+             range_m: tuple[float, float] = (0.0, 4.14)) -> bytes:
+    """TOF_INFO data: 312 bytes for version 1, 348 for 2, 416 for 3, 428 for 4 (ifm3d's ``TOFInfoV4``)."""
+    out = struct.pack("<I2f3f6f", version, distance_resolution_m, amplitude_resolution, *AMP_NORM_FACTORS,
                       *extrinsic_optic_to_user)
-    out += struct.pack("<I32f", 0, *models.forward)
-    out += struct.pack("<I32f", 1, *models.inverse)
+    out += struct.pack("<I32f", models.forward_id, *models.forward)
+    out += struct.pack("<I32f", models.inverse_id, *models.inverse)
     if version >= 2:
-        out += struct.pack("<3Q3f", timestamp_ns, timestamp_ns, timestamp_ns, exposure_s, exposure_s, 0.0)
+        out += struct.pack("<3Q3f", timestamp_ns, timestamp_ns, timestamp_ns, *exposure_s)
     if version >= 3:
         out += struct.pack("<f32s32s", temperature_c, mode.encode(), imager.encode())
+    if version >= 4:
+        out += struct.pack("<I2f", block, *range_m)
     return out
 
 
-@dataclass
-class FrameEncoder:
-    """Encodes frames of one camera into image payloads.
+def chunk_metadata(chunk_type: int, distance_resolution_m: float, amplitude_resolution: float) -> bytes:
+    """The v3 META_DATA JSON of a chunk as the real firmware writes it (NUL-terminated, not padded)."""
+    doc: dict[str, object] = {}
+    if chunk_type == 100:
+        doc["DistanceResolution"] = float(np.float32(distance_resolution_m))
+    elif chunk_type == 101:
+        doc.update(AmpNormalizationFactors=[float(np.float32(v)) for v in AMP_NORM_FACTORS],
+                   AmplitudeResolution=float(np.float32(amplitude_resolution)))
+    doc["Version"] = "0.0.1"
+    return json.dumps(doc, separators=(",", ":")).encode() + b"\0"
 
-    Attributes:
-        models: The camera's O3R intrinsic models.
-        distance_resolution_m: Metres per distance count (float32 on the wire).
-        amplitude_resolution: Amplitude scale.
-        extrinsic_optic_to_user: transX/Y/Z (m), rotX/Y/Z (rad).
-        header_version: Chunk header version 1..3.
-        tof_info_version: TOF_INFO structure version 1..3.
+
+def cycle_ranges_m(mode: str) -> tuple[float, ...]:
+    """Maximum range (m) of each measurement block of a mode: ``cyclic_4m_2m_4m_2m`` -> (4, 2, 4, 2).
+
+    A non-cycling mode has one block (``standard_range2m`` -> (2,); unknown names -> (4,)).
     """
+    def metres(word: str) -> float | None:
+        digits = word.removeprefix("range").removesuffix("m")
+        return float(digits) if word.endswith("m") and digits.replace(".", "", 1).isdigit() else None
 
-    models: O3RModels
-    distance_resolution_m: float = 0.000125
-    amplitude_resolution: float = 0.05
-    extrinsic_optic_to_user: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    header_version: int = 2
-    tof_info_version: int = 3
-    _meta: bytes = field(default=b'{"sensor":"emulated O3R"}', repr=False)
-
-    def payload(self, frame: Frame, frame_count: int, chunks: Iterable[int] = DEFAULT_CHUNKS) -> bytes:
-        """The image payload content ``star ... stop`` (without ticket and CR LF)."""
-        h, w = frame.distance.shape
-        res = float(np.float32(self.distance_resolution_m))
-        valid = frame.valid & np.isfinite(frame.distance)
-        counts = np.where(valid, np.round(np.nan_to_num(frame.distance, nan=0.0) / res), 0.0)
-        too_far = counts > 65535
-        counts = np.clip(counts, 0, 65535)
-        counts[too_far] = 0
-        dist = counts.astype("<u2")
-        conf = (np.zeros((h, w), "<u2") if frame.confidence is None else frame.confidence.astype("<u2"))
-        conf = conf | np.where(dist == 0, 1, 0).astype("<u2")
-        amp = np.nan_to_num(frame.amplitude, nan=0.0).astype(np.float64)
-        araw = np.where(amp >= 0, np.round(np.sqrt(np.maximum(amp, 0) / self.amplitude_resolution)) + 1, 0)
-        araw = np.clip(araw, 0, 65535).astype("<u2")
-        ts = frame.timestamp
-        kw = {"frame_count": frame_count, "timestamp_s": ts, "header_version": self.header_version,
-              "metadata": self._meta}
-        parts = [b"star"]
-        wanted = set(chunks)
-        if 100 in wanted:
-            parts.append(chunk(100, dist.tobytes(), width=w, height=h, pixel_format=FORMAT_16U, **kw))
-        if 101 in wanted:
-            parts.append(chunk(101, araw.tobytes(), width=w, height=h, pixel_format=FORMAT_16U, **kw))
-        if 300 in wanted:
-            parts.append(chunk(300, conf.tobytes(), width=w, height=h, pixel_format=FORMAT_16U, **kw))
-        if 420 in wanted:
-            info = tof_info(distance_resolution_m=res, amplitude_resolution=self.amplitude_resolution,
-                            models=self.models, extrinsic_optic_to_user=self.extrinsic_optic_to_user,
-                            version=self.tof_info_version, timestamp_ns=max(0, round(ts * 1e9)))
-            parts.append(chunk(420, info, width=w, height=h, pixel_format=FORMAT_8U, **kw))  # a 1-D blob
-        parts.append(b"stop")
-        return b"".join(parts)
+    found = [m for m in (metres(w) for w in mode.split("_")) if m is not None]
+    if mode.startswith("cyclic_") and found:
+        return tuple(found)
+    return (found[-1],) if found else (4.0,)
 
 
 def schema_chunks(schema_json: str) -> tuple[int, ...]:
-    """Chunk types a PCIC ``c`` schema selects (unknown blob ids are ignored).
+    """Chunk types a PCIC ``c`` schema selects.
+
+    Blob ids of an O3R 3D port the emulator does not produce (:data:`KNOWN_UNSERVED_IDS`)
+    are accepted and left out of the frames.
 
     Raises:
-        ValueError: If the schema is not JSON with an ``elements`` list.
+        ValueError: If the schema is not JSON with an ``elements`` list, or names a blob id
+            an O3R does not know (a real device refuses the schema too).
     """
     doc = json.loads(schema_json)
     elements = doc.get("elements") if isinstance(doc, dict) else None
@@ -211,6 +241,20 @@ def schema_chunks(schema_json: str) -> tuple[int, ...]:
         raise ValueError("schema has no 'elements' list")
     out = []
     for el in elements:
-        if isinstance(el, dict) and el.get("type") == "blob" and el.get("id") in CHUNK_IDS:
-            out.append(CHUNK_IDS[el["id"]])
+        if not isinstance(el, dict) or el.get("type") != "blob":
+            continue
+        ident = el.get("id")
+        if ident in CHUNK_IDS:
+            out.append(CHUNK_IDS[ident])
+        elif ident not in KNOWN_UNSERVED_IDS:
+            raise ValueError(f"unknown blob id {ident!r}")
     return tuple(out)
+
+
+def __getattr__(name: str) -> Any:
+    """``FrameEncoder`` moved to :mod:`.encoder`; still importable from here."""
+    if name == "FrameEncoder":
+        from .encoder import FrameEncoder
+
+        return FrameEncoder
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,6 +10,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import (
@@ -22,7 +23,7 @@ from cellcal.devices.errors import (
 from cellcal.drivers.o3r.camera import O3RCamera, O3RConfig
 from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.o3r.backend import EmulatedO3RCamera, EmulatedO3RConfig
-from cellcal.sims.o3r.emulator import O3REmulator, wait_until
+from cellcal.sims.o3r.emulator import FACTORY_OPTIC_TO_HEAD, O3REmulator, wait_until
 
 MM = 0.001
 
@@ -117,8 +118,13 @@ def test_xyz_user_frame_applies_extrinsic(emu_idle: O3REmulator) -> None:
     try:
         a, b = opt.capture(2.0), usr.capture(2.0)  # noise-free static scene: same content
         ok = a.valid
-        expect = np.stack([-a.xyz[..., 1], a.xyz[..., 0], a.xyz[..., 2] + 0.5], axis=-1)
-        assert np.max(np.abs(b.xyz[ok] - expect[ok])) < 1e-5
+        # optical -> head: the emulator's factory extrinsic (non-zero, as on a real head), as ifm composes it
+        tx, ty, tz, rx, ry, rz = FACTORY_OPTIC_TO_HEAD
+        head = Rotation.from_euler("XYZ", [rx, ry, rz]).apply(a.xyz[ok].astype(np.float64)) + np.array([tx, ty, tz])
+        # head -> user: 90 deg about z, 0.5 m along z
+        expect = np.stack([-head[:, 1], head[:, 0], head[:, 2] + 0.5], axis=-1)
+        assert np.max(np.abs(b.xyz[ok] - expect)) < 1e-5
+        assert np.max(np.abs(head - a.xyz[ok])) > 0.005  # the factory extrinsic is not the identity
     finally:
         opt.close()
         usr.close()
@@ -252,8 +258,12 @@ def test_emulated_backend_equals_pure_sim_for_same_seed() -> None:
             assert a.sequence == b.sequence
             assert np.array_equal(a.valid, b.valid)
             ok = a.valid
-            assert np.max(np.abs(a.distance[ok] - b.distance[ok])) < 1e-6  # 1 mm steps are exact on the wire
+            # the wire carries a VPU's 10 m / 65535 counts: half a count apart at most
+            assert np.max(np.abs(a.distance[ok] - b.distance[ok])) < 0.5 * 10 / 65535 + 1e-6
             assert np.max(np.abs(a.xyz[ok] - b.xyz[ok])) < 0.1 * MM
+            # the simulated clock travels as the device clock, and the driver keeps it
+            assert b.timestamp == pytest.approx(emu.sim.world.clock.now(), abs=1e-6)
+            assert b.metadata["timestamp_source"] == "device"
         assert emu.info().backend == "o3r-emulated"
         assert emu.intrinsics == before_capture  # now decoded by the driver from the frames' TOF_INFO
     finally:

@@ -81,8 +81,12 @@ def test_undistort_round_trip_and_opencv(seed: int) -> None:
     assert np.max(np.hypot(*(back - uv).T)) < 1e-6
     # agreement with OpenCV's undistortPoints (given enough iterations), in pixels
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
-    ref = cv2.undistortPoints(uv.reshape(-1, 1, 2), intr.camera_matrix, intr.distortion,
-                              None, None, None, crit).reshape(-1, 2)
+    src = uv.reshape(-1, 1, 2)
+    if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+        ref = cv2.undistortPointsIter(src, intr.camera_matrix, intr.distortion, None, None, crit)
+    else:  # OpenCV 5 folds the criteria into undistortPoints
+        ref = cv2.undistortPoints(src, intr.camera_matrix, intr.distortion, None, None, None, crit)
+    ref = np.asarray(ref).reshape(-1, 2)
     ours = pixels_to_normalized(intr, uv)
     assert np.max(np.abs(ours - ref)) * max(intr.fx, intr.fy) < 1e-6
     ideal = undistort_pixels(intr, uv)

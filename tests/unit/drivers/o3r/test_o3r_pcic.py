@@ -86,19 +86,20 @@ def test_decode_plane_exact(header_version: int) -> None:
     chunks = walk_chunks(msg.payload)
     assert [c.chunk_type for c in chunks] == [100, 101, 300, 420]
     assert all(c.header_version == header_version for c in chunks)
-    dec = FrameDecoder().decode(msg.payload, chunks)
+    dec = FrameDecoder().decode(msg.payload, chunks, received_at=1700000000.3)
     out = dec.frame
     assert out.sequence == 7 and dec.frame_count == 7
     assert not out.valid[0, 0] and np.isnan(out.distance[0, 0]) and np.all(np.isnan(out.xyz[0, 0]))
     assert int(out.valid.sum()) == out.valid.size - 1
-    # distance quantised to 0.125 mm; XYZ from model-0 unit vectors (pinhole: exact rays)
-    np.testing.assert_allclose(out.distance[out.valid], frame.distance[out.valid], atol=0.0000626)
+    # distance quantised to a VPU's 10 m / 65535 counts; XYZ from model-0 unit vectors (pinhole: exact rays)
+    np.testing.assert_allclose(out.distance[out.valid], frame.distance[out.valid], atol=0.5 * 10 / 65535 + 1e-6)
     np.testing.assert_allclose(out.xyz[out.valid], frame.xyz[out.valid], atol=0.0001)
-    # amplitude travels as sqrt(a / 0.05) + 1 in uint16: half a step near 123 is 2.5
-    np.testing.assert_allclose(out.amplitude[out.valid], 123.0, atol=2.51)
+    # amplitude travels as sqrt(a / 1e-6) + 1 in uint16: half a step near 123 is 0.011
+    np.testing.assert_allclose(out.amplitude[out.valid], 123.0, atol=0.012)
     assert out.intrinsics == INTR  # float32-representable values round-trip exactly
-    if header_version >= 2:
+    if header_version >= 2:  # the device clock is Unix time (0.05 s from the receive time): kept
         assert out.timestamp == pytest.approx(1700000000.25, abs=1e-6)
+        assert out.metadata["timestamp_source"] == "device"
 
 
 def test_decode_distorted_lens_fits_model0_and_keeps_opencv_intrinsics() -> None:
@@ -122,8 +123,9 @@ def test_tof_info_fields() -> None:
     payload = message("0000", enc.payload(frame, 1))[16:]
     c = next(c for c in walk_chunks(payload) if c.chunk_type == 420)
     info = parse_tof_info(payload[c.data_offset:c.data_offset + c.data_size])
-    assert info.version == 3 and info.mode == "standard_range4m" and info.imager == "IRS2877C"
-    assert info.distance_resolution_m == pytest.approx(0.000125, rel=1e-7)
+    assert info.version == 4 and info.mode == "standard_range4m" and info.imager == "IRS2381C"
+    assert info.measurement_block_index == 0 and info.measurement_range_max_m == pytest.approx(4.14)
+    assert info.distance_resolution_m == pytest.approx(10 / 65535, rel=1e-7)
     assert info.extrinsic_optic_to_user == pytest.approx((0.01, 0.02, 0.03, 0.1, -0.2, 0.3), rel=1e-6)
     assert info.intrinsic.model_id == 0 and info.inverse_intrinsic.model_id == 1
     with pytest.raises(ProtocolError, match="needs at least 312"):
