@@ -17,12 +17,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.arrival import ArrivalTolerance
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError, DeviceTimeoutError, VendorError
+from cellcal.devices.geometry.reach import ReachClass, orientation_violation
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 
@@ -110,7 +110,7 @@ class LinearMotion:
         self.speed = float(speed)
         self.acceleration = float(acceleration)
         self._dp = target.translation - start.translation
-        self._drot = (start.rotation.inv() * target.rotation).as_rotvec()
+        self._drot = start.rotvec_to(target)
         self.length_m = max(float(np.linalg.norm(self._dp)), float(np.linalg.norm(self._drot)) * ROTATION_RADIUS_M)
         self._duration = trapezoid_duration(self.length_m, self.speed, self.acceleration)
 
@@ -128,8 +128,7 @@ class LinearMotion:
 
     def pose_at_fraction(self, s: float) -> Pose:
         """Flange pose after the fraction ``s`` (0..1) of the path."""
-        rot = self.start.rotation * Rotation.from_rotvec(s * self._drot)
-        return Pose(rot, self.start.translation + s * self._dp)
+        return self.start.interpolate(self.target, s)
 
 
 def _wrap_near(angle: float, reference: float) -> float:
@@ -153,7 +152,7 @@ def inverse_kinematics(pose: Pose, previous: NDArray[np.float64] | None = None) 
         previous: Previous joint reading; J1 and J5 are unwrapped towards it.
     """
     p = pose.translation
-    rmat = pose.rotation.as_matrix()
+    rmat = pose.rotation_matrix
     j1 = math.atan2(p[1], p[0]) if math.hypot(p[0], p[1]) > 1e-9 else 0.0
     e_r = np.array([math.cos(j1), math.sin(j1), 0.0])
     a = rmat[:, 2]  # tool (approach) axis
@@ -171,8 +170,10 @@ def inverse_kinematics(pose: Pose, previous: NDArray[np.float64] | None = None) 
     gamma = math.atan2(FOREARM_M * math.sin(j3), UPPER_ARM_M + FOREARM_M * math.cos(j3))
     j2 = beta - gamma
     j4 = alpha4 - j2 - j3
-    r04 = Rotation.from_euler("zy", [j1, alpha4])  # Rz(j1) then Ry(alpha4), intrinsic => Rz @ Ry
-    resid = (r04.inv() * pose.rotation).as_matrix()
+    # Rz(j1), then Ry(alpha4) about the fixed y axis: Ry(alpha4) @ Rz(j1) (scipy's extrinsic "zy")
+    r04 = (Pose.from_xyz_rotvec(np.zeros(3), (0.0, alpha4, 0.0))
+           @ Pose.from_xyz_rotvec(np.zeros(3), (0.0, 0.0, j1))).rotation_matrix
+    resid = r04.T @ rmat
     j5 = math.atan2(resid[1, 0], resid[0, 0])
     j4 = math.remainder(j4, 2.0 * math.pi)
     if previous is not None and len(previous) >= 5:
@@ -223,6 +224,8 @@ class SimArmConfig:
     repeatability_m: float = field(default=0.0001, metadata={"ge": 0.0, "le": 0.01,
                                                              "doc": "pose read-back repeatability (4 sigma), m"})
     seed: int | None = field(default=None, metadata={"ge": 0, "doc": "read-back noise seed; default: world's"})
+    reach: ReachClass = field(default="any", metadata={
+        "doc": "orientations it takes: 'xarm5' refuses a tool axis tilted sideways, as a real xArm 5 must"})
 
     def __post_init__(self) -> None:
         if self.reach_m <= self.min_radius_m:
@@ -240,7 +243,9 @@ class SimArm(RobotArm):
     -0.10 m and 0.90 m). A target outside it is refused: the arm does not move and
     enters error state **21** ("Kinematic error", as the xArm controller reports an
     unsolvable target); :meth:`move_linear` raises ``VendorError("sim", 21, ...)``.
-    Orientation is not restricted (a real 5-DoF arm cannot reach every orientation).
+    With ``reach = "xarm5"`` an orientation a real xArm 5 cannot take (tool axis tilted
+    sideways out of the base's vertical plane, :mod:`cellcal.devices.geometry.reach`) is
+    refused the same way; the default ``"any"`` does not restrict the orientation.
 
     **Motion** (:class:`LinearMotion`): speed and acceleration are clamped to the
     xArm 5's limits (1.0 m/s, 50 m/s²). Simulated time advances by the motion's
@@ -321,7 +326,7 @@ class SimArm(RobotArm):
             return f"radius {r:.4f} m inside the minimum radius {c.min_radius_m} m"
         if not c.z_min_m <= z <= c.z_max_m:
             return f"z {z:.4f} m outside [{c.z_min_m}, {c.z_max_m}] m"
-        return None
+        return orientation_violation(pose, c.reach)
 
     # ------------------------------------------------------------------ non-blocking API
     def begin_move_linear(self, pose: Pose, speed_m_s: float, acceleration_m_s2: float) -> None:
@@ -427,15 +432,15 @@ class SimArm(RobotArm):
         true = self.world.arm.flange_pose()
         with self._lock:
             noise = self._rng.standard_normal(3) * (self.config.repeatability_m / 4.0)
-            reading = Pose(true.rotation, true.translation + noise)
+            reading = true.with_translation(true.translation + noise)
             previous, self._last_read = self._last_read, reading
             faults = self.faults
             if faults.stale_reads and previous is not None:
                 reading = previous
             if faults.pose_jump_m > 0.0:
                 direction = self._fault_rng.standard_normal(3)
-                reading = Pose(reading.rotation, reading.translation
-                               + faults.pose_jump_m * direction / np.linalg.norm(direction))
+                reading = reading.with_translation(reading.translation
+                                                   + faults.pose_jump_m * direction / np.linalg.norm(direction))
             return reading
 
     def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:

@@ -26,6 +26,7 @@ from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
+from .charuco import BoardTexture
 from .mixed_pixels import PixelReturns, blend_edges
 from .multipath import SurfacePoints, second_bounce
 from .tof import (
@@ -172,6 +173,7 @@ class SimCamera(Camera3D):
         #: Fault-injection hook ``hook(event, n)``, see the class docstring.
         self.fault_hook: Callable[[str, int], None] | None = None
         self.connects = 0
+        self._board: BoardTexture | None = None
 
     # ------------------------------------------------------------------ rendering
     def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
@@ -231,7 +233,7 @@ class SimCamera(Camera3D):
     def _cast(self, camera_pose: Pose) -> _Cast:
         """Centre-ray geometry per pixel, (H*W,)."""
         # Pixel rays, camera frame -> world frame.
-        r_wc = camera_pose.rotation.as_matrix()
+        r_wc = camera_pose.rotation_matrix
         dirs = self._rays_safe @ r_wc.T
         t, normal, hit, surface = self.world.scene.raycast_surfaces(camera_pose.translation, dirs)
         # Pixels without a defined ray never hit.
@@ -247,6 +249,9 @@ class SimCamera(Camera3D):
         # A lone plane has one surface: no depth edge (its horizon is beyond the grazing limit), no multipath.
         edges = bool(scene.boxes)
         rho = scene.reflectivity(cast.surface) if edges else scene.plane_reflectivity
+        board = self._board_texture()
+        if board is not None:  # a ChArUco board printed on the plane ([sim.charuco])
+            rho = board.reflectivity(camera_pose, cast.hit & (cast.surface == 0), rho)
         t_safe = np.where(cast.hit, cast.range_m, 1.0)
         ret = PixelReturns(cast.range_m, np.where(cast.hit, relative_amplitude(t_safe, cast.cos_incidence, rho), 0.0))
         z = None
@@ -267,6 +272,17 @@ class SimCamera(Camera3D):
             amp = amp * np.abs(1.0 + z)
         offset = drift_offset_m(arte, self.world.clock.elapsed_s)
         return PixelReturns(rng + offset if offset else rng, amp)
+
+    def _board_texture(self) -> BoardTexture | None:
+        """The world's ChArUco board as a texture for this camera's pixels (built once), or None."""
+        config = self.world.charuco
+        if config is None:
+            return None
+        if self._board is None or self._board.config is not config:
+            scene = self.world.scene
+            where = config.pose_on_plane(np.asarray(scene.plane_point_m, float), np.asarray(scene.plane_normal, float))
+            self._board = BoardTexture(config, where, self._intr)
+        return self._board
 
     def _measure(self, ret: PixelReturns, cast: _Cast) -> NDArray[np.float64]:
         """Measured radial distance, metres: effective range + noise, quantised."""
@@ -313,6 +329,7 @@ class SimCamera(Camera3D):
         self.connects += 1
         if self.fault_hook is not None:
             self.fault_hook("connect", self.connects)
+        self._board_texture()  # a ChArUco board's sub-rays are traced once, here, not in the first capture
 
     def _close(self) -> None:
         return None

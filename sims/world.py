@@ -20,7 +20,9 @@ from cellcal.devices.base import BackendContext
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
+from cellcal.devices.scene_view import SceneSnapshot, publish_scene_view
 
+from .charuco import CharucoConfig
 from .scene import DEFAULT_REFLECTIVITY, MAX_REFLECTIVITY, Box, Scene
 from .tof import ArtefactsConfig
 
@@ -87,6 +89,8 @@ class SimConfig:
         "doc": "the ToF camera's artefacts (mixed pixels, multipath, amplitude noise, drift)"})
     mount: MountConfig | None = field(default=None, metadata={
         "doc": "true flange->camera mount; default: the document's [mount] table"})
+    charuco: CharucoConfig | None = field(default=None, metadata={
+        "doc": "a ChArUco board printed on the plane (seen in the amplitude image)"})
     initial_flange_translation_m: tuple[float, float, float] = field(
         default=(0.3, 0.0, 0.5), metadata={"ge": -2.0, "le": 2.0, "doc": "flange position at start, base frame, m"})
     initial_flange_rpy_deg: tuple[float, float, float] = field(
@@ -287,17 +291,28 @@ class SimWorld:
         self.arm = SimArmModel(flange_pose or SimConfig().initial_flange_pose(), self.clock)
         self.seed = int(seed)
         self.artefacts = artefacts or ArtefactsConfig()
+        #: A ChArUco board on the plane (``[sim.charuco]``), or None.
+        self.charuco: CharucoConfig | None = None
 
     @classmethod
     def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
         """Build from a ``[sim]`` config; ``config.mount`` beats ``mount``, ``config.seed`` beats ``seed``."""
         m = config.mount or mount or MountConfig()
-        return cls(config.scene(), m.pose(), config.initial_flange_pose(),
-                   seed if config.seed is None else config.seed, artefacts=config.artefacts)
+        world = cls(config.scene(), m.pose(), config.initial_flange_pose(),
+                    seed if config.seed is None else config.seed, artefacts=config.artefacts)
+        world.charuco = config.charuco
+        return world
 
     def camera_pose(self) -> Pose:
         """True camera pose in the base frame, ``T_base_camera = T_base_flange @ T_flange_camera``."""
         return self.arm.flange_pose() @ self.mount
+
+    def view_from_camera(self) -> SceneSnapshot:
+        """The plane and boxes in the true camera frame now (:class:`~cellcal.devices.scene_view.SceneView`)."""
+        s = self.scene
+        boxes = tuple(zip(s._box_centre, s._box_rot, (b.size_m for b in s.boxes), strict=True))  # type: ignore[attr-defined]
+        return SceneSnapshot.from_base_frame(self.camera_pose(), s.plane_point_m, s.plane_normal, boxes,
+                                             self.clock.now())
 
     def bump_mount(self, delta: Pose) -> Pose:
         """Jolt the camera on its mount: from now on the true mount is ``mount @ delta``.
@@ -341,6 +356,11 @@ def world_from_context(context: BackendContext | None) -> SimWorld:
     doc = context.document or {}
     sim_cfg = parse_section(SimConfig, doc.get("sim", {}), where="sim", source=context.source)
     mount_cfg = parse_mount(doc.get("mount"), source=context.source) if "mount" in doc else None
+    if sim_cfg.mount is None and "from_handeye" in (doc.get("mount") or {}):
+        # the estimate is the cell's belief, not the simulated truth: the sim needs that stated
+        raise ConfigError("a simulated cell whose [mount] comes from_handeye needs its true mount in [sim.mount]",
+                          source=context.source, key="sim.mount")
     world = SimWorld.from_config(sim_cfg, mount_cfg, seed=context.seed)
     context.shared[SHARED_KEY] = world
+    publish_scene_view(context, world)  # the public face of the world for vendors' cameras (ADR 0022)
     return world

@@ -8,6 +8,8 @@ the backend), ``[mount]``, ``[reference]``, ``[safety]``, ``[plan]``, ``[monitor
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import math
 import os
@@ -20,7 +22,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from cellcal.core.methods.fullframe import FullFrameSettings
 from cellcal.devices.config import parse_section
@@ -32,7 +33,7 @@ Vec3 = tuple[float, float, float]
 MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame"]
 ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame")
 TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor",
-                    "full_frame")
+                    "full_frame", "handeye")
 #: Backends built on the simulated world, the only readers of ``[sim]`` (tests/unit/core/calibration/test_config.py
 #: checks this against the registered backends that live in ``cellcal.sims``).
 SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated", "ur-emulated"})
@@ -59,10 +60,52 @@ class MountSection:
 
     translation_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -2.0, "le": 2.0})
     rpy_deg: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
+    #: A ``handeye.json`` of ``cellcal handeye`` (relative to the configuration file) whose
+    #: estimated mount replaces ``translation_m`` / ``rpy_deg``.
+    from_handeye: str | None = field(default=None, metadata={"max_len": 4096})
 
     def pose(self) -> Pose:
         """The flange -> camera transform (``T_flange_camera``)."""
         return Pose.from_xyz_rpy(self.translation_m, np.radians(self.rpy_deg))
+
+
+#: Parameters of the hand-eye estimate a ``[handeye] given`` list may hold at their configured values
+#: (mount rotation about the flange axes, mount translation, the base-frame plane's tilts and offset).
+HandEyeParameter = Literal["mount_rot_x", "mount_rot_y", "mount_rot_z", "mount_x", "mount_y", "mount_z",
+                           "plane_tilt_a", "plane_tilt_b", "plane_offset"]
+
+
+@dataclass(frozen=True)
+class HandEyeSection:
+    """``[handeye]``: the plan and the fit of ``cellcal handeye`` (docs/adr/0018-handeye.md).
+
+    The automatic plan views ``target_m`` (default: ``[plan] target_m``) from ``height_m``
+    along the optical axis at every ``inclinations_deg`` (optical axis vs. plane), the tool
+    pitched toward the base and rolled about its axis by every ``rolls_deg``. ``reach``
+    (default: the arm's own) limits the orientations. ``given`` parameters are held at the
+    configured ``[mount]`` / ``[reference]`` values instead of estimated.
+    """
+
+    inclinations_deg: tuple[float, ...] = field(default=(80.0, 65.0),
+                                                metadata={"ge": 10.0, "le": 90.0, "min_items": 1, "max_items": 20})
+    rolls_deg: tuple[float, ...] = field(default=(0.0, 90.0, 180.0, 270.0),
+                                         metadata={"ge": -360.0, "le": 360.0, "min_items": 1, "max_items": 72})
+    height_m: float = field(default=0.45, metadata={"ge": 0.05, "le": 10.0})
+    target_m: Vec3 | None = field(default=None, metadata={"ge": -10.0, "le": 10.0})
+    reach: Literal["any", "xarm5"] | None = None
+    given: tuple[HandEyeParameter, ...] = field(default=(), metadata={"max_items": 9})
+    arm_translation_sigma_m: float = field(default=2.5e-5, metadata={"ge": 0.0, "le": 0.01})
+    arm_rotation_sigma_deg: float = field(default=0.0, metadata={"ge": 0.0, "le": 1.0})
+    confidence: float = field(default=0.95, metadata={"ge": 0.5, "le": 0.9999})
+    # the ChArUco board of --method charuco|both (the simulator prints it where [sim.charuco] says)
+    charuco_squares: tuple[int, int] = field(default=(7, 5), metadata={"ge": 2, "le": 40})
+    charuco_square_m: float = field(default=0.04, metadata={"gt": 0.001, "le": 1.0})
+    charuco_marker_ratio: float = field(default=0.75, metadata={"ge": 0.3, "le": 0.95})
+    charuco_dictionary: Literal["4X4_50", "4X4_100", "5X5_50", "5X5_100", "6X6_50", "6X6_250"] = "4X4_50"
+
+    def __post_init__(self) -> None:
+        if len(set(self.given)) != len(self.given):
+            raise ValueError("handeye.given lists a parameter twice")
 
 
 @dataclass(frozen=True)
@@ -211,6 +254,7 @@ class CellConfig:
     plan: PlanSection
     monitor: MonitorSection = field(default_factory=MonitorSection)
     full_frame: FullFrameSettings = field(default_factory=FullFrameSettings)
+    handeye: HandEyeSection = field(default_factory=HandEyeSection)
 
     @property
     def camera_section(self) -> Mapping[str, Any]:
@@ -272,13 +316,48 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
         source=source,
         document=document,
         cell=parse_section(CellSection, document.get("cell"), where="cell", source=source),
-        mount=parse_section(MountSection, document.get("mount"), where="mount", source=source),
+        mount=_mount_from_handeye(parse_section(MountSection, document.get("mount"), where="mount", source=source),
+                                  document.get("mount"), source),
         reference=None if ref is None else parse_section(ReferenceSection, ref, where="reference", source=source),
         safety=parse_section(SafetySection, document.get("safety"), where="safety", source=source),
         plan=plan,
         monitor=parse_section(MonitorSection, document.get("monitor"), where="monitor", source=source),
         full_frame=parse_section(FullFrameSettings, document.get("full_frame"), where="full_frame", source=source),
+        handeye=parse_section(HandEyeSection, document.get("handeye"), where="handeye", source=source),
     )
+
+
+#: Schema prefix of the documents ``[mount] from_handeye`` reads (``cellcal handeye``'s output).
+HANDEYE_SCHEMA_PREFIX = "cellcal.handeye/"
+
+
+def _mount_from_handeye(mount: MountSection, table: Mapping[str, Any] | None, source: str) -> MountSection:
+    """``mount`` with the estimate of its ``from_handeye`` file in place of ``translation_m`` / ``rpy_deg``.
+
+    Raises:
+        ConfigError: If the file cannot be read, is not a hand-eye result, or the table also
+            sets ``translation_m`` / ``rpy_deg``.
+    """
+    if mount.from_handeye is None:
+        return mount
+    key = "mount.from_handeye"
+    if any(k in (table or {}) for k in ("translation_m", "rpy_deg")):
+        raise ConfigError("give either from_handeye or translation_m / rpy_deg, not both", source=source, key=key)
+    path = Path(mount.from_handeye).expanduser()
+    if not path.is_absolute() and Path(source).is_file():
+        path = Path(source).parent / path  # relative to the configuration file
+    text, where = read_config_text(path)
+    try:
+        data = json.loads(text)
+        estimate, schema = data["mount"], data["schema"]
+        values = {"translation_m": estimate["translation_m"], "rpy_deg": estimate["rpy_deg"]}
+    except (ValueError, KeyError, TypeError):
+        raise ConfigError("not a handeye.json of 'cellcal handeye' (no mount.translation_m / mount.rpy_deg)",
+                          source=where) from None
+    if not str(schema).startswith(HANDEYE_SCHEMA_PREFIX):
+        raise ConfigError(f"schema {schema!r} is not {HANDEYE_SCHEMA_PREFIX}N", source=where)
+    parsed = parse_section(MountSection, values, where="mount", source=where)
+    return dataclasses.replace(parsed, from_handeye=mount.from_handeye)
 
 
 def read_config_text(path: str | Path | None) -> tuple[str, str]:
@@ -367,11 +446,12 @@ def look_at_pose(target_m: np.ndarray, normal: np.ndarray, height_m: float, incl
     x = ref - (ref @ z) * z
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
-    r_down = Rotation.from_matrix(np.column_stack([x, y, z]))
+    r_down = Pose.from_rotation_matrix(np.column_stack([x, y, z]))
     tilt = math.pi / 2 - inclination_rad
-    r = r_down * Rotation.from_rotvec((tilt if tilt_axis == "x" else 0.0, tilt if tilt_axis == "y" else 0.0, 0.0))
-    optical_axis = r.apply([0.0, 0.0, 1.0])
-    return Pose(r, target_m - height_m * optical_axis)
+    r = r_down @ Pose.from_xyz_rotvec(np.zeros(3), (tilt if tilt_axis == "x" else 0.0,
+                                                    tilt if tilt_axis == "y" else 0.0, 0.0))
+    optical_axis = r.apply_vector([0.0, 0.0, 1.0])
+    return Pose.from_rotation_matrix(r.rotation_matrix, target_m - height_m * optical_axis)
 
 
 def plan_flange_poses(config: CellConfig) -> list[Pose]:
@@ -389,7 +469,7 @@ def plan_flange_poses(config: CellConfig) -> list[Pose]:
     for h in plan.heights_m:
         camera = look_at_pose(target, normal, h, incl, plan.tilt_axis)
         for az in plan.azimuths_deg:
-            turn = Rotation.from_rotvec(math.radians(az) * normal)
-            about_target = Pose(turn, target - turn.apply(target))
+            turn = Pose.from_xyz_rotvec(np.zeros(3), math.radians(az) * normal)
+            about_target = Pose.from_rotation_matrix(turn.rotation_matrix, target - turn.apply_vector(target))
             poses.append(about_target @ camera @ mount_inv)
     return poses

@@ -202,6 +202,7 @@ def full_frame_document(result: FullFrameResult, camera_in_base: Pose,
     camera; the angles are not affected by a translation error.
     """
     out = result.to_dict()
+    out["normal_offset_covariance"] = result.normal_offset_covariance.tolist()  # for the hand-eye fit's weights
     out["plane_base"] = result.plane.transformed(camera_in_base).to_dict()
     if expected is not None:
         pairs = {

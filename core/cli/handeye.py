@@ -1,0 +1,169 @@
+"""``cellcal handeye``: drive a hand-eye plan, estimate the camera mount, write ``DIR/handeye.json``."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+from cellcal.core.cli.argtypes import path_arg
+from cellcal.core.cli.exits import EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.options import add_config_option
+
+
+def register(sub: Any) -> None:
+    """Add the ``handeye`` subcommand."""
+    p = sub.add_parser("handeye", help="estimate the camera mount ([mount]) from the measuring plane",
+                       description="Drive the arm through a hand-eye plan, fit the measuring plane at every pose "
+                       "and estimate the camera in the flange frame together with the plane in the base frame, "
+                       "with 95 % intervals, per-pose residuals and an observability report. Writes "
+                       "DIR/handeye.json and prints a [mount] table ready to paste.")
+    add_config_option(p)
+    p.add_argument("--out", metavar="DIR", default="cellcal-out", type=path_arg,
+                   help="output directory (default: %(default)s); one run at a time")
+    p.add_argument("--plan", choices=("auto", "config"), default="auto",
+                   help="auto: inclinations x rolls from [handeye] (default); config: the [plan] table as it is")
+    p.add_argument("--method", choices=("plane", "charuco", "both"), default="plane",
+                   help="plane: the measuring plane (default); charuco: a ChArUco board and OpenCV's "
+                   "calibrateHandEye; both: the two, compared")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or report; only the result path")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted run from DIR/handeye.json.journal.jsonl (same configuration)")
+    p.add_argument("--record", metavar="FILE.mcap", type=path_arg,
+                   help="also record the session (config, frames, arm calls, result) to one MCAP file")
+    p.add_argument("--replay", metavar="FILE.mcap", type=path_arg,
+                   help="re-run a session recorded with --record from the file alone; says whether the result "
+                   "is identical")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print every move of the plan with its safety checks and what it can observe; "
+                   "connect and move nothing")
+    p.set_defaults(func=run)
+
+
+def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
+    """Where this run's measured poses are, and the command that continues it."""
+    from cellcal.core.calibration.journal import journal_path
+    from cellcal.core.handeye.result import HANDEYE_FILENAME
+
+    config = f" --config {shlex.quote(args.config)}" if args.config else ""
+    return (f"{saved} of {total} poses are saved in {journal_path(Path(args.out) / HANDEYE_FILENAME)}; "
+            f"'cellcal handeye{config} --plan {args.plan} --out {shlex.quote(args.out)} --resume' continues the run")
+
+
+def _dry_run(config: Any, poses: list[Any], seen: Any) -> int:
+    """Print every move with its checks and the observability of the plan."""
+    from cellcal.core.calibration.dryrun import check_moves, describe
+
+    plan = config.plan
+    limits = config.safety_limits()
+    print(f"dry run of cellcal handeye on {config.source}: {len(poses)} moves; no device is connected, "
+          "nothing moves")
+    for check in check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2):
+        print(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2))
+    if seen is not None:
+        print(f"observability: {seen.message()}")
+    print(f"dry run OK: all {len(poses)} moves inside the safety envelope and reachable")
+    return EXIT_OK
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``cellcal handeye``; returns the exit status."""
+    from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.calibration.config import load_config
+    from cellcal.core.cli.progress import progress_factory
+    from cellcal.core.handeye.plan import plan_poses
+    from cellcal.core.handeye.result import HANDEYE_FILENAME, format_report
+    from cellcal.core.handeye.run import check_observability, plan_calibrator
+    from cellcal.devices.errors import ConfigError
+    from cellcal.devices.safety import SafeArm
+
+    if args.replay and args.config:
+        raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
+    if args.replay:
+        from cellcal.core.calibration.replay import replay_session
+
+        config, camera, arm = replay_session(args.replay)
+    else:
+        config = load_config(args.config)
+    poses = plan_poses(config, args.plan)
+    # an unobservable plan is refused before anything moves (the board method has no such limit)
+    seen = None if args.method == "charuco" else check_observability(config, poses)
+    if args.dry_run:
+        return _dry_run(config, poses, seen)
+    if args.method != "plane":
+        return _run_charuco(args, config, poses)
+    if not args.replay:
+        camera, arm = build_devices(config)
+    with contextlib.ExitStack() as stack:
+        if args.record:  # the backend arm is recorded inside the safety wrapper, as by 'cellcal record'
+            recorder = _recorder(stack, args, config)
+            camera, arm = recorder.camera(camera), SafeArm(recorder.arm(arm.inner), arm.limits)
+        calibrator = plan_calibrator(config, camera, arm, poses, progress_factory("poses", "pose", args.quiet))
+        document = _run(args, calibrator, len(poses))
+        if args.record and isinstance(document, dict):
+            recorder.log_result(document)
+    if isinstance(document, int):
+        return document
+    if not args.quiet:
+        print(format_report(document))
+    print(f"result written to {Path(args.out) / HANDEYE_FILENAME}")
+    if args.record:
+        print(f"session recorded to {args.record}")
+    if args.replay:
+        from cellcal.core.calibration.replay import compare_with_recording
+
+        print(compare_with_recording(args.replay, document))
+    return EXIT_OK
+
+
+def _run_charuco(args: argparse.Namespace, config: Any, poses: list[Any]) -> int:
+    """``--method charuco|both``: the board views and the planes of one plan run (no journal, no recording)."""
+    from cellcal.core.cli.progress import progress_factory
+    from cellcal.core.handeye.charuco_run import run_charuco
+    from cellcal.core.handeye.result import HANDEYE_FILENAME, format_report
+    from cellcal.devices.errors import ConfigError
+
+    if args.resume or args.record or args.replay:
+        raise ConfigError("--resume, --record and --replay work with --method plane only (board views are not "
+                          "journaled or replayed)")
+    document = run_charuco(config, poses, args.out, method=args.method, plan_kind=args.plan,
+                           progress=progress_factory("poses", "pose", args.quiet))
+    if not args.quiet:
+        print(format_report(document))
+    print(f"result written to {Path(args.out) / HANDEYE_FILENAME}")
+    return EXIT_OK
+
+
+def _recorder(stack: contextlib.ExitStack, args: argparse.Namespace, config: Any) -> Any:
+    """A session recorder writing ``--record``, entered on ``stack`` (the file locked for the run)."""
+    from cellcal.core.calibration.config import read_config_text
+    from cellcal.core.calibration.outlock import OutputLock
+    from cellcal.devices.recording import SessionRecorder
+
+    stack.enter_context(OutputLock.for_file(args.record))
+    return stack.enter_context(SessionRecorder(args.record, config_document=config.document,
+                                               config_source=config.source,
+                                               config_text=read_config_text(args.config)[0]))
+
+
+def _run(args: argparse.Namespace, calibrator: Any, n_poses: int) -> dict[str, Any] | int:
+    """Run the plan into ``DIR/handeye.json``; the document, or the exit status of an interrupted run."""
+    from cellcal.core.calibration.calibrator import poses_saved
+    from cellcal.core.handeye.run import run_handeye
+    from cellcal.devices.errors import CellcalError
+
+    try:
+        return run_handeye(calibrator, args.out, plan_kind=args.plan, resume=args.resume)
+    except KeyboardInterrupt:
+        saved = poses_saved(calibrator)
+        hint = f"; {_resume_hint(args, saved, n_poses)}" if saved else ""
+        print(f"cellcal: interrupted{hint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except CellcalError as exc:
+        saved = poses_saved(calibrator)
+        if saved:  # keep the type (it sets the exit status) and the one-line message
+            exc.args = (f"{exc}; {_resume_hint(args, saved, n_poses)}",)
+        raise

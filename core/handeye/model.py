@@ -1,0 +1,156 @@
+"""The plane constraints of eye-in-hand calibration: parameters, prediction, whitened residuals.
+
+At pose ``i`` the arm reads back ``A_i = T_base_flange``; the camera sits at
+``A_i @ X`` (``X = T_flange_camera``, the mount) and measures the fixed base-frame
+plane ``n_B·p + c_B = 0`` in its own frame as ``n_C = R_C^T n_B``,
+``c_C = c_B + n_B·t_C`` (normal toward the camera, ``c_C`` the camera's distance).
+Nine parameters are small steps from the configured values (ADR 0018): the mount's
+rotation about the flange axes (rad, applied on the left), its translation (m, flange
+frame), the plane normal's tilts about two base-frame axes across it (rad) and its offset (m).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.core.geometry.planes import Plane
+from cellcal.devices.errors import CalibrationError
+from cellcal.devices.pose import Pose
+
+FloatArray = NDArray[np.float64]
+
+#: The parameters, in the order of the parameter vector (names of ``[handeye] given``).
+PARAMETERS: tuple[str, ...] = ("mount_rot_x", "mount_rot_y", "mount_rot_z", "mount_x", "mount_y", "mount_z",
+                               "plane_tilt_a", "plane_tilt_b", "plane_offset")
+#: Index ranges of the parameter blocks.
+MOUNT_ROTATION = slice(0, 3)
+MOUNT_TRANSLATION = slice(3, 6)
+PLANE_TILT = slice(6, 8)
+PLANE_OFFSET = 8
+
+
+@dataclass(frozen=True)
+class PlaneObservation:
+    """The plane as the camera saw it at one pose.
+
+    Attributes:
+        flange: ``T_base_flange`` as the arm read it back.
+        normal: Unit plane normal in the camera frame, toward the camera.
+        offset_m: The plane's offset in the camera frame (the camera's distance), metres.
+        covariance: 4x4 covariance of (normal x, y, z, offset), from the full-frame fit.
+    """
+
+    flange: Pose
+    normal: FloatArray
+    offset_m: float
+    covariance: FloatArray
+
+
+def tangent_basis(normal: FloatArray) -> FloatArray:
+    """Two orthonormal vectors across ``normal`` (3x2; columns), the first as close to x as possible."""
+    n = normal / np.linalg.norm(normal)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = ref - (ref @ n) * n  # the reference axis made perpendicular to the normal
+    a /= np.linalg.norm(a)
+    return np.column_stack([a, np.cross(n, a)])
+
+
+@dataclass(frozen=True)
+class PlaneModel:
+    """Maps a 9-parameter vector to the mount and the base-frame plane, and predicts observations.
+
+    Args:
+        nominal_mount: The configured ``T_flange_camera`` (the zero of the parameters).
+        nominal_plane: The configured plane in the base frame, normal toward the camera side.
+    """
+
+    nominal_mount: Pose
+    nominal_plane: Plane
+
+    def mount(self, p: FloatArray) -> Pose:
+        """``T_flange_camera`` of the parameters ``p`` (9,)."""
+        from scipy.spatial.transform import Rotation
+
+        rot = Rotation.from_rotvec(p[MOUNT_ROTATION]) * self.nominal_mount.rotation  # turn about flange axes
+        return Pose(rot, self.nominal_mount.translation + p[MOUNT_TRANSLATION])
+
+    def plane(self, p: FloatArray) -> Plane:
+        """The base-frame plane of the parameters ``p`` (9,)."""
+        from scipy.spatial.transform import Rotation
+
+        axes = tangent_basis(self.nominal_plane.normal)
+        turn = Rotation.from_rotvec(axes @ p[PLANE_TILT])  # tilt about the two axes across the normal
+        return Plane(turn.apply(np.array(self.nominal_plane.normal)), self.nominal_plane.offset_m + p[PLANE_OFFSET])
+
+    def predict(self, p: FloatArray, flanges: Sequence[Pose] | tuple[FloatArray, FloatArray]
+                ) -> tuple[FloatArray, FloatArray]:
+        """Predicted camera-frame normals (N, 3) and offsets (N,) at the flange poses.
+
+        ``flanges`` may be given as their stacked rotation matrices (N, 3, 3) and translations (N, 3).
+        """
+        rot_a, t_a = flanges if isinstance(flanges, tuple) else stack_poses(flanges)
+        mount, plane = self.mount(p), self.plane(p)
+        r_x = mount.rotation.as_matrix()
+        n_b = np.array(plane.normal)
+        u = np.einsum("nji,j->ni", rot_a, n_b)  # u_i = R_A^T n_B, the normal in the flange frame
+        normals = u @ r_x  # n_C = R_X^T u_i (row form)
+        t_c = np.einsum("nij,j->ni", rot_a, mount.translation) + t_a  # camera origin in the base frame
+        return normals, plane.offset_m + t_c @ n_b  # c_C = c_B + n_B . t_C
+
+
+def stack_poses(poses: Sequence[Pose]) -> tuple[FloatArray, FloatArray]:
+    """Rotation matrices (N, 3, 3) and translations (N, 3) of poses."""
+    return (np.stack([p.rotation.as_matrix() for p in poses]), np.stack([np.asarray(p.translation) for p in poses]))
+
+
+def whitening(obs: PlaneObservation, arm_translation_sigma_m: float, arm_rotation_sigma_rad: float,
+              lever_m: float) -> tuple[FloatArray, FloatArray]:
+    """The measured normal's tangent basis (3x2) and the inverse Cholesky factor (3x3) of its residual.
+
+    The residual of a pose is (tangent components of the normal's error, offset error); its
+    covariance is the full-frame fit's, plus the arm's read-back noise: a translation
+    error moves the offset by its component along the normal, a rotation error turns the
+    normal and moves the offset by the rotation times the mount's lever ``lever_m``.
+
+    Raises:
+        CalibrationError: If the covariance is not positive definite.
+    """
+    basis = tangent_basis(obs.normal)
+    m = np.zeros((3, 4))
+    m[:2, :3] = basis.T  # tangent components of the normal
+    m[2, 3] = 1.0  # the offset
+    cov = m @ obs.covariance @ m.T
+    cov[:2, :2] += np.eye(2) * arm_rotation_sigma_rad**2
+    cov[2, 2] += arm_translation_sigma_m**2 + (arm_rotation_sigma_rad * lever_m) ** 2
+    try:
+        chol = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("a pose's plane covariance is not positive definite") from None
+    return basis, np.linalg.inv(chol)
+
+
+def observation_from_pose(record: dict[str, object]) -> PlaneObservation:
+    """The observation of one pose entry of a ``calibrate`` result document (its ``full_frame`` section).
+
+    Raises:
+        CalibrationError: If the pose has no full-frame result.
+    """
+    ff = record.get("full_frame")
+    if not isinstance(ff, dict):
+        raise CalibrationError(f"plan pose {int(record.get('index', -1)) + 1} has no full-frame plane")  # type: ignore[call-overload]
+    plane = ff["plane_cam"]
+    cov = np.zeros((4, 4))
+    cov[:3, :3] = np.asarray(ff["normal_covariance"], dtype=np.float64)
+    cov[3, 3] = float(plane["offset_sigma_m"]) ** 2
+    cross = np.asarray(ff.get("normal_offset_covariance", np.zeros(3)), dtype=np.float64)
+    cov[:3, 3] = cov[3, :3] = cross  # normal-offset correlation (zero when the document lacks it)
+    flange = Pose.from_dict(record["reported_flange_pose"])  # type: ignore[arg-type]
+    return PlaneObservation(flange, np.asarray(plane["normal"], dtype=np.float64), float(plane["offset_m"]), cov)
+
+
+__all__ = ["MOUNT_ROTATION", "MOUNT_TRANSLATION", "PARAMETERS", "PLANE_OFFSET", "PLANE_TILT", "PlaneModel",
+           "PlaneObservation", "observation_from_pose", "stack_poses", "tangent_basis", "whitening"]
