@@ -32,6 +32,7 @@ from cellcal.core.calibration.journal import (
 from cellcal.core.calibration.outlock import OutputLock
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe import FullFrameResult
 from cellcal.core.methods.measure import (
     FULL_FRAME,
     ExpectedGeometry,
@@ -43,19 +44,24 @@ from cellcal.core.methods.measure import (
 )
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
+from cellcal.devices.blocking import DeadlineGuard
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import (
     CalibrationError,
     CalibrationQualityError,
+    CellcalError,
     VendorError,
 )
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import Registry, default_registry
 from cellcal.devices.safety import SafeArm
-from cellcal.devices.types import Intrinsics
+from cellcal.devices.types import Frame, Intrinsics
 from cellcal.devices.version import cellcal_version
 
 ProgressFactory = Callable[[int], Any]
+#: Called after each measured plan pose with its record, its frames and the full-frame fit (None
+#: when the method is not run), e.g. to draw the scene live or write it to a bag (ADR 0020).
+PoseObserver = Callable[["PoseRecord", Sequence[Frame], FullFrameResult | None], None]
 
 
 @dataclass
@@ -201,6 +207,10 @@ def build_camera(document: Mapping[str, Any], registry: Registry | None = None, 
 
 #: Seconds the calibrator allows the arm's stop command when a run fails.
 STOP_TIMEOUT_S = 1.0
+#: Seconds a backend call may run beyond its own timeout before the run gives up on it (ADR 0022).
+GUARD_GRACE_S = 2.0
+#: Seconds a backend's close() may take (it has no timeout) before it is abandoned.
+CLOSE_ALLOWANCE_S = 3.0
 
 
 class Calibrator:
@@ -211,15 +221,20 @@ class Calibrator:
         camera: A camera (connected or not; the calibrator connects it).
         arm: The arm, already wrapped in :class:`SafeArm`.
         progress: Optional factory ``total -> tqdm-like`` for a progress bar.
+        observer: Optional :data:`PoseObserver`, called after each measured pose.
     """
 
     def __init__(self, config: CellConfig, camera: Camera3D, arm: SafeArm,
-                 progress: ProgressFactory | None = None):
+                 progress: ProgressFactory | None = None, observer: PoseObserver | None = None):
         self.config = config
         self.camera = camera
         self.arm = arm
         self.progress = progress
+        self.observer = observer
         self.poses: Sequence[Pose] = plan_flange_poses(config)
+        #: Every backend call runs under one of these: a backend that ignores its timeout ends the run.
+        self.guards = {"camera": DeadlineGuard(f"camera backend '{camera.backend_name}'", GUARD_GRACE_S),
+                       "arm": DeadlineGuard(f"arm backend '{arm.backend_name}'", GUARD_GRACE_S)}
         #: The journal writer of the last :meth:`run` (None without a journal).
         self.journal_writer: JournalWriter | None = None
 
@@ -287,11 +302,11 @@ class Calibrator:
         """
         with contextlib.ExitStack() as stack:
             try:
-                stack.enter_context(self.arm)
-                stack.enter_context(self.camera)
+                self._connect(stack, "arm", self.arm)
+                self._connect(stack, "camera", self.camera)
                 connect_s = time.perf_counter() - started
                 self._check_arm_ready("before the first move")
-                self._check_moves(self.arm.get_pose(), todo)
+                self._check_moves(self._flange_pose(), todo)
                 if device_state is not None:
                     self._restore_device_state(device_state)
                 bar = self.progress(len(todo)) if self.progress else None
@@ -318,8 +333,27 @@ class Calibrator:
     def _stop_arm(self) -> None:
         """After a failure: tell a connected arm to stop (bounded by :data:`STOP_TIMEOUT_S`), ignoring errors."""
         if self.arm.connected:
+            t = min(STOP_TIMEOUT_S, self.arm.default_timeout_s)
             with contextlib.suppress(Exception):
-                self.arm.stop(min(STOP_TIMEOUT_S, self.arm.default_timeout_s))
+                self.guards["arm"].call(lambda: self.arm.stop(t), t, f"stop(timeout={t:g} s)")
+
+    def _connect(self, stack: contextlib.ExitStack, kind: str, device: Camera3D | SafeArm) -> None:
+        """Connect ``device`` under its guard; ``stack`` closes it (bounded) when it unwinds."""
+        guard = self.guards[kind]
+        stack.callback(self._close, guard, device)
+        t = device.default_timeout_s
+        guard.call(lambda: device.connect(t), t, f"connect(timeout={t:g} s)")
+
+    @staticmethod
+    def _close(guard: DeadlineGuard, device: Camera3D | SafeArm) -> None:
+        """Close ``device``, abandoning a close() that hangs (it has no timeout; failing here would hide the cause)."""
+        with contextlib.suppress(CellcalError):
+            guard.call(device.close, CLOSE_ALLOWANCE_S - guard.grace_s, "close()")
+
+    def _flange_pose(self) -> Pose:
+        """The arm's reported flange pose, under the arm's guard."""
+        t = self.arm.default_timeout_s
+        return self.guards["arm"].call(lambda: self.arm.get_pose(t), t, f"get_pose(timeout={t:g} s)")
 
     def _result_document(self, measured: Mapping[int, tuple[PoseRecord, dict[str, Any]]], created: str,
                          total_s: float, connect_s: float, resumed: list[int] | None) -> dict[str, Any]:
@@ -353,7 +387,8 @@ class Calibrator:
 
     def _check_arm_ready(self, when: str) -> None:
         """Raise VendorError if the arm reports an error (e.g. a protective stop)."""
-        status = self.arm.status()
+        t = self.arm.default_timeout_s
+        status = self.guards["arm"].call(lambda: self.arm.status(t), t, f"status(timeout={t:g} s)")
         if status.error_code:
             raise VendorError(self.arm.backend_name, status.error_code,
                               f"{status.message or 'controller error'} ({when}; clear the arm's error first)")
@@ -394,14 +429,18 @@ class Calibrator:
     def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
         plan = self.config.plan
         t0 = time.perf_counter()
-        self.arm.move_linear(target, speed=plan.speed_m_s, acceleration=plan.acceleration_m_s2,
-                             timeout=plan.move_timeout_s)
+        self.guards["arm"].call(lambda: self.arm.move_linear(target, speed=plan.speed_m_s,
+                                                             acceleration=plan.acceleration_m_s2,
+                                                             timeout=plan.move_timeout_s),
+                                plan.move_timeout_s, f"move_linear(timeout={plan.move_timeout_s:g} s)")
         t1 = time.perf_counter()
         if plan.settle_s > 0:
             time.sleep(plan.settle_s)
         t2 = time.perf_counter()
-        frames = [self.camera.capture(plan.capture_timeout_s) for _ in range(plan.frames_per_pose)]
-        reported = self.arm.get_pose()
+        t_cap = plan.capture_timeout_s
+        frames = [self.guards["camera"].call(lambda: self.camera.capture(t_cap), t_cap,
+                                             f"capture(timeout={t_cap:g} s)") for _ in range(plan.frames_per_pose)]
+        reported = self._flange_pose()
         t3 = time.perf_counter()
         camera_pose = reported @ self.config.mount.pose()
         expected = None
@@ -414,6 +453,7 @@ class Calibrator:
                                       window_px=plan.window_px, expected=expected, nominal_fov_rad=fov_rad)
         t_ff = time.perf_counter()
         full_frame = None
+        result: FullFrameResult | None = None
         if FULL_FRAME in plan.methods:
             try:
                 row, result = measure_full_frame(frames, self.config.full_frame, expected=expected)
@@ -424,10 +464,13 @@ class Calibrator:
             measurements.append(row)
             full_frame = full_frame_document(result, camera_pose, expected)
         t4 = time.perf_counter()
-        return PoseRecord(index, target, reported, camera_pose, expected, measurements,
-                          {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,
-                           "compute_full_frame": t4 - t_ff},
-                          frames[0].intrinsics, full_frame)
+        record = PoseRecord(index, target, reported, camera_pose, expected, measurements,
+                            {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,
+                             "compute_full_frame": t4 - t_ff},
+                            frames[0].intrinsics, full_frame)
+        if self.observer is not None:
+            self.observer(record, frames, result)
+        return record
 
 
 def run_to_file(calibrator: Calibrator, out: str | Path, *, resume: bool = False) -> dict[str, Any]:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from cellcal.core.calibration.calibrator import Calibrator, ProgressFactory, build_devices
+from cellcal.core.calibration.calibrator import Calibrator, PoseObserver, ProgressFactory, build_devices
 from cellcal.core.calibration.config import CellConfig, parse_config
 from cellcal.core.calibration.outlock import OutputLock
 from cellcal.devices.camera import Camera3D
@@ -68,7 +68,7 @@ def record(config: CellConfig, out: str | Path, *, config_text: str | None = Non
 
 
 def run_recorded(config: CellConfig, recorder: SessionRecorder, camera: Camera3D, safe_arm: SafeArm, *,
-                 progress: ProgressFactory | None = None) -> dict[str, Any]:
+                 progress: ProgressFactory | None = None, observer: PoseObserver | None = None) -> dict[str, Any]:
     """Run the plan of ``config`` on ``camera`` and ``safe_arm`` (:func:`build_devices`) behind ``recorder``.
 
     The backend arm is recorded inside the safety wrapper; the result is logged. The
@@ -79,7 +79,7 @@ def run_recorded(config: CellConfig, recorder: SessionRecorder, camera: Camera3D
         CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`.
     """
     arm = SafeArm(recorder.arm(safe_arm.inner), safe_arm.limits)
-    document = Calibrator(config, recorder.camera(camera), arm, progress=progress).run()
+    document = Calibrator(config, recorder.camera(camera), arm, progress=progress, observer=observer).run()
     recorder.log_result(document)
     return document
 

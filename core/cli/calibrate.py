@@ -7,21 +7,18 @@ import dataclasses
 import shlex
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cellcal.core.calibration.calibrator import Calibrator, build_devices, poses_saved, run_to_file
-from cellcal.core.calibration.config import CellConfig, load_config
-from cellcal.core.calibration.dryrun import dry_run
-from cellcal.core.calibration.journal import journal_path
-from cellcal.core.calibration.replay import compare_with_recording, replay_session
-from cellcal.core.calibration.report import RESULT_FILENAME, format_full_frame, format_table
 from cellcal.core.cli.argtypes import path_arg
-from cellcal.core.cli.exits import EXIT_INTERRUPTED, EXIT_OK
-from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.options import add_config_option, add_viz_port_option
 from cellcal.core.cli.progress import progress_factory
-from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CellcalError, ConfigError
-from cellcal.devices.safety import SafeArm
+
+if TYPE_CHECKING:  # the calibration (numpy, OpenCV) is imported when the command runs, not by `cellcal --help`
+    from cellcal.core.calibration.config import CellConfig
+    from cellcal.devices.camera import Camera3D
+    from cellcal.devices.safety import SafeArm
 
 
 def register(sub: Any) -> None:
@@ -41,6 +38,11 @@ def register(sub: Any) -> None:
                    "moved to or captured again (the configuration must be unchanged)")
     p.add_argument("--dry-run", action="store_true",
                    help="print every move of the plan with its safety checks; connect and move nothing")
+    p.add_argument("--strict", action="store_true",
+                   help="fail the run (exit 1, result still written) when the poses' planes disagree in the base "
+                   "frame: cross-pose verdict 'inconsistent' or 'failed' (a camera that does not move with the arm, "
+                   "a wrong [mount])")
+    add_viz_port_option(p)
     p.add_argument("--replay", metavar="FILE.mcap", type=path_arg,
                    help="re-run a session recorded with 'cellcal record' from the file alone (its recorded "
                    "configuration, replay camera and arm); reports whether the result is identical")
@@ -49,9 +51,14 @@ def register(sub: Any) -> None:
 
 def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
     """The configuration and devices: from ``--config``, or from a recording with ``--replay``."""
+    from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.calibration.config import load_config
+
     if getattr(args, "replay", None):
         if args.config:
             raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
+        from cellcal.core.calibration.replay import replay_session  # the recording's reader, only here
+
         return replay_session(args.replay)
     config = load_config(args.config)
     return (config, *build_devices(config))
@@ -70,6 +77,8 @@ def _where(device: Any) -> str:
 
 
 def _check(args: argparse.Namespace) -> int:
+    from cellcal.core.calibration.calibrator import Calibrator
+
     config, camera, arm = _session(args)
     calibrator = Calibrator(config, camera, arm)
     calibrator.check_plan(None)
@@ -88,6 +97,9 @@ def _check(args: argparse.Namespace) -> int:
 
 def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
     """Where this run's measured poses are, and the command that continues it."""
+    from cellcal.core.calibration.journal import journal_path
+    from cellcal.core.calibration.report import RESULT_FILENAME
+
     config = f" --config {shlex.quote(args.config)}" if args.config else ""
     return (f"{saved} of {total} poses are saved in {journal_path(Path(args.out) / RESULT_FILENAME)}; "
             f"'cellcal calibrate{config} --out {shlex.quote(args.out)} --resume' continues the run")
@@ -95,6 +107,8 @@ def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
 
 def _print_report(document: dict[str, Any]) -> None:
     """The per-measurement table, the mean error per method, the full-frame block and the run time."""
+    from cellcal.core.calibration.report import format_full_frame, format_table
+
     rows = [row for pose in document["poses"] for row in pose["measurements"]]
     print(format_table(rows))
     print()
@@ -109,16 +123,39 @@ def _print_report(document: dict[str, Any]) -> None:
     print(f"total {document['timings_s']['total']:.2f} s")
 
 
+#: Cross-pose verdicts that say the poses' planes disagree (``--strict`` fails the run on them).
+DISAGREEING_VERDICTS = ("inconsistent", "failed")
+
+
+def _disagreement(document: dict[str, Any]) -> str:
+    """``"<verdict>: <interpretation>"`` when the poses disagree on the plane, else ""."""
+    cons = (document.get("summary") or {}).get("plane_consistency") or {}
+    verdict = cons.get("verdict")
+    return f"{verdict}: {cons.get('interpretation', '')}" if verdict in DISAGREEING_VERDICTS else ""
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal calibrate``; returns the exit status."""
+    from cellcal.core.calibration.calibrator import Calibrator, poses_saved, run_to_file
+    from cellcal.core.calibration.report import RESULT_FILENAME
+
     if args.check:
         return _check(args)
     if getattr(args, "dry_run", False):
+        from cellcal.core.calibration.config import load_config
+        from cellcal.core.calibration.dryrun import dry_run
+
         dry_run(load_config(args.config))
         return EXIT_OK
     config, camera, arm = _session(args)
     out = Path(args.out) / RESULT_FILENAME
-    calibrator = Calibrator(config, camera, arm, progress=progress_factory("poses", "pose", args.quiet))
+    view = None
+    if getattr(args, "viz_port", None) is not None:  # the live view's imports only when it is asked for
+        from cellcal.core.liveview import open_live_view
+
+        view = open_live_view(args.viz_port)
+    calibrator = Calibrator(config, camera, arm, progress=progress_factory("poses", "pose", args.quiet),
+                            observer=None if view is None else view.observe_pose(config.mount.pose()))
     try:
         document = run_to_file(calibrator, out, resume=getattr(args, "resume", False))
     except KeyboardInterrupt:
@@ -131,9 +168,18 @@ def run(args: argparse.Namespace) -> int:
         if saved:  # keep the type (it sets the exit status) and the one-line message
             exc.args = (f"{exc}; {_resume_hint(args, saved, len(calibrator.poses))}",)
         raise
+    finally:
+        if view is not None:
+            view.close()
     if not args.quiet:
         _print_report(document)
-    print(f"result written to {out}")
+    disagree = _disagreement(document)
+    print(f"result written to {out}" + (f"; cross-pose verdict {disagree}" if disagree else ""))
+    if disagree and getattr(args, "strict", False):
+        print(f"cellcal: --strict: the poses' planes disagree (cross-pose verdict {disagree})", file=sys.stderr)
+        return EXIT_FAILURE
     if getattr(args, "replay", None):
+        from cellcal.core.calibration.replay import compare_with_recording
+
         print(compare_with_recording(args.replay, document))
     return EXIT_OK

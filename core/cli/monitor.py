@@ -11,21 +11,15 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cellcal.core.calibration.config import CellConfig, load_config
 from cellcal.core.cli.argtypes import integer, path_arg, real
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
-from cellcal.core.cli.options import check_input_file
-from cellcal.core.monitor import (
-    Baseline,
-    DriftEvent,
-    Monitor,
-    MonitorStatus,
-    MonitorSummary,
-    monitored_cameras,
-    write_baselines,
-)
+from cellcal.core.cli.options import add_viz_port_option, check_input_file
+
+if TYPE_CHECKING:  # the monitor (numpy, the fit) is imported by run(), not by `cellcal --help`
+    from cellcal.core.calibration.config import CellConfig
+    from cellcal.core.monitor import Baseline, DriftEvent, Monitor, MonitorStatus, MonitorSummary
 
 #: Largest baseline file read (a --save-baseline file or a result.json), bytes.
 MAX_BASELINE_BYTES = 50 << 20
@@ -52,6 +46,7 @@ def register(sub: Any) -> None:
     p.add_argument("--save-baseline", metavar="FILE", type=path_arg,
                    help="write the baselines in use at the end of the run")
     p.add_argument("--quiet", action="store_true", help="print only drift events and the summary")
+    add_viz_port_option(p)
     p.set_defaults(func=run)
 
 
@@ -145,6 +140,9 @@ def _label(path: str | None, taken: set[str]) -> str:
 # ---------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal monitor``; returns the exit status."""
+    from cellcal.core.calibration.config import load_config
+    from cellcal.core.monitor import Monitor, monitored_cameras, write_baselines
+
     if args.baseline:
         check_input_file(args.baseline, MAX_BASELINE_BYTES)
     paths: list[str | None] = list(args.config) if args.config else [None]
@@ -152,12 +150,20 @@ def run(args: argparse.Namespace) -> int:
     configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]
     specs = monitored_cameras(configs, args.baseline)
     printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)
-    monitor = Monitor(specs, printer)
+    from cellcal.core.liveview import MonitorFeed, open_live_view
+
+    view = open_live_view(getattr(args, "viz_port", None), drift=True)
+    feed = None if view is None else MonitorFeed(view, printer, [label for label, _ in configs])
+    monitor = Monitor(specs, printer) if feed is None else Monitor(specs, feed.on_status, fit=feed.fit)
     printer.monitor = monitor
     if not args.quiet:
         where = ", ".join(f"{label} ({c.camera_section['backend']}, {c.source})" for label, c in configs)
         print(f"monitoring {where}; Ctrl-C to stop", flush=True)
-    summary = monitor.run(args.duration, args.frames)
+    try:
+        summary = monitor.run(args.duration, args.frames)
+    finally:
+        if view is not None:
+            view.close()
     for line in format_summary(summary):
         print(line)
     if args.save_baseline:

@@ -6,10 +6,10 @@ import argparse
 import os
 import stat
 
-from cellcal.core.cli.argtypes import path_arg
+from cellcal.core.cli.argtypes import integer, path_arg
 from cellcal.devices.errors import ConfigError
 
-__all__ = ["CONFIG_HELP", "add_config_option", "check_input_file"]
+__all__ = ["CONFIG_HELP", "add_config_option", "add_viz_port_option", "check_input_file"]
 
 CONFIG_HELP = "cell configuration (TOML); default: packaged sim.toml"
 
@@ -17,6 +17,13 @@ CONFIG_HELP = "cell configuration (TOML); default: packaged sim.toml"
 def add_config_option(parser: argparse.ArgumentParser) -> None:
     """Add ``--config PATH`` (one cell configuration; None means the packaged ``sim.toml``)."""
     parser.add_argument("--config", metavar="PATH", type=path_arg, help=CONFIG_HELP)
+
+
+def add_viz_port_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--viz-port N``: serve the live view (Foxglove WebSocket) on 127.0.0.1:N (ADR 0020)."""
+    parser.add_argument("--viz-port", metavar="N", type=integer(ge=1, le=65535),
+                        help="serve a live 3D view on ws://127.0.0.1:N for Foxglove (point cloud, fitted plane, "
+                        "frames); needs the 'viz' extra")
 
 
 def check_input_file(path: str, max_bytes: int) -> None:

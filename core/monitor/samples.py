@@ -8,12 +8,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from cellcal.core.geometry.planes import Plane
-from cellcal.core.methods.fullframe import FullFrameSettings, check_gates, fit_full_frame
+from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings, check_gates, fit_full_frame
 from cellcal.devices.errors import CalibrationError, ConfigError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
 
-__all__ = ["Baseline", "PlaneSample", "plane_sample"]
+__all__ = ["Baseline", "PlaneSample", "fit_plane_sample", "plane_sample"]
 
 
 @dataclass(frozen=True)
@@ -137,6 +137,12 @@ def plane_sample(frame: Frame, fit_settings: FullFrameSettings | None = None) ->
             too few inliers, residuals too large, poor coverage).
         CalibrationError: If no plane is found or the optical axis misses it.
     """
+    return fit_plane_sample(frame, fit_settings)[0]
+
+
+def fit_plane_sample(frame: Frame, fit_settings: FullFrameSettings | None = None
+                     ) -> tuple[PlaneSample, FullFrameResult]:
+    """As :func:`plane_sample`, also returning the fit itself (plane, inlier mask) for a viewer."""
     result = fit_full_frame(frame, fit_settings)
     check_gates(result)
-    return PlaneSample(float(frame.timestamp), result.tilt_x_rad, result.tilt_y_rad, result.height_m)
+    return PlaneSample(float(frame.timestamp), result.tilt_x_rad, result.tilt_y_rad, result.height_m), result

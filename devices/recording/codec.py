@@ -15,7 +15,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.devices import errors as _errors
 from cellcal.devices.errors import CellcalError, DeviceError, RecordingError
@@ -89,20 +88,26 @@ def decode_frame(data: Mapping[str, Any]) -> Frame:
 
 
 def encode_pose(pose: Pose) -> dict[str, Any]:
-    """JSON form of a pose: translation (m) and the rotation's stored quaternion."""
+    """JSON form of a pose: translation (m), quaternion (for viewers) and the exact rotation matrix."""
     return {"translation_m": [float(v) for v in pose.translation],
-            "quaternion_xyzw": [float(v) for v in pose.rotation.as_quat()]}
+            "quaternion_xyzw": [float(v) for v in pose.rotation.as_quat()],
+            "rotation_matrix": [float(v) for v in pose.rotation_matrix.ravel()]}
 
 
 def decode_pose(data: Mapping[str, Any]) -> Pose:
-    """Inverse of :func:`encode_pose`, bit-exact: the quaternion is not renormalised.
+    """Inverse of :func:`encode_pose`, bit-exact: the recorded rotation matrix as it is (a recording
+    without one: its quaternion, not renormalised).
 
     Raises:
         RecordingError: If the entry is malformed or the quaternion is not unit length.
     """
     try:
-        q = np.asarray(data["quaternion_xyzw"], dtype=np.float64)
         t = np.asarray(data["translation_m"], dtype=np.float64)
+        if "rotation_matrix" in data:  # the pose's own matrix: bit-exact (Pose keeps a rotation to 1e-12 as is)
+            return Pose.from_rotation_matrix(np.asarray(data["rotation_matrix"], dtype=np.float64).reshape(3, 3), t)
+        from scipy.spatial.transform import Rotation  # a recording without the matrix
+
+        q = np.asarray(data["quaternion_xyzw"], dtype=np.float64)
         # a unit quaternion within 1e-9 (what as_quat wrote), all finite
         if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(float(np.linalg.norm(q)) - 1.0) > 1e-9:
             raise ValueError(f"quaternion {q.tolist()} is not a unit quaternion")

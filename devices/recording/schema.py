@@ -35,9 +35,11 @@ _ARRAY = {
 }
 _POSE_JSON = {
     "type": "object",
-    "description": "rigid transform: translation (m) and the exact stored quaternion [x, y, z, w]",
+    "description": "rigid transform: translation (m), quaternion [x, y, z, w] and the exact rotation matrix "
+                   "(row-major)",
     "properties": {"translation_m": {"type": "array", "items": {"type": "number"}},
-                   "quaternion_xyzw": {"type": "array", "items": {"type": "number"}}},
+                   "quaternion_xyzw": {"type": "array", "items": {"type": "number"}},
+                   "rotation_matrix": {"type": "array", "items": {"type": "number"}}},
 }
 _ERROR = {
     "type": ["object", "null"],
@@ -119,6 +121,65 @@ CHANNELS: dict[str, str] = {
     TOPIC_ARM_CALL: "cellcal.ArmCall",
     TOPIC_FLANGE_POSE: "foxglove.PoseInFrame",
 }
+
+
+# ---------------------------------------------------------------- scene channels (ADR 0020)
+TOPIC_POINTS = "/camera/points"
+TOPIC_PLANE = "/cellcal/plane"
+TOPIC_TF = "/tf"
+TOPIC_DRIFT = "/cellcal/drift"
+
+_POSE = {"type": "object", "properties": {
+    "position": _XYZ, "orientation": {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}}}}
+_COLOR = {"type": "object", "properties": {k: {"type": "number"} for k in "rgba"}}
+_NUM = {"type": "number"}
+
+#: JSON schemas of the scene messages: the Foxglove ones by their names, and cellcal's drift values.
+SCENE_SCHEMAS: dict[str, dict[str, Any]] = {
+    "foxglove.PointCloud": {
+        "title": "foxglove.PointCloud", "type": "object",
+        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"}, "pose": _POSE,
+                       "point_stride": {"type": "integer"},
+                       "fields": {"type": "array", "items": {"type": "object", "properties": {
+                           "name": {"type": "string"}, "offset": {"type": "integer"}, "type": {"type": "integer"}}}},
+                       "data": {"type": "string", "contentEncoding": "base64"}},
+    },
+    "foxglove.SceneUpdate": {
+        "title": "foxglove.SceneUpdate", "type": "object",
+        "properties": {"deletions": {"type": "array", "items": {"type": "object"}},
+                       "entities": {"type": "array", "items": {"type": "object", "properties": {
+                           "timestamp": _TIME, "frame_id": {"type": "string"}, "id": {"type": "string"},
+                           "cubes": {"type": "array", "items": {"type": "object", "properties": {
+                               "pose": _POSE, "size": _XYZ, "color": _COLOR}}},
+                           "arrows": {"type": "array", "items": {"type": "object", "properties": {
+                               "pose": _POSE, "shaft_length": _NUM, "shaft_diameter": _NUM,
+                               "head_length": _NUM, "head_diameter": _NUM, "color": _COLOR}}}}}}},
+    },
+    "foxglove.FrameTransforms": {
+        "title": "foxglove.FrameTransforms", "type": "object",
+        "properties": {"transforms": {"type": "array", "items": {"type": "object", "properties": {
+            "timestamp": _TIME, "parent_frame_id": {"type": "string"}, "child_frame_id": {"type": "string"},
+            "translation": _XYZ, "rotation": {"type": "object", "properties": {k: _NUM for k in "xyzw"}}}}}},
+    },
+    "cellcal.Drift": {
+        "title": "cellcal.Drift", "type": "object",
+        "description": "drift of a monitored camera's plane from its baseline (radians, metres)",
+        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"}, "label": {"type": "string"},
+                       "phase": {"type": "string"}, "tilt_deviation_rad": {"type": ["number", "null"]},
+                       "height_deviation_m": {"type": ["number", "null"]},
+                       "tilt_threshold_rad": {"type": ["number", "null"]},
+                       "height_threshold_m": {"type": ["number", "null"]},
+                       "tilt_x_rad": _NUM, "tilt_y_rad": _NUM, "height_m": _NUM},
+    },
+}
+#: Scene topics of a recording (registered when the first scene is logged) and of the live view.
+SCENE_CHANNELS: dict[str, str] = {
+    TOPIC_POINTS: "foxglove.PointCloud",
+    TOPIC_PLANE: "foxglove.SceneUpdate",
+    TOPIC_TF: "foxglove.FrameTransforms",
+}
+#: What the live view of a monitor adds: the drift values.
+DRIFT_CHANNELS: dict[str, str] = {TOPIC_DRIFT: "cellcal.Drift"}
 
 
 def import_mcap() -> tuple[Any, Any]:

@@ -20,11 +20,16 @@ from cellcal.devices.errors import CellcalError, RecordingError, RecordingWriteE
 from cellcal.devices.version import cellcal_version
 
 from .codec import dumps, encode_error, seconds_to_ns
+from .foxglove import scene_messages
+from .scene import Scene
 from .schema import (
     CHANNELS,
     MCAP_PROFILE,
     RECORDING_FORMAT,
+    SCENE_CHANNELS,
+    SCENE_SCHEMAS,
     SCHEMAS,
+    TOPIC_POINTS,
     TOPIC_RESULT,
     TOPIC_SESSION,
     import_mcap,
@@ -145,15 +150,37 @@ class SessionRecorder:
             if self._tmp is None:
                 raise RecordingError(f"recorder for {self.path} is closed; nothing more can be logged")
             seq = self.next_event() if event is None else event
-            data = dumps({**payload, "event": seq} if "event" in SCHEMAS[CHANNELS[topic]]["properties"]
-                          else payload)
+            numbered = "event" in SCHEMAS.get(CHANNELS.get(topic, ""), {}).get("properties", {})
+            data = dumps({**payload, "event": seq} if numbered else payload)
             try:
                 with _interrupts_held():
                     self._writer.add_message(channel_id=self._channels[topic], log_time=now, data=data,
                                              publish_time=publish, sequence=seq)
-                    self.message_counts[topic] += 1
+                    self.message_counts[topic] = self.message_counts.get(topic, 0) + 1
             except OSError as exc:
                 raise RecordingWriteError(f"cannot write {self.path}: {exc.strerror or exc}", errno=exc.errno) from None
+
+    def log_scene(self, scene: Scene) -> None:
+        """Write the scene of one frame: point cloud, fitted plane and frames (ADR 0020).
+
+        The scene channels are added to the file with the first scene, so a session
+        recorded without scenes has exactly the channels of ADR 0009.
+
+        Raises:
+            RecordingError: If the recorder is closed.
+            RecordingWriteError: If the write fails (disk full ...).
+        """
+        with self._lock:
+            if self._tmp is not None and TOPIC_POINTS not in self._channels:
+                with _interrupts_held():
+                    for topic, name in SCENE_CHANNELS.items():
+                        schema_id = self._writer.register_schema(
+                            name=name, encoding="jsonschema", data=json.dumps(SCENE_SCHEMAS[name]).encode("utf-8"))
+                        self._channels[topic] = self._writer.register_channel(
+                            topic=topic, message_encoding="json", schema_id=schema_id)
+        for topic, payload in scene_messages(scene).items():
+            if topic in SCENE_CHANNELS:  # a monitor's drift values are for the live view
+                self.log(topic, payload, publish_time_s=scene.timestamp)
 
     def log_result(self, document: Mapping[str, Any] | None, error: CellcalError | None = None) -> None:
         """Store the run's outcome: the calibration result document, or the error it ended with."""

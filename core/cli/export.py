@@ -1,0 +1,108 @@
+"""``cellcal export --ros2 FILE``: the camera mount of a result (or hand-eye file) as ROS 2 text.
+
+Prints a ``static_transform_publisher`` launch snippet and a URDF joint for
+``T_flange_camera`` (ADR 0020). Exit status 2 for a file that is not one of those.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from cellcal.core.cli.argtypes import path_arg
+from cellcal.core.cli.exits import EXIT_OK
+from cellcal.core.cli.options import check_input_file
+from cellcal.devices.errors import ConfigError
+
+if TYPE_CHECKING:
+    from cellcal.devices.pose import Pose
+
+#: Largest input read (a result.json with many poses stays far below), bytes.
+MAX_INPUT_BYTES = 50 << 20
+#: A ROS frame id / URDF link name this command writes into code and XML.
+FRAME_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_/]{0,99}")
+
+
+def _frame(text: str) -> str:
+    if not FRAME_NAME.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a frame name (letters, digits, '_' and '/')")
+    return text
+
+
+def register(sub: Any) -> None:
+    """Add the ``export`` subcommand."""
+    p = sub.add_parser("export", help="print the camera mount of a result as ROS 2 launch and URDF text",
+                       description="Read the camera mount (flange -> camera) from a 'cellcal calibrate' "
+                       "result.json or a hand-eye file (mount.translation_m, mount.rpy_deg) and print a ROS 2 "
+                       "static_transform_publisher launch snippet and a URDF fixed joint for it. The camera "
+                       "frame is the optical frame (x right, y down, z forward).")
+    p.add_argument("--ros2", metavar="FILE", required=True, type=path_arg,
+                   help="result.json or handeye.json to read the mount from")
+    p.add_argument("--parent", metavar="FRAME", default="flange", type=_frame,
+                   help="parent frame / link (default: %(default)s)")
+    p.add_argument("--child", metavar="FRAME", default="camera", type=_frame,
+                   help="child frame / link (default: %(default)s)")
+    p.set_defaults(func=run)
+
+
+def _vector(mount: Mapping[str, Any], key: str, size: int, source: str) -> list[float]:
+    """``mount[key]`` as ``size`` finite numbers (ConfigError naming the key otherwise)."""
+    value = mount.get(key)
+    items: list[Any] = value if isinstance(value, list) else []
+    numbers = [v for v in items if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
+    if not isinstance(value, list) or len(value) != size or len(numbers) != size:
+        raise ConfigError(f"must be a list of {size} finite numbers, got {json.dumps(value)[:80]}",
+                          source=source, key=f"mount.{key}")
+    return [float(v) for v in numbers]
+
+
+def read_mount(path: str) -> Pose:
+    """``T_flange_camera`` from a result.json (``mount``: translation_m, quaternion_xyzw) or a
+    hand-eye file (``mount``: translation_m, rpy_deg, as in a configuration's ``[mount]`` table).
+
+    Raises:
+        ConfigError: Naming the file and what is wrong with it.
+    """
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from cellcal.devices.pose import Pose
+
+    check_input_file(path, MAX_INPUT_BYTES)
+    try:
+        with open(path, encoding="utf-8") as fh:
+            document = json.load(fh)
+    except FileNotFoundError:
+        raise ConfigError("file not found", source=path) from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ConfigError(f"not a readable JSON file: {exc}", source=path) from None
+    mount = document.get("mount") if isinstance(document, dict) else None
+    if not isinstance(mount, dict):
+        raise ConfigError("no 'mount' object: expected a cellcal result.json or a hand-eye file", source=path)
+    translation = _vector(mount, "translation_m", 3, path)
+    if "quaternion_xyzw" in mount:
+        q = np.asarray(_vector(mount, "quaternion_xyzw", 4, path))
+        # a stored unit quaternion (within 1e-6); anything else is not a rotation
+        if abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
+            raise ConfigError(f"is not a unit quaternion (norm {np.linalg.norm(q):.6g})", source=path,
+                              key="mount.quaternion_xyzw")
+        return Pose(Rotation.from_quat(q), np.asarray(translation))
+    if "rpy_deg" in mount:
+        return Pose.from_xyz_rpy(translation, np.radians(_vector(mount, "rpy_deg", 3, path)))
+    raise ConfigError("needs 'quaternion_xyzw' (result.json) or 'rpy_deg' (hand-eye file)", source=path,
+                      key="mount")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``cellcal export``; returns the exit status."""
+    from cellcal.devices.recording.ros2.static import launch_snippet, urdf_joint
+
+    pose = read_mount(args.ros2)
+    print(launch_snippet(pose, args.parent, args.child))
+    print(f"<!-- URDF fixed joint: {args.parent} -> {args.child} -->")
+    print(urdf_joint(pose, args.parent, args.child), end="")
+    return EXIT_OK

@@ -1,0 +1,139 @@
+"""The live view: a Foxglove WebSocket server (foxglove-sdk) streaming the scene of every frame (ADR 0020)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Sequence
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Self
+
+from cellcal.devices.errors import ConfigError
+from cellcal.devices.recording.codec import dumps, seconds_to_ns
+from cellcal.devices.recording.foxglove import scene_messages
+from cellcal.devices.recording.scene import Scene
+from cellcal.devices.recording.schema import DRIFT_CHANNELS, SCENE_CHANNELS, SCENE_SCHEMAS
+
+if TYPE_CHECKING:
+    from cellcal.core.calibration.calibrator import PoseRecord
+    from cellcal.core.methods.fullframe import FullFrameResult
+    from cellcal.devices.pose import Pose
+    from cellcal.devices.types import Frame
+
+__all__ = ["HOST", "LiveView", "import_foxglove", "open_live_view"]
+
+#: The live view listens on the loopback interface only.
+HOST = "127.0.0.1"
+#: Name the server gives itself in Foxglove's connection list.
+SERVER_NAME = "cellcal"
+
+
+def import_foxglove() -> Any:
+    """The ``foxglove`` SDK module.
+
+    Raises:
+        ConfigError: If foxglove-sdk (extra ``viz``) is not installed (``--viz-port`` is then bad input).
+    """
+    try:
+        import foxglove
+    except ImportError:
+        raise ConfigError("--viz-port needs foxglove-sdk, which is not installed: "
+                          "pip install 'cellcal[viz]'") from None
+    return foxglove
+
+
+class LiveView:
+    """Serves the Foxglove WebSocket protocol on ``127.0.0.1:port`` and publishes scenes.
+
+    Channels (JSON, schemas by Foxglove's names): ``/camera/points`` (``foxglove.PointCloud``,
+    inliers green, outliers red), ``/cellcal/plane`` (``foxglove.SceneUpdate``: the fitted
+    plane and its normal), ``/tf`` (``foxglove.FrameTransforms``: base, flange, camera) and,
+    with ``drift=True``, ``/cellcal/drift`` (``cellcal.Drift``). A message reaches the clients
+    subscribed at the time it is published.
+
+    Args:
+        port: TCP port (0: any free port; see :attr:`port`).
+        drift: Also advertise the drift channel (the monitor).
+
+    Raises:
+        ConfigError: If foxglove-sdk is not installed or the port cannot be listened on.
+    """
+
+    def __init__(self, port: int, *, drift: bool = False) -> None:
+        foxglove = import_foxglove()
+        self._context = foxglove.Context()
+        topics = {**SCENE_CHANNELS, **(DRIFT_CHANNELS if drift else {})}
+        self._channels = {topic: foxglove.Channel(topic, schema=foxglove.Schema(
+            name=name, encoding="jsonschema", data=json.dumps(SCENE_SCHEMAS[name]).encode("utf-8")),
+            message_encoding="json", context=self._context) for topic, name in topics.items()}
+        try:
+            self._server = foxglove.start_server(name=SERVER_NAME, host=HOST, port=port, context=self._context)
+        except Exception as exc:  # the SDK raises its own error type for a port in use or not allowed
+            self._close_channels()
+            raise ConfigError(f"--viz-port {port}: cannot listen on {HOST}:{port}: {exc}") from None
+        #: The port the server listens on.
+        self.port = int(self._server.port)
+        #: Messages published per topic (to at least one subscribed client).
+        self.message_counts: dict[str, int] = dict.fromkeys(topics, 0)
+
+    @property
+    def url(self) -> str:
+        """The WebSocket URL to open in Foxglove."""
+        return f"ws://{HOST}:{self.port}"
+
+    def publish(self, scene: Scene) -> None:
+        """Publish one scene on every channel it has data for (log time: the frame's time).
+
+        Nothing is encoded while no client subscribes to any channel.
+        """
+        if not any(channel.has_sinks() for channel in self._channels.values()):
+            return
+        log_time = seconds_to_ns(scene.timestamp) or None
+        for topic, payload in scene_messages(scene).items():
+            channel = self._channels.get(topic)
+            if channel is not None and channel.has_sinks():
+                channel.log(dumps(payload), log_time=log_time)
+                self.message_counts[topic] += 1
+
+    def observe_pose(self, mount: Pose) -> Any:
+        """A :data:`~cellcal.core.calibration.calibrator.PoseObserver` publishing each pose's scenes."""
+        from cellcal.core.liveview.scenes import calibration_scenes
+
+        def observer(record: PoseRecord, frames: Sequence[Frame], result: FullFrameResult | None) -> None:
+            for scene in calibration_scenes(record, frames, result, mount):
+                self.publish(scene)
+
+        return observer
+
+    def close(self) -> None:
+        """Stop the server and close the channels. Idempotent."""
+        server, self._server = self._server, None
+        if server is not None:
+            server.stop()
+        self._close_channels()
+
+    def _close_channels(self) -> None:
+        for channel in self._channels.values():
+            channel.close()
+        self._channels = {}
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+def open_live_view(port: int | None, *, drift: bool = False) -> LiveView | None:
+    """Start the live view of ``--viz-port`` (None: no live view) and say on stderr where to connect.
+
+    Raises:
+        ConfigError: If foxglove-sdk is not installed or the port cannot be listened on.
+    """
+    if port is None:
+        return None
+    view = LiveView(port, drift=drift)
+    print(f"live view: {view.url} (in Foxglove: Open connection, Foxglove WebSocket, this URL)",
+          file=sys.stderr, flush=True)
+    return view
