@@ -12,6 +12,7 @@ import contextlib
 import functools
 import math
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -19,10 +20,17 @@ from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
 from cellcal.devices.base import Device
-from cellcal.devices.errors import CellcalError, ConformanceError
+from cellcal.devices.errors import CellcalError, ConformanceError, DeviceTimeoutError, FrameError
+
+from .watchdog import HookHung, run_watched
 
 D = TypeVar("D", bound=Device)
 O = TypeVar("O")  # noqa: E741 - options type
+
+#: The rule that reports a malformed Frame; the other rules skip when capture() cannot build one.
+FRAME_LAYOUT_RULE = "camera.frame-layout"
+#: Default allowance of a device call beyond its own timeout before the watchdog gives up on it, seconds.
+DEFAULT_WATCHDOG_S = 10.0
 
 #: Timeout values every public I/O method must reject with a CellcalError naming "timeout".
 BAD_TIMEOUTS: tuple[Any, ...] = (0, 0.0, -1.0, math.nan, math.inf, -math.inf, True, "1")
@@ -55,9 +63,11 @@ class CheckResult:
         rule: The contract rule checked.
         summary: The rule in one sentence.
         backend: Backend name (``backend_name`` of the device class).
-        passed: Whether the backend honoured the rule.
-        detail: What was wrong ("" when passed).
+        passed: Whether the backend honoured the rule (False when skipped).
+        detail: What was wrong, or why the rule was skipped ("" when passed).
         duration_s: Wall time the check took, seconds.
+        skipped: The rule could not be checked because an earlier failure, reported under
+            its own rule, makes it meaningless (a malformed frame, a hung device).
     """
 
     rule: str
@@ -66,12 +76,15 @@ class CheckResult:
     passed: bool
     detail: str = ""
     duration_s: float = 0.0
+    skipped: bool = False
 
     @property
     def message(self) -> str:
-        """One line: backend, rule, and what went wrong (or "ok")."""
+        """One line: backend, rule, and what went wrong (or "ok", or why it was skipped)."""
         if self.passed:
             return f"{self.backend}: {self.rule}: ok"
+        if self.skipped:
+            return f"{self.backend}: {self.rule}: skipped: {self.detail}"
         return f"{self.backend}: contract rule {self.rule} ({self.summary}) violated: {self.detail}"
 
 
@@ -91,13 +104,13 @@ class ConformanceReport:
 
     @property
     def ok(self) -> bool:
-        """True when every check passed."""
-        return all(r.passed for r in self.results)
+        """True when no check failed (a skipped check follows a failure reported under another rule)."""
+        return not self.failures
 
     @property
     def failures(self) -> list[CheckResult]:
-        """The failed checks."""
-        return [r for r in self.results if not r.passed]
+        """The failed checks (not the skipped ones)."""
+        return [r for r in self.results if not (r.passed or r.skipped)]
 
     def raise_for_failures(self) -> None:
         """Raise :class:`ConformanceError` listing every failed rule, if any failed."""
@@ -108,10 +121,16 @@ class ConformanceReport:
             raise ConformanceError("\n".join(lines), bad)
 
     def __str__(self) -> str:
-        passed = len(self.results) - len(self.failures)
-        head = f"{self.kind} backend {self.backend}: {passed}/{len(self.results)} contract checks passed"
-        return "\n".join([head, *(f"  {'PASS' if r.passed else 'FAIL'} {r.rule}"
-                                  + ("" if r.passed else f": {r.detail}") for r in self.results)])
+        passed = sum(r.passed for r in self.results)
+        skipped = sum(r.skipped for r in self.results)
+        head = (f"{self.kind} backend {self.backend}: {passed}/{len(self.results)} contract checks passed"
+                + (f", {skipped} skipped" if skipped else ""))
+        return "\n".join([head, *(f"  {_verdict(r)} {r.rule}" + ("" if r.passed else f": {r.detail}")
+                                  for r in self.results)])
+
+
+def _verdict(r: CheckResult) -> str:
+    return "PASS" if r.passed else "SKIP" if r.skipped else "FAIL"
 
 
 # ---------------------------------------------------------------- helpers for checks
@@ -172,10 +191,15 @@ def connected(factory: Callable[[], D], base: type[Any], timeout: float) -> Iter
 
 
 def timed(fn: Callable[[], Any]) -> tuple[float, Any, BaseException | None]:
-    """Run ``fn``; return ``(elapsed_s, result, exception)`` (exception None on success)."""
+    """Run ``fn``; return ``(elapsed_s, result, exception)`` (exception None on success).
+
+    A :class:`FrameError` propagates: a malformed frame is not a timing question.
+    """
     t0 = time.monotonic()
     try:
         result = fn()
+    except FrameError:
+        raise
     except Exception as exc:
         return time.monotonic() - t0, None, exc
     return time.monotonic() - t0, result, None
@@ -196,6 +220,27 @@ def check_bad_connect_timeouts(factory: Callable[[], Any], base: type[Any], kind
         expect(not device.connected, f"connect() with a rejected timeout left the {kind} connected")
     finally:
         device.close()
+
+
+def check_stalled(o: Any, base: type[Any], calls: Callable[[Any], dict[str, Callable[[], object]]]) -> None:
+    """With ``o.stalled_factory``: every short-timeout call on a stalled device raises DeviceTimeoutError in time.
+
+    Args:
+        o: The options (``stalled_factory``, ``short_timeout_s``, ``timing_slack_s``, ``connect_timeout_s``).
+        base: The interface the stalled device must implement.
+        calls: ``calls(device)`` -> the calls (by name) made with ``o.short_timeout_s``.
+    """
+    if o.stalled_factory is None:
+        return
+    limit = o.short_timeout_s + o.timing_slack_s
+    with connected(o.stalled_factory, base, o.connect_timeout_s) as device:
+        for name, call in calls(device).items():
+            elapsed, value, exc = timed(call)
+            what = f"against a stalled device (it sends nothing), {name} with timeout {o.short_timeout_s:g} s"
+            got = f"returned {type(value).__name__}" if exc is None else f"raised {type(exc).__name__} ({exc})"
+            expect(isinstance(exc, DeviceTimeoutError), f"{what} {got}, expected DeviceTimeoutError")
+            expect(elapsed <= limit, f"{what} took {elapsed:.3g} s (more than timeout + {o.timing_slack_s:g} s "
+                                     "slack): the timeout is not honoured")
 
 
 # ---------------------------------------------------------------- resource accounting
@@ -240,22 +285,63 @@ class ResourceSnapshot:
 
 
 # ---------------------------------------------------------------- running checks
+class _Skip(BaseException):  # a BaseException so no check's `except Exception` swallows it
+    """Raised by the factory wrapper: this backend hung earlier, its rules are not run again."""
+
+
+#: Device classes whose call hung in this process -> what hung; their remaining rules are skipped
+#: (the hung call still holds the device: running more rules would only hang again).
+_HUNG: dict[type, str] = {}
+
+
 class _LabelledFactory:
-    """Wraps a factory and remembers the backend name of the first device it made."""
+    """Wraps a factory: remembers the first device's backend name and class; refuses a hung backend."""
 
     def __init__(self, factory: Callable[[], Any]):
         self.factory = factory
         self.label = ""
+        self.device_class: type | None = None
 
     def __call__(self) -> Any:
         device = self.factory()
         if not self.label:
             self.label = backend_label(device)
+            self.device_class = type(device)
+        hung = _HUNG.get(type(device))
+        if hung is not None:
+            raise _Skip(f"not run: {hung}")
         return device
 
 
+def _outcome(check: Check[Any, Any], labelled: _LabelledFactory, options: Any) -> tuple[bool, bool, str]:
+    """Run one check under the watchdog: ``(passed, skipped, detail)``."""
+    watchdog_s = float(getattr(options, "watchdog_s", DEFAULT_WATCHDOG_S))
+    try:
+        run_watched(functools.partial(check.func, labelled, options), f"cellcal-kit {check.rule}", watchdog_s)
+    except Violation as v:
+        return False, False, str(v)
+    except _Skip as skip:
+        return False, True, str(skip)
+    except HookHung as hung:
+        for cls in {hung.device_class, labelled.device_class} - {None}:
+            _HUNG[cls] = f"the backend hung under {check.rule} in {hung.hook}"  # type: ignore[index]
+        return False, False, f"{hung}; the remaining rules of this backend are skipped"
+    except FrameError as exc:
+        if check.rule == FRAME_LAYOUT_RULE:
+            return False, False, f"the backend could not build a Frame: {exc}"
+        return False, True, f"needs a well-formed frame; the backend could not build one (reported under " \
+                            f"{FRAME_LAYOUT_RULE})"
+    except Exception as exc:  # the backend raised something the rule did not expect
+        return False, False, f"unexpected {type(exc).__name__}: {exc}"
+    return True, False, ""
+
+
 def run_check(check: Check[D, O], factory: Callable[[], D], options: O, backend: str | None = None) -> CheckResult:
-    """Run one check and describe its outcome (never raises for a backend's fault).
+    """Run one check under the watchdog and describe its outcome (never raises for a backend's fault).
+
+    Every device call the check makes may take its timeout plus ``options.watchdog_s``;
+    a call that overruns fails the rule, naming the hook and the time, and the rules run
+    after it for the same backend class are skipped (:mod:`.watchdog`).
 
     Args:
         check: The check.
@@ -265,20 +351,19 @@ def run_check(check: Check[D, O], factory: Callable[[], D], options: O, backend:
     """
     labelled = _LabelledFactory(factory)
     t0 = time.monotonic()
-    passed, detail = True, ""
-    try:
-        check.func(labelled, options)
-    except Violation as v:
-        passed, detail = False, str(v)
-    except Exception as exc:  # the backend raised something the rule did not expect
-        passed, detail = False, f"unexpected {type(exc).__name__}: {exc}"
+    passed, skipped, detail = _outcome(check, labelled, options)
     name = backend or labelled.label or str(getattr(factory, "__name__", "backend"))
-    return CheckResult(check.rule, check.summary, name, passed, detail, time.monotonic() - t0)
+    return CheckResult(check.rule, check.summary, name, passed, detail, time.monotonic() - t0, skipped)
 
 
 def run_checks(kind: str, checks: Iterable[Check[D, O]], factory: Callable[[], D], options: O,
-               base: type[Any], only: Iterable[str] | None, raise_on_failure: bool) -> ConformanceReport:
-    """Run ``checks`` (or the ones named in ``only``) against one backend."""
+               base: type[Any], only: Iterable[str] | None, raise_on_failure: bool,
+               quiet: bool = False) -> ConformanceReport:
+    """Run ``checks`` (or the ones named in ``only``) against one backend.
+
+    Unless ``quiet``, each rule's name goes to stderr as it starts, so a slow backend
+    shows where it is.
+    """
     if not callable(factory) or isinstance(factory, Device):
         raise CellcalError(f"check_{kind} needs a factory (a callable returning a new, unconnected "
                            f"{base.__name__}), got {type(factory).__name__}")
@@ -289,7 +374,11 @@ def run_checks(kind: str, checks: Iterable[Check[D, O]], factory: Callable[[], D
         if unknown:
             raise CellcalError(f"unknown {kind} contract rule(s): {', '.join(sorted(unknown))}")
         selected = [c for c in selected if c.rule in wanted]
-    results = [run_check(c, factory, options) for c in selected]
+    results = []
+    for i, check in enumerate(selected, 1):
+        if not quiet:
+            print(f"cellcal.testing: {kind} rule {i}/{len(selected)} {check.rule} ...", file=sys.stderr, flush=True)
+        results.append(run_check(check, factory, options))
     backend = next((r.backend for r in results), "backend")
     report = ConformanceReport(kind, backend, results)
     if raise_on_failure:

@@ -36,6 +36,7 @@ from ._runner import (
     Violation,
     check_bad_connect_timeouts,
     check_bad_timeouts,
+    check_stalled,
     connected,
     expect,
     raises,
@@ -282,6 +283,8 @@ def _timeout_bounded(factory: Factory, o: ArmOptions) -> None:
             expect(elapsed <= o.short_timeout_s + o.timing_slack_s,
                    f"{name}(timeout={o.short_timeout_s:g}) took {elapsed:.3g} s (more than timeout + "
                    f"{o.timing_slack_s:g} s slack)")
+    check_stalled(o, RobotArm, lambda arm: {f"{name}()": functools.partial(getattr(arm, name), o.short_timeout_s)
+                                            for name in ("get_pose", "status", "joint_positions")})
 
 
 def _refusals(arm: RobotArm) -> dict[str, Callable[[], object]]:
@@ -328,7 +331,7 @@ ARM_RULES: tuple[str, ...] = tuple(c.rule for c in ARM_CHECKS)
 
 
 def check_arm(factory: Factory, options: ArmOptions | None = None, *, only: Iterable[str] | None = None,
-              raise_on_failure: bool = True) -> ConformanceReport:
+              raise_on_failure: bool = True, quiet: bool = False) -> ConformanceReport:
     """Run the arm contract checks against one backend.
 
     Args:
@@ -336,6 +339,7 @@ def check_arm(factory: Factory, options: ArmOptions | None = None, *, only: Iter
         options: Round-trip step, tolerances, timeouts; defaults apply if None.
         only: Run only these rules (see :data:`ARM_RULES`).
         raise_on_failure: Raise :class:`ConformanceError` listing every failed rule.
+        quiet: Do not print each rule's name to stderr as it starts.
 
     Returns:
         The report (all checks passed when ``raise_on_failure`` is true).
@@ -344,4 +348,5 @@ def check_arm(factory: Factory, options: ArmOptions | None = None, *, only: Iter
         ConformanceError: If a check failed and ``raise_on_failure`` is true.
         CellcalError: If ``factory`` is not callable or ``only`` names an unknown rule.
     """
-    return run_checks("arm", ARM_CHECKS, factory, options or ArmOptions(), RobotArm, only, raise_on_failure)
+    return run_checks("arm", ARM_CHECKS, factory, options or ArmOptions(), RobotArm, only, raise_on_failure,
+                      quiet)

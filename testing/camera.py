@@ -9,6 +9,7 @@ The checks need a scene the camera sees something in: at least
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable, Iterable
@@ -26,6 +27,7 @@ from ._runner import (
     ConformanceReport,
     check_bad_connect_timeouts,
     check_bad_timeouts,
+    check_stalled,
     connected,
     expect,
     run_checks,
@@ -189,6 +191,8 @@ def _timeout_bounded(factory: Factory, o: CameraOptions) -> None:
             limit = o.short_timeout_s + o.timing_slack_s
             expect(elapsed <= limit, f"capture(timeout={o.short_timeout_s:g}) #{i} took {elapsed:.3g} s "
                                      f"(more than timeout + {o.timing_slack_s:g} s slack)")
+    check_stalled(o, Camera3D, lambda cam: {f"capture() #{i}": functools.partial(cam.capture, o.short_timeout_s)
+                                            for i in (1, 2)})
 
 
 def _refusals(cam: Camera3D) -> dict[str, Callable[[], object]]:
@@ -223,7 +227,7 @@ CAMERA_RULES: tuple[str, ...] = tuple(c.rule for c in CAMERA_CHECKS)
 
 
 def check_camera(factory: Factory, options: CameraOptions | None = None, *, only: Iterable[str] | None = None,
-                 raise_on_failure: bool = True) -> ConformanceReport:
+                 raise_on_failure: bool = True, quiet: bool = False) -> ConformanceReport:
     """Run the camera contract checks against one backend.
 
     Args:
@@ -231,6 +235,7 @@ def check_camera(factory: Factory, options: CameraOptions | None = None, *, only
         options: What the backend declares (distance range, tolerances); defaults apply if None.
         only: Run only these rules (see :data:`CAMERA_RULES`).
         raise_on_failure: Raise :class:`ConformanceError` listing every failed rule.
+        quiet: Do not print each rule's name to stderr as it starts.
 
     Returns:
         The report (all checks passed when ``raise_on_failure`` is true).
@@ -240,4 +245,4 @@ def check_camera(factory: Factory, options: CameraOptions | None = None, *, only
         CellcalError: If ``factory`` is not callable or ``only`` names an unknown rule.
     """
     return run_checks("camera", CAMERA_CHECKS, factory, options or CameraOptions(), Camera3D, only,
-                      raise_on_failure)
+                      raise_on_failure, quiet)

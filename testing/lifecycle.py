@@ -18,7 +18,7 @@ from cellcal.devices.base import Device
 from cellcal.devices.errors import CellcalError, NotConnectedError
 from cellcal.devices.types import DeviceInfo
 
-from ._runner import Check, ResourceSnapshot, connected, expect, make, raises
+from ._runner import DEFAULT_WATCHDOG_S, Check, ResourceSnapshot, connected, expect, make, raises
 
 
 @dataclass(frozen=True)
@@ -30,15 +30,27 @@ class CommonOptions:
         short_timeout_s: Timeout of the bounded-time checks, seconds.
         timing_slack_s: How much longer than its timeout a call may take, seconds.
         check_resources: Whether a connect/close cycle must leave no thread or descriptor open.
+        watchdog_s: How long any device call may run beyond its own timeout (in total, for a
+            call without one) before the kit reports it hung, names the hook and moves on, seconds.
+        stalled_factory: Optional zero-argument callable returning a new, unconnected device
+            whose link connects but whose device then sends nothing (a stalled emulator or
+            fake device). ``*.timeout-bounded`` then also requires every short-timeout call
+            on it to raise DeviceTimeoutError in time: an ignored timeout passes against a
+            device that answers at once, not against one that does not answer.
     """
 
     connect_timeout_s: float = 10.0
     short_timeout_s: float = 0.25
     timing_slack_s: float = 2.0
     check_resources: bool = True
+    watchdog_s: float = DEFAULT_WATCHDOG_S
+    stalled_factory: Callable[[], Any] | None = None
 
     def _require_positive(self, *names: str) -> None:
-        for name in ("connect_timeout_s", "short_timeout_s", "timing_slack_s", *names):
+        if self.stalled_factory is not None and not callable(self.stalled_factory):
+            raise CellcalError(f"{type(self).__name__}.stalled_factory must be a callable returning a new, "
+                               f"unconnected device, got {type(self.stalled_factory).__name__}")
+        for name in ("connect_timeout_s", "short_timeout_s", "timing_slack_s", "watchdog_s", *names):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
                                                                                       and value > 0):

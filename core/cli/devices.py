@@ -7,6 +7,7 @@ import json
 import signal
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import real
@@ -40,10 +41,30 @@ def run(args: argparse.Namespace) -> int:
     if not args.scan:
         return 0
     print("scan:")
-    for e in entries:
-        for line in scan_lines(e.kind, e.name, args.timeout):
-            print(f"  {e.kind} {e.name}: {line}")
+    # one child process per backend, a few at a time; the report keeps the listing's order
+    with ThreadPoolExecutor(max_workers=_SCAN_WORKERS) as pool:
+        reports = pool.map(lambda e: _scan_entry(registry, e.kind, e.name, args.timeout), entries)
+        for e, lines in zip(entries, reports, strict=True):
+            for line in lines:
+                print(f"  {e.kind} {e.name}: {line}", flush=True)
     return 0
+
+
+def _scan_entry(registry: Registry, kind: Kind, name: str, timeout: float) -> list[str]:
+    """Report lines for one backend: no child process for a backend that has no discovery."""
+    from cellcal.devices.base import Device
+
+    try:
+        cls = registry.get(kind, name)
+    except CellcalError as exc:
+        return [f"unavailable: {one_line(str(exc))}"]
+    if getattr(cls.discover, "__func__", None) is getattr(Device.discover, "__func__", None):
+        return [NO_DISCOVERY]
+    return scan_lines(kind, name, timeout)
+
+
+#: What the scan says of a backend that cannot look for devices.
+NO_DISCOVERY = "no discovery (this backend cannot look for devices; configure its address)"
 
 
 def scan_lines(kind: str, name: str, timeout: float) -> list[str]:
@@ -67,7 +88,7 @@ def scan_lines(kind: str, name: str, timeout: float) -> list[str]:
         return [f"unavailable: {one_line(str(reply['error']))}"]
     found = reply.get("found")
     if found is None:
-        return ["no discovery (this backend cannot look for devices; configure its address)"]
+        return [NO_DISCOVERY]
     if not found:
         return ["no devices found"]
     lines = []
@@ -84,6 +105,9 @@ def _unavailable(registry: Registry, kind: Kind, name: str) -> str | None:
     except CellcalError as exc:  # the backend's module does not even load
         return one_line(str(exc))
 
+
+#: Backends scanned at once (each in its own child process).
+_SCAN_WORKERS = 4
 
 #: Seconds a scan child may take beyond its discovery timeout (interpreter start, imports).
 _CHILD_STARTUP_S = 10.0

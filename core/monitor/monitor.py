@@ -8,6 +8,7 @@ out. Detection rule and design: ADR 0013.
 from __future__ import annotations
 
 import contextlib
+import functools
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -18,8 +19,16 @@ from cellcal.core.calibration.config import MonitorSection
 from cellcal.core.methods.fullframe import FullFrameSettings
 from cellcal.core.monitor.detector import DetectorStatus, DriftDetector, DriftEvent, Phase
 from cellcal.core.monitor.samples import Baseline, PlaneSample, plane_sample
+from cellcal.devices.blocking import DeadlineGuard
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import CalibrationError, CellcalError, ConfigError, DeviceTimeoutError, MonitorError
+from cellcal.devices.errors import (
+    BackendOverrunError,
+    CalibrationError,
+    CellcalError,
+    ConfigError,
+    DeviceTimeoutError,
+    MonitorError,
+)
 from cellcal.devices.types import Frame
 
 __all__ = ["CameraSummary", "FrameFit", "Monitor", "MonitorStatus", "MonitorSummary", "MonitoredCamera",
@@ -135,6 +144,18 @@ StatusCallback = Callable[[MonitorStatus], None]
 FrameFit = Callable[[Frame, FullFrameSettings | None], PlaneSample]
 
 
+#: Seconds a camera call may run beyond its own timeout before the monitor gives up on the camera.
+MONITOR_GRACE_S = 2.0
+#: Seconds a camera's close() may take (it has no timeout) before it is abandoned.
+CLOSE_ALLOWANCE_S = 3.0
+
+
+def _close(guard: DeadlineGuard, camera: Camera3D) -> None:
+    """Close ``camera``, abandoning a close() that hangs (raising here would hide why the run ended)."""
+    with contextlib.suppress(CellcalError):
+        guard.call(camera.close, CLOSE_ALLOWANCE_S - guard.grace_s, "close()")
+
+
 class _Watch:
     """Run-time state of one camera."""
 
@@ -145,6 +166,8 @@ class _Watch:
         self.index = 0
         self.consecutive_errors = 0
         self.next_due = 0.0
+        #: Bounds every call into the camera's backend: its timeout + MONITOR_GRACE_S (ADR 0022).
+        self.guard = DeadlineGuard(f"camera backend '{spec.camera.backend_name}' ({spec.label})", MONITOR_GRACE_S)
 
     def refresh(self) -> None:
         d, s = self.detector, self.summary
@@ -264,8 +287,9 @@ class Monitor:
         with contextlib.ExitStack() as stack:
             try:
                 for w in self._watches:
-                    stack.callback(w.spec.camera.close)
-                    w.spec.camera.connect(w.spec.settings.connect_timeout_s)
+                    stack.callback(_close, w.guard, w.spec.camera)
+                    t = w.spec.settings.connect_timeout_s
+                    w.guard.call(functools.partial(w.spec.camera.connect, t), t, f"connect(timeout={t:g} s)")
                     w.next_due = time.monotonic()
                 self._loop(t0, duration_s, max_frames)
             except KeyboardInterrupt:
@@ -302,9 +326,12 @@ class Monitor:
         spec = w.spec
         index = w.index
         w.index += 1
+        t = spec.settings.capture_timeout_s
         try:
-            frame = spec.camera.capture(spec.settings.capture_timeout_s)
+            frame = w.guard.call(lambda: spec.camera.capture(t), t, f"capture(timeout={t:g} s)")
             sample = self._fit(frame, spec.fit_settings)
+        except BackendOverrunError:
+            raise                                  # a backend that ignores its timeout ends the run
         except (DeviceTimeoutError, CalibrationError) as exc:
             w.summary.errors += 1
             w.consecutive_errors += 1

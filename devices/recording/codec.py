@@ -62,11 +62,14 @@ def decode_array(data: Mapping[str, Any], what: str) -> NDArray[Any]:
 
 
 def encode_frame(frame: Frame) -> dict[str, Any]:
-    """JSON form of a frame that decodes to identical bits (arrays, timestamp, sequence)."""
+    """JSON form of a frame that decodes to identical bits (arrays, timestamp, sequence, metadata)."""
     arrays = {name: encode_array(getattr(frame, name)) for name in FRAME_ARRAYS
               if getattr(frame, name) is not None}
-    return {"timestamp": float(frame.timestamp), "sequence": int(frame.sequence),
-            "intrinsics": frame.intrinsics.to_dict(), "arrays": arrays}
+    doc = {"timestamp": float(frame.timestamp), "sequence": int(frame.sequence),
+           "intrinsics": frame.intrinsics.to_dict(), "arrays": arrays}
+    if frame.metadata:  # vendor facts per frame (device clock, measurement block); JSON data only
+        doc["metadata"] = json_safe(frame.metadata)
+    return doc
 
 
 def decode_frame(data: Mapping[str, Any]) -> Frame:
@@ -78,9 +81,12 @@ def decode_frame(data: Mapping[str, Any]) -> Frame:
     try:
         arrays = data["arrays"]
         intrinsics = Intrinsics(**data["intrinsics"])
-        kwargs = {name: decode_array(arrays[name], name) for name in FRAME_ARRAYS if name in arrays}
+        kwargs: dict[str, Any] = {name: decode_array(arrays[name], name) for name in FRAME_ARRAYS if name in arrays}
+        metadata = data.get("metadata", {})
+        if not isinstance(metadata, dict):
+            raise RecordingError(f"recorded frame metadata is a {type(metadata).__name__}, not an object")
         return Frame(intrinsics=intrinsics, timestamp=float(data["timestamp"]), sequence=int(data["sequence"]),
-                     **kwargs)
+                     metadata=dict(metadata), **kwargs)
     except RecordingError:
         raise
     except (CellcalError, KeyError, TypeError, ValueError) as exc:

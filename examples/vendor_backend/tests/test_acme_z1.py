@@ -1,65 +1,85 @@
-"""The ACME Z1 backend: the cellcal conformance kit, plus what only this camera promises.
+"""The ACME Z1 backend: the cellcal conformance kit against a fake Z1 on TCP port 0, plus its own promises.
 
-Run against the installed package (``pip install .`` then ``pytest``): the entry
-point test needs the distribution's metadata, as cellcal itself does.
+Run against the installed package (``pip install .`` then ``pytest``): the entry point
+test needs the distribution's metadata, as cellcal itself does.
 """
 
 from __future__ import annotations
 
 import math
 import re
-from pathlib import Path
+import socket
+import threading
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
 from cellcal.core.cli import main
-from cellcal.devices import ConfigError, DeviceTimeoutError, default_registry
+from cellcal.devices import ConfigError, DeviceConnectionError, DeviceTimeoutError, ProtocolError, default_registry
 from cellcal.testing import CameraConformance, CameraOptions, check_camera
 
+from acme_cellcal import wire
 from acme_cellcal.camera import RANGE_M, AcmeZ1Camera
+from acme_cellcal.emulated import AcmeZ1EmulatedCamera
+from acme_cellcal.fake_device import FakeZ1, FakeZ1Settings
 
-HERE = Path(__file__).resolve().parent
+
+def camera_at(device: FakeZ1, **keys: object) -> AcmeZ1Camera:
+    """An unconnected ``acme-z1`` camera pointed at ``device``, built from a config table as cellcal would."""
+    return AcmeZ1Camera.from_config({"host": "127.0.0.1", "port": device.port, **keys})
 
 
 # ---------------------------------------------------------------- the kit, one test per contract rule
 class TestAcmeZ1Conformance(CameraConformance):
+    """Every contract rule against a fake Z1 this fixture starts on 127.0.0.1, port 0."""
+
     options = CameraOptions(distance_range_m=RANGE_M)
 
-    def make_camera(self) -> AcmeZ1Camera:
-        return AcmeZ1Camera.from_config({"serial": "Z1-000417", "frame_rate_hz": 60.0})
+    @pytest.fixture
+    def camera_factory(self) -> Iterator[Callable[[], AcmeZ1Camera]]:
+        with FakeZ1(FakeZ1Settings(frame_rate_hz=60.0)) as device:   # started before the test, stopped after
+            yield lambda: camera_at(device)
+
+    @pytest.fixture
+    def stalled_camera_factory(self) -> Iterator[Callable[[], AcmeZ1Camera]]:
+        with FakeZ1(stalled=True) as device:                          # answers INFO, never a GRAB
+            yield lambda: camera_at(device)
 
 
 def test_kit_function_api_also_passes_at_low_frame_rate() -> None:
     # at 5 Hz a 0.25 s capture may time out: the kit accepts DeviceTimeoutError there, in bounded time
-    report = check_camera(lambda: AcmeZ1Camera.from_config({"frame_rate_hz": 5.0}),
-                          CameraOptions(distance_range_m=RANGE_M))
+    with FakeZ1(FakeZ1Settings(frame_rate_hz=5.0)) as device:
+        report = check_camera(lambda: camera_at(device), CameraOptions(distance_range_m=RANGE_M), quiet=True)
     assert report.ok and report.backend == "acme-z1" and len(report.results) == 14
 
 
+def test_the_emulated_backend_passes_the_kit() -> None:
+    report = check_camera(lambda: AcmeZ1EmulatedCamera.from_config({"frame_rate_hz": 60.0}),
+                          CameraOptions(distance_range_m=RANGE_M), quiet=True)
+    assert report.ok and report.backend == "acme-z1-emulated"
+
+
 # ---------------------------------------------------------------- registration
-def test_found_through_the_entry_point() -> None:
+def test_found_through_the_entry_points() -> None:
     registry = default_registry()
     assert registry.get("camera", "acme-z1") is AcmeZ1Camera
+    assert registry.get("camera", "acme-z1-emulated") is AcmeZ1EmulatedCamera
     (entry,) = [e for e in registry.entries("camera") if e.name == "acme-z1"]
     assert entry.origin == "cellcal-acme-camera 0.1.0" and entry.target == "acme_cellcal.camera:AcmeZ1Camera"
 
 
-def test_cellcal_devices_lists_and_scans_it(capsys: pytest.CaptureFixture[str]) -> None:
+def test_cellcal_devices_lists_it_and_scan_says_no_discovery(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["devices", "--scan", "--timeout", "0.5"]) == 0
     out = capsys.readouterr().out
     assert re.search(r"\n  acme-z1 +acme_cellcal\.camera:AcmeZ1Camera  \[cellcal-acme-camera 0\.1\.0\]\n", out)
-    assert "camera acme-z1: ACME Z1 Z1-000417" in out and "camera acme-z1: ACME Z1 Z1-000842" in out
-
-
-def test_a_cell_config_builds_it(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["calibrate", "--check", "--config", str(HERE.parent / "acme_cell.toml")]) == 0
-    assert "camera:  backend 'acme-z1' (acme_cellcal.camera.AcmeZ1Camera)" in capsys.readouterr().out
+    assert re.search(r"\n  camera acme-z1: no discovery", out)
 
 
 # ---------------------------------------------------------------- this camera's own promises
 def test_sees_the_configured_plane() -> None:
     tilt_deg, dist_m = 25.0, 1.5
-    with AcmeZ1Camera.from_config({"plane_tilt_deg": tilt_deg, "plane_distance_m": dist_m, "noise_m": 0.0}) as cam:
+    with FakeZ1(FakeZ1Settings(plane_tilt_deg=tilt_deg, plane_distance_m=dist_m, noise_m=0.0)) as device, \
+            camera_at(device) as cam:
         frame = cam.capture(2.0)
     p = frame.xyz[frame.valid].astype(np.float64)
     centroid = p.mean(axis=0)
@@ -72,23 +92,56 @@ def test_sees_the_configured_plane() -> None:
 
 
 def test_config_errors_name_the_key() -> None:
-    with pytest.raises(ConfigError, match="frame_rate_hz"):
-        AcmeZ1Camera.from_config({"frame_rate_hz": 0})
+    with pytest.raises(ConfigError, match="port"):
+        AcmeZ1Camera.from_config({"port": 0})
     with pytest.raises(ConfigError, match=r"exposure.*unknown key"):
         AcmeZ1Camera.from_config({"exposure": 3})
 
 
-def test_unknown_serial_is_a_connection_error() -> None:
-    from cellcal.devices import DeviceConnectionError
-
-    cam = AcmeZ1Camera.from_config({"serial": "Z1-999999"})
-    with pytest.raises(DeviceConnectionError, match=r"Z1-999999.*ACME error 404"):
+def test_nobody_listening_is_a_connection_error() -> None:
+    with socket.create_server(("127.0.0.1", 0)) as s:
+        port = s.getsockname()[1]                             # a port that was free a moment ago
+    cam = AcmeZ1Camera.from_config({"host": "127.0.0.1", "port": port})
+    with pytest.raises(DeviceConnectionError, match=rf"cannot reach 127\.0\.0\.1:{port}"):
         cam.connect(1.0)
     assert not cam.connected
 
 
-def test_no_frame_before_the_next_period_is_a_timeout() -> None:
-    with AcmeZ1Camera.from_config({"frame_rate_hz": 1.0}) as cam:
-        cam.capture(0.5)                                      # frame 0 is ready at once
-        with pytest.raises(DeviceTimeoutError, match=r"no frame within 0\.05 s"):
-            cam.capture(0.05)                                 # frame 1 is ~1 s away
+def test_no_frame_before_the_next_period_is_a_timeout_and_the_camera_recovers() -> None:
+    with FakeZ1(FakeZ1Settings(frame_rate_hz=2.0)) as device, camera_at(device) as cam:
+        first = cam.capture(0.5)                              # frame 0 is ready at once
+        with pytest.raises(DeviceTimeoutError, match=r"no frame within"):
+            cam.capture(0.05)                                 # frame 1 is ~0.5 s away
+        assert cam.capture(1.0).sequence > first.sequence
+
+
+def test_a_stalled_device_times_out_in_time_and_the_link_is_reopened() -> None:
+    with FakeZ1(stalled=True) as device, camera_at(device) as cam:
+        for _ in range(2):
+            with pytest.raises(DeviceTimeoutError, match="no reply to GRAB"):
+                cam.capture(0.1)
+        device.stalled = False
+        assert cam.capture(1.0).valid_fraction > 0.9
+
+
+def test_a_lying_device_is_a_protocol_error() -> None:
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        cam = AcmeZ1Camera.from_config({"host": "127.0.0.1", "port": server.getsockname()[1]})
+        conn = None
+        try:
+            server.settimeout(2.0)
+
+            def answer() -> None:
+                nonlocal conn
+                conn, _ = server.accept()
+                conn.recv(wire.REQUEST.size)
+                conn.sendall(wire.HEADER.pack(wire.REPLY_INFO, 0, 1 << 30))   # a 1 GiB "INFO" reply
+
+            t = threading.Thread(target=answer)
+            t.start()
+            with pytest.raises(ProtocolError, match="bad reply header"):
+                cam.connect(2.0)
+            t.join()
+        finally:
+            if conn is not None:
+                conn.close()

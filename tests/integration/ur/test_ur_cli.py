@@ -71,8 +71,8 @@ def test_module_prints_ready_serves_ur_rtde_and_exits_130_on_ctrl_c() -> None:
 def test_bad_arguments_are_one_line_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--host", "127.0.0.1", "--arm-config", "[1, 2]"]) == 1
     assert capsys.readouterr().err.strip() == "error: --arm-config must be a JSON object: not a JSON object"
-    assert main(["--host", "127.0.0.1", "--arm-config", '{"reach": 1}']) == 1
-    assert "unexpected keyword argument 'reach'" in capsys.readouterr().err
+    assert main(["--host", "127.0.0.1", "--arm-config", '{"wingspan": 1}']) == 1
+    assert "unexpected keyword argument 'wingspan'" in capsys.readouterr().err
     t0 = time.monotonic()
     assert main(["--host", "192.0.2.1"]) == 1    # not a local address: nothing can listen there
     assert "cannot listen on 192.0.2.1" in capsys.readouterr().err and time.monotonic() - t0 < 5

@@ -1,8 +1,8 @@
 """cellcal backend for the ACME Z1 time-of-flight camera (an example vendor package).
 
-Importing this package imports neither the camera class nor the (stand-in) SDK:
-cellcal finds the backend through the ``cellcal.cameras`` entry point and loads
-:mod:`acme_cellcal.camera` only when a configuration uses ``backend = "acme-z1"``.
+Importing this package imports no backend: cellcal finds them through the
+``cellcal.cameras`` entry points and loads :mod:`acme_cellcal.camera` (``acme-z1``) or
+:mod:`acme_cellcal.emulated` (``acme-z1-emulated``) only when a configuration uses them.
 """
 
 __version__ = "0.1.0"

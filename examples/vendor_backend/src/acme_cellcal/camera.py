@@ -1,4 +1,4 @@
-"""The ``acme-z1`` backend: an ACME Z1 time-of-flight camera as a cellcal ``Camera3D``.
+"""The ``acme-z1`` backend: an ACME Z1 time-of-flight camera on the network, as a cellcal ``Camera3D``.
 
 What a backend does, in the order docs/extending.md walks through it:
 
@@ -7,19 +7,21 @@ What a backend does, in the order docs/extending.md walks through it:
 2. The hooks ``_connect(timeout)``, ``_close()``, ``_info()``, ``_intrinsics()`` and
    ``_capture(timeout)``. The public methods of ``Camera3D`` already check the life
    cycle (NotConnectedError) and the timeouts; the hooks only talk to the device.
-3. Units and frames: the SDK speaks millimetres of Z-depth and microseconds; the
-   backend hands out metres of *radial* distance, xyz in the OpenCV camera frame
-   (x right, y down, z forward) and seconds since the epoch.
-4. Errors: SDK failures become cellcal's typed errors (DeviceConnectionError,
-   DeviceTimeoutError, VendorError with the vendor's code).
-5. The SDK is imported inside ``_connect`` only, so listing backends or validating a
-   config works without it.
+3. Units and frames: the Z1 sends millimetres of Z-depth and microseconds; the backend
+   hands out metres of *radial* distance, xyz in the OpenCV camera frame (x right,
+   y down, z forward) and seconds since the epoch.
+4. Errors and timeouts: every exchange is bounded by one deadline; a device that sends
+   nothing is a DeviceTimeoutError, bytes off the protocol a ProtocolError, the
+   device's error codes a VendorError.
 """
 
 from __future__ import annotations
 
 import contextlib
-import importlib
+import json
+import math
+import socket
+import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -32,34 +34,20 @@ from cellcal.devices import (
     DeviceTimeoutError,
     Frame,
     Intrinsics,
-    MissingDependencyError,
     ProtocolError,
     VendorError,
 )
 from numpy.typing import NDArray
 
-#: The module standing in for the vendor SDK (a real package would name "acme_sdk").
-SDK_MODULE = "acme_cellcal._sdk"
+from . import wire
 
 
 @dataclass(frozen=True)
 class AcmeZ1Config:
-    """``[camera]`` table for ``backend = "acme-z1"``.
+    """``[camera]`` table for ``backend = "acme-z1"``."""
 
-    The plane keys describe the synthetic scene the stand-in SDK renders; a real
-    camera would not have them.
-    """
-
-    serial: str = field(default="", metadata={"doc": "device serial number; \"\" = first device found"})
-    width: int = field(default=160, metadata={"gt": 0, "le": 640, "doc": "image width, px"})
-    height: int = field(default=120, metadata={"gt": 0, "le": 480, "doc": "image height, px"})
-    hfov_deg: float = field(default=70.0, metadata={"gt": 10.0, "lt": 170.0, "doc": "horizontal field of view, deg"})
-    frame_rate_hz: float = field(default=30.0, metadata={"gt": 0.0, "le": 120.0, "doc": "frame rate, Hz"})
-    plane_distance_m: float = field(default=1.2, metadata={"gt": 0.2, "le": 6.0,
-                                                           "doc": "scene: plane distance on the optical axis, m"})
-    plane_tilt_deg: float = field(default=20.0, metadata={"ge": -60.0, "le": 60.0,
-                                                          "doc": "scene: plane tilt about the camera x axis, deg"})
-    noise_m: float = field(default=0.001, metadata={"ge": 0.0, "le": 0.05, "doc": "depth noise sigma, m"})
+    host: str = field(default="192.168.0.69", metadata={"doc": "the camera's IP address or host name"})
+    port: int = field(default=50010, metadata={"ge": 1, "le": 65535, "doc": "the camera's TCP port"})
     timeout_s: float = field(default=2.0, metadata={"gt": 0.0, "le": 60.0, "doc": "default I/O timeout, s"})
 
 
@@ -68,11 +56,11 @@ RANGE_M = (0.2, 6.0)
 
 
 class AcmeZ1Camera(Camera3D):
-    """ACME Z1 time-of-flight camera.
+    """ACME Z1 time-of-flight camera over TCP.
 
     Args:
         config: The validated ``[camera]`` table.
-        context: Where the config came from (unused; kept for the registry's signature).
+        context: Where the config came from (unused by a real camera).
     """
 
     backend_name: ClassVar[str] = "acme-z1"
@@ -83,53 +71,42 @@ class AcmeZ1Camera(Camera3D):
         self.config = config
         self.context = context or BackendContext()
         self.default_timeout_s = config.timeout_s
-        self._device: Any = None
+        self._sock: socket.socket | None = None
+        self._info_reply: dict[str, Any] = {}
         self._intr: Intrinsics | None = None
         self._rays_over_z: NDArray[np.float64] | None = None
 
-    @staticmethod
-    def _sdk() -> Any:
-        try:
-            return importlib.import_module(SDK_MODULE)
-        except ImportError:
-            raise MissingDependencyError("the ACME SDK", "sdk", package="cellcal-acme-camera") from None
-
-    @classmethod
-    def discover(cls, timeout: float = 2.0) -> list[DeviceInfo] | None:
-        """The Z1 cameras reachable now (``cellcal devices --scan``)."""
-        sdk = cls._sdk()
-        return [DeviceInfo(backend=cls.backend_name, vendor="ACME", model="Z1", serial=s) for s in sdk.list_devices()]
-
     # ------------------------------------------------------------ life cycle
     def _connect(self, timeout: float) -> None:
-        sdk = self._sdk()
-        cfg = self.config
-        serials = sdk.list_devices()
-        serial = cfg.serial or (serials[0] if serials else "")
-        settings = sdk.Z1Settings(width=cfg.width, height=cfg.height, hfov_deg=cfg.hfov_deg,
-                                  frame_rate_hz=cfg.frame_rate_hz, plane_distance_mm=cfg.plane_distance_m * 1000.0,
-                                  plane_tilt_deg=cfg.plane_tilt_deg, noise_mm=cfg.noise_m * 1000.0,
-                                  min_range_mm=RANGE_M[0] * 1000.0, max_range_mm=RANGE_M[1] * 1000.0)
+        deadline = time.monotonic() + timeout
+        self._open(deadline)
+        info = self._info_from(self._exchange(wire.CMD_INFO, 0, deadline))
+        self._info_reply = info
+        self._intr = Intrinsics(width=info["width"], height=info["height"], fx=info["fx"], fy=info["fy"],
+                                cx=info["cx"], cy=info["cy"])
+        v, u = np.mgrid[0:self._intr.height, 0:self._intr.width].astype(np.float64)
+        self._rays_over_z = np.dstack([(u - self._intr.cx) / self._intr.fx, (v - self._intr.cy) / self._intr.fy,
+                                       np.ones_like(u)])
+
+    def _open(self, deadline: float) -> None:
+        where = f"{self.config.host}:{self.config.port}"
         try:
-            device = sdk.Z1Device(serial, settings)
-            device.open()
-        except sdk.AcmeSdkError as exc:
-            raise DeviceConnectionError(f"acme-z1: cannot open {serial or 'a device'}: {exc}") from None
-        self._device = device
-        fx, fy, cx, cy = device.intrinsics()
-        self._intr = Intrinsics(width=cfg.width, height=cfg.height, fx=fx, fy=fy, cx=cx, cy=cy)
-        v, u = np.mgrid[0:cfg.height, 0:cfg.width].astype(np.float64)
-        self._rays_over_z = np.dstack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)])
+            self._sock = socket.create_connection((self.config.host, self.config.port),
+                                                  timeout=max(1e-3, deadline - time.monotonic()))
+        except TimeoutError:
+            raise DeviceTimeoutError(f"acme-z1: no connection to {where} within the timeout") from None
+        except OSError as exc:
+            raise DeviceConnectionError(f"acme-z1: cannot reach {where}: {exc.strerror or exc}") from None
 
     def _close(self) -> None:
-        device, self._device = self._device, None
-        if device is not None:
-            with contextlib.suppress(Exception):  # _close must not raise
-                device.close()
+        sock, self._sock = self._sock, None
+        if sock is not None:
+            with contextlib.suppress(OSError):  # _close must not raise
+                sock.close()
 
     def _info(self) -> DeviceInfo:
-        return DeviceInfo(backend=self.backend_name, vendor="ACME", model="Z1", serial=self._device.serial,
-                          firmware=self._device.firmware, extra={"frame_rate_hz": self.config.frame_rate_hz})
+        return DeviceInfo(backend=self.backend_name, vendor="ACME", model="Z1", serial=str(self._info_reply["serial"]),
+                          firmware=str(self._info_reply["firmware"]), extra={"address": self.config.host})
 
     def _intrinsics(self) -> Intrinsics:
         assert self._intr is not None
@@ -137,21 +114,23 @@ class AcmeZ1Camera(Camera3D):
 
     # ------------------------------------------------------------ capture
     def _capture(self, timeout: float) -> Frame:
-        sdk = self._sdk()
-        try:
-            grabbed = self._device.grab(timeout_ms=max(1, int(timeout * 1000)))
-        except sdk.AcmeSdkError as exc:
-            raise VendorError("acme-z1", exc.code, str(exc)) from None
-        if grabbed is None:
-            raise DeviceTimeoutError(f"acme-z1 {self._device.serial}: no frame within {timeout:g} s")
-        depth_mm, timestamp_us, frame_id = grabbed
-        return self._to_frame(depth_mm, timestamp_us, frame_id)
+        deadline = time.monotonic() + timeout
+        if self._sock is None:                        # the link was dropped after a timeout: reopen it
+            self._open(deadline)
+        # ask the device to wait a little less than we do, so its "no frame" reply still arrives in time
+        kind, frame_id, body = self._exchange(wire.CMD_GRAB, max(1, int(timeout * 900)), deadline)
+        if kind != wire.REPLY_FRAME:
+            raise ProtocolError(f"acme-z1: expected a frame, got a {kind!r} reply")
+        return self._to_frame(body, frame_id)
 
-    def _to_frame(self, depth_mm: NDArray[Any], timestamp_us: int, frame_id: int) -> Frame:
+    def _to_frame(self, body: bytes, frame_id: int) -> Frame:
         intr = self._intrinsics()
         assert self._rays_over_z is not None
-        if depth_mm.dtype != np.uint16 or depth_mm.shape != intr.shape:
-            raise ProtocolError(f"acme-z1: frame is {depth_mm.dtype} {depth_mm.shape}, expected uint16 {intr.shape}")
+        width, height, timestamp_us = wire.FRAME_HEAD.unpack_from(body)
+        if (height, width) != intr.shape or len(body) != wire.FRAME_HEAD.size + 2 * width * height:
+            raise ProtocolError(f"acme-z1: a {width}x{height} frame of {len(body)} bytes; the camera is "
+                                f"{intr.width}x{intr.height}", offset=0)
+        depth_mm = np.frombuffer(body, dtype="<u2", offset=wire.FRAME_HEAD.size).reshape(height, width)
         valid = depth_mm > 0
         z_m = np.where(valid, depth_mm * 1e-3, np.nan)            # vendor mm of Z-depth -> metres
         xyz = self._rays_over_z * z_m[..., None]                   # OpenCV camera frame, metres
@@ -159,3 +138,72 @@ class AcmeZ1Camera(Camera3D):
         return Frame(distance=distance.astype(np.float32), xyz=xyz.astype(np.float32),
                      amplitude=valid.astype(np.float32), valid=valid, intrinsics=intr,
                      timestamp=timestamp_us * 1e-6, sequence=int(frame_id))
+
+    # ------------------------------------------------------------ the wire
+    def _exchange(self, command: bytes, arg: int, deadline: float) -> tuple[bytes, int, bytes]:
+        """Send one request and read its reply, all before ``deadline``; ``(kind, number, body)``.
+
+        On a timeout or a broken stream the link is closed (a late reply would be read
+        as the answer to the next request); the next capture reopens it.
+        """
+        try:
+            assert self._sock is not None
+            self._sock.settimeout(max(1e-3, deadline - time.monotonic()))
+            self._sock.sendall(wire.REQUEST.pack(command, arg))
+            kind, number, length = wire.HEADER.unpack(self._recv_exact(wire.HEADER.size, deadline))
+            if kind not in (wire.REPLY_INFO, wire.REPLY_FRAME, wire.REPLY_ERROR) or length > wire.MAX_BODY:
+                raise ProtocolError(f"acme-z1: bad reply header kind={kind!r} length={length}", offset=0)
+            body = self._recv_exact(length, deadline)
+        except TimeoutError:
+            self._close_link()
+            raise DeviceTimeoutError(f"acme-z1 {self.config.host}:{self.config.port}: no reply to "
+                                     f"{command.decode()} within the timeout") from None
+        except ProtocolError:
+            self._close_link()
+            raise
+        except OSError as exc:
+            self._close_link()
+            raise DeviceConnectionError(f"acme-z1: link lost: {exc.strerror or exc}") from None
+        if kind == wire.REPLY_ERROR:
+            text = body.decode("utf-8", "replace")
+            if number == wire.CODE_NO_FRAME:
+                raise DeviceTimeoutError(f"acme-z1: no frame within the timeout ({text})")
+            raise VendorError("acme-z1", number, text)
+        return kind, number, body
+
+    def _recv_exact(self, n: int, deadline: float) -> bytes:
+        assert self._sock is not None
+        buf = bytearray()
+        while len(buf) < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError
+            self._sock.settimeout(left)
+            chunk = self._sock.recv(n - len(buf))
+            if not chunk:
+                raise ConnectionResetError("the camera closed the connection")
+            buf += chunk
+        return bytes(buf)
+
+    def _close_link(self) -> None:
+        self._close()
+
+    @staticmethod
+    def _info_from(reply: tuple[bytes, int, bytes]) -> dict[str, Any]:
+        """The INFO reply, validated: a device lies until checked."""
+        kind, _, body = reply
+        try:
+            info = json.loads(body) if kind == wire.REPLY_INFO else None
+        except ValueError:
+            info = None
+        if not isinstance(info, dict):
+            raise ProtocolError("acme-z1: INFO reply is not a JSON object", offset=wire.HEADER.size)
+        sizes = (info.get("width"), info.get("height"))
+        if not all(isinstance(v, int) and 0 < v <= m for v, m in zip(sizes, (wire.MAX_WIDTH, wire.MAX_HEIGHT),
+                                                                       strict=True)):
+            raise ProtocolError(f"acme-z1: INFO reports an image of {sizes[0]}x{sizes[1]} px")
+        for key in ("fx", "fy", "cx", "cy"):
+            value = info.get(key)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise ProtocolError(f"acme-z1: INFO key {key!r} is {value!r}, not a number")
+        return info

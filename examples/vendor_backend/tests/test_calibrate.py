@@ -1,0 +1,53 @@
+"""A real ``cellcal calibrate`` with the ACME camera on cellcal's simulated arm.
+
+The ``acme-z1-emulated`` camera asks cellcal's public scene view what it sees from the
+arm's pose, so the plane measured from four sides agrees in the base frame; a camera
+that ignores the arm (``follow_arm = false``) does not, and ``--strict`` fails that run.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from cellcal.core.cli import main
+
+HERE = Path(__file__).resolve().parent
+CELL = HERE.parent / "acme_cell.toml"
+
+
+def _calibrate(tmp_path: Path, config: Path, *extra: str) -> tuple[int, dict[str, object]]:
+    out = tmp_path / "out"
+    code = main(["calibrate", "--config", str(config), "--out", str(out), "--quiet", *extra])
+    return code, json.loads((out / "result.json").read_text())
+
+
+def test_the_check_shows_what_connects_to_what(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "--check", "--config", str(CELL)]) == 0
+    out = capsys.readouterr().out
+    assert "camera:  backend 'acme-z1-emulated' (acme_cellcal.emulated.AcmeZ1EmulatedCamera)" in out
+    assert "plan:    8 poses" in out
+
+
+def test_calibrate_with_the_camera_following_the_arm_is_consistent(tmp_path: Path) -> None:
+    code, doc = _calibrate(tmp_path, CELL, "--strict")
+    assert code == 0
+    cons = doc["summary"]["plane_consistency"]                        # type: ignore[index]
+    assert cons["verdict"] == "consistent" and cons["n_poses"] == 8
+    assert cons["orientation_span_deg"] == pytest.approx(180.0, abs=1.0)  # four sides: a real check on the mount
+    assert cons["normal_spread_deg"] < cons["normal_tolerance_deg"]
+    assert cons["reference"]["angle_deg"] < 0.01 and abs(cons["reference"]["height_m"]) < 1e-4
+
+
+def test_a_camera_that_ignores_the_arm_fails_a_strict_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    static = tmp_path / "static.toml"
+    static.write_text(CELL.read_text().replace("noise_m = 0.001", "noise_m = 0.001\nfollow_arm = false\n"
+                                                                  "plane_distance_m = 0.5"))
+    code, doc = _calibrate(tmp_path, static)
+    assert code == 0                                                  # not strict: the result, and a warning
+    assert doc["summary"]["plane_consistency"]["verdict"] in ("inconsistent", "failed")  # type: ignore[index]
+    assert "cross-pose verdict" in capsys.readouterr().out
+    code, _ = _calibrate(tmp_path, static, "--strict")
+    assert code == 1
+    assert "--strict" in capsys.readouterr().err
