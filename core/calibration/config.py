@@ -48,10 +48,15 @@ MAX_POSES = 1000
 
 @dataclass(frozen=True)
 class CellSection:
-    """``[cell]``: identity of the cell and the seed of all simulated randomness."""
+    """``[cell]``: identity of the cell, the seed of all simulated randomness, strict mode.
+
+    ``strict = true`` is ``cellcal calibrate --strict`` for this cell: a cross-pose verdict
+    saying the poses' planes disagree in the base frame fails the run (exit 1).
+    """
 
     name: str = field(default="cell", metadata={"max_len": 100})
     seed: int = field(default=0, metadata={"ge": 0, "le": 2**32 - 1})  # what every random generator takes
+    strict: bool = False
 
 
 @dataclass(frozen=True)

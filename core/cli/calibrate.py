@@ -175,8 +175,9 @@ def run(args: argparse.Namespace) -> int:
         _print_report(document)
     disagree = _disagreement(document)
     print(f"result written to {out}" + (f"; cross-pose verdict {disagree}" if disagree else ""))
-    if disagree and getattr(args, "strict", False):
-        print(f"cellcal: --strict: the poses' planes disagree (cross-pose verdict {disagree})", file=sys.stderr)
+    strict = "--strict" if getattr(args, "strict", False) else "[cell] strict" if calibrator.config.cell.strict else ""
+    if disagree and strict:
+        print(f"cellcal: {strict}: the poses' planes disagree (cross-pose verdict {disagree})", file=sys.stderr)
         return EXIT_FAILURE
     if getattr(args, "replay", None):
         from cellcal.core.calibration.replay import compare_with_recording
