@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
 
 from .arm import RobotArm
 from .arrival import MAX_ANGLE_TOLERANCE_RAD, MAX_POSITION_TOLERANCE_M, format_pose
@@ -127,15 +126,15 @@ class SafetyLimits:
     def path(self, start: Pose | None, target: Pose) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Sampled flange and camera positions (each (K, 3), metres) along a linear move."""
         if start is None:
-            rots = Rotation.concatenate([target.rotation])
             flange = target.translation[None, :].copy()
+            camera = target.apply(self.mount.translation)[None, :]
         else:
             length = start.distance_to(target)
             k = max(MIN_PATH_SAMPLES, math.ceil(length * PATH_SAMPLES_PER_M) + 1)
             s = np.linspace(0.0, 1.0, k)
-            rots = Slerp([0.0, 1.0], Rotation.concatenate([start.rotation, target.rotation]))(s)
             flange = start.translation + s[:, None] * (target.translation - start.translation)
-        camera = flange + rots.apply(np.array(self.mount.translation))  # scipy rejects read-only input
+            # the flange turns at a constant rate about one axis (spherical linear interpolation)
+            camera = np.array([start.interpolate(target, f).apply(self.mount.translation) for f in s])
         return flange, camera
 
     def check(self, start: Pose | None, target: Pose, speed: float, acceleration: float) -> None:

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.devices.errors import CalibrationError
+from cellcal.devices.pose import Pose
 
 FloatArray = NDArray[np.float64]
 
@@ -124,7 +124,7 @@ class Scene:
         for b in self.boxes:
             if not isinstance(b, Box):
                 raise CalibrationError(f"Scene.boxes must hold Box objects, got {type(b).__name__}")
-            r_plane_box = Rotation.from_euler("z", b.yaw_rad).as_matrix()
+            r_plane_box = Pose.from_xyz_rpy(np.zeros(3), (0.0, 0.0, b.yaw_rad)).rotation_matrix
             rots.append(r_world_plane @ r_plane_box)
             local = np.array([b.center_xy_m[0], b.center_xy_m[1], b.size_m[2] / 2.0])
             centres.append(p + r_world_plane @ local)

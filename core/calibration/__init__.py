@@ -1,4 +1,10 @@
-"""The calibration workflow: cell config, calibrator, journal, output lock, dry run, report."""
+"""The calibration workflow: cell config, calibrator, journal, output lock, dry run, report.
+
+The ``replay`` names (the MCAP recording's reader and writer) are imported on first use
+(PEP 562), so ``cellcal calibrate`` does not load the recording stack (ADR 0021).
+"""
+
+from typing import TYPE_CHECKING
 
 from cellcal.core.calibration.calibrator import (
     Calibrator,
@@ -40,13 +46,6 @@ from cellcal.core.calibration.journal import (
     remove_journal,
 )
 from cellcal.core.calibration.outlock import LOCK_NAME, OutputLock
-from cellcal.core.calibration.replay import (
-    compare_with_recording,
-    exact_part,
-    record,
-    replay_session,
-    run_recorded,
-)
 from cellcal.core.calibration.report import (
     format_full_frame,
     format_table,
@@ -56,6 +55,7 @@ from cellcal.core.calibration.report import (
     write_bytes_atomic,
     write_json_atomic,
 )
+from cellcal.devices.lazy import lazy_exports
 
 __all__ = [
     "JOURNAL_SCHEMA",
@@ -104,3 +104,19 @@ __all__ = [
     "write_bytes_atomic",
     "write_json_atomic",
 ]
+
+#: Names of :mod:`cellcal.core.calibration.replay`, imported on first use.
+_REPLAY = {name: ".replay" for name in ("compare_with_recording", "exact_part", "record", "replay_session",
+                                         "run_recorded")}
+
+if TYPE_CHECKING:
+    from cellcal.core.calibration.replay import (
+        compare_with_recording,
+        exact_part,
+        record,
+        replay_session,
+        run_recorded,
+    )
+
+
+__getattr__, __dir__ = lazy_exports(__name__, _REPLAY)

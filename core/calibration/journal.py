@@ -33,10 +33,10 @@ def journal_path(result_path: str | Path) -> Path:
 def plan_fingerprint(document: Mapping[str, Any], poses: Sequence[Pose]) -> str:
     """SHA-256 (hex) of the configuration document and the planned flange poses.
 
-    Poses are rounded to 1 nm / 1e-12 so the fingerprint does not depend on the last
-    bit of a float computed on another machine.
+    Poses (translation and rotation matrix) are rounded to 1 nm / 1e-12 so the fingerprint
+    does not depend on the last bit of a float computed on another machine.
     """
-    plan = [[round(float(v), 9) for v in p.translation] + [round(float(v), 12) for v in p.rotation.as_quat()]
+    plan = [[round(float(v), 9) for v in p.translation] + [round(float(v), 12) for v in p.rotation_matrix.ravel()]
             for p in poses]
     text = json.dumps({"config": json_safe(document), "plan": plan}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

@@ -11,14 +11,15 @@ import argparse
 import json
 import math
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import integer, real
 from cellcal.core.cli.options import check_input_file
-from cellcal.core.methods.paper import error_pct, paper_methods
-from cellcal.core.methods.paper_data import PaperDataSet, load_paper_table
 from cellcal.devices.errors import CalibrationError
-from cellcal.devices.geometry.camera_model import NominalFovModel
+
+if TYPE_CHECKING:  # the methods (numpy, OpenCV) are imported when the command runs, not by `cellcal --help`
+    from cellcal.core.methods.paper_data import PaperDataSet
+    from cellcal.devices.geometry.camera_model import NominalFovModel
 
 __all__ = ["evaluate", "register", "run"]
 
@@ -49,6 +50,8 @@ def register(subparsers: Any) -> None:
 def evaluate(datasets: Sequence[PaperDataSet], true_angle_deg: float,
              model: NominalFovModel) -> list[dict[str, Any]]:
     """Both approaches on every data set, as JSON-ready dicts (degrees, percent)."""
+    from cellcal.core.methods.paper import error_pct, paper_methods
+
     true_rad = math.radians(true_angle_deg)
     out: list[dict[str, Any]] = []
     for ds in datasets:
@@ -123,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
     if width <= 0 or height <= 0:
         raise CalibrationError(f"--image-size must be positive, got {width} {height}")
     check_input_file(args.table, MAX_TABLE_BYTES)
+    from cellcal.core.methods.paper_data import load_paper_table
+    from cellcal.devices.geometry.camera_model import NominalFovModel
+
     model = NominalFovModel(width, height, math.radians(fov_x), math.radians(fov_y))
     rows = evaluate(load_paper_table(args.table), true_angle, model)
     if args.json:

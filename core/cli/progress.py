@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cellcal.core.calibration.calibrator import ProgressFactory
+if TYPE_CHECKING:
+    from cellcal.core.calibration.calibrator import ProgressFactory
 
 __all__ = ["progress_factory"]
 
@@ -17,7 +18,11 @@ def progress_factory(desc: str, unit: str, quiet: bool) -> ProgressFactory | Non
     """
     if quiet:
         return None
+    import threading
+
     from tqdm import tqdm
+
+    tqdm.set_lock(threading.RLock())  # one process draws the bars: no multiprocessing lock (7 ms to make)
 
     def progress(total: int) -> Any:
         return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False)

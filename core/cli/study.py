@@ -12,27 +12,23 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from cellcal.core.calibration.outlock import OutputLock
-from cellcal.core.calibration.report import write_json_atomic
 from cellcal.core.cli.argtypes import integer, path_arg
 from cellcal.core.cli.progress import progress_factory
-from cellcal.core.study import (
+from cellcal.core.study.design import (
     ARTEFACT_LEVELS,
     BASE_ARTEFACTS,
     TARGET_CLUTTER,
     TARGET_COVERAGE,
     TARGET_ERROR_CLUTTER_DEG,
     TARGET_ERROR_DEG,
-    Headline,
     StudySettings,
-    headline,
     quick_settings,
-    run_study,
-    summary_table,
-    write_csv,
 )
+
+if TYPE_CHECKING:  # the trials (numpy, the sim) are imported by run(), not by `cellcal --help`
+    from cellcal.core.study.table import Headline
 
 CSV_NAME = "study.csv"
 HEADLINE_NAME = "headline.json"
@@ -40,6 +36,8 @@ DEFAULT_TRIALS = 20
 DEFAULT_QUICK_TRIALS = 8
 #: Largest image side ``--resolution`` accepts (the sim camera's limit), px.
 MAX_SIDE_PX = 4096
+#: Most worker processes ``--jobs`` accepts.
+MAX_JOBS = 1024
 
 
 def artefact_levels(text: str) -> tuple[str, ...]:
@@ -88,6 +86,9 @@ def register(sub: Any) -> None:
     p.add_argument("--resolution", type=resolution, default=None, metavar="WxH",
                    help="image size of the simulated camera, e.g. 1280x800 (default: 224x172, the O3R222's; "
                    "the field of view stays 60 x 45 deg)")
+    p.add_argument("--jobs", type=integer(ge=1, le=MAX_JOBS), default=None, metavar="N",
+                   help="worker processes for the trials (default: every core this process may use); "
+                   "the results are the same for any N")
     p.add_argument("--no-plots", action="store_true", help="write the CSV and headline only")
     p.add_argument("--quiet", action="store_true", help="no progress bar or table; only the output paths")
     p.set_defaults(func=run)
@@ -152,6 +153,8 @@ def format_headline(h: Headline) -> str:
 def format_summary(rows: list[dict[str, Any]]) -> str:
     """Per artefact level, method and clutter level: n, failures, mean/median/p95 |tilt error| (deg),
     mean |height error| (mm), tilt and height interval coverage, gates passed."""
+    from cellcal.core.study.table import summary_table
+
     head = (f"{'artefacts':<17} {'method':<18} {'clutter':>7} {'n':>5} {'fail':>5} {'mean':>9} {'median':>9} "
             f"{'p95':>9} {'|dh| mm':>8} {'cover':>6} {'h cov':>6} {'gates':>6}")
     out = [head, "-" * len(head)]
@@ -188,6 +191,8 @@ def run(args: argparse.Namespace) -> int:
     The output directory is locked first (one run at a time; a path that cannot be
     written fails before the trials, not after).
     """
+    from cellcal.core.calibration.outlock import OutputLock
+
     settings = _settings(args)
     out = Path(args.out)
     with OutputLock.for_directory(out):
@@ -195,9 +200,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, settings: StudySettings, out: Path) -> int:
+    from cellcal.core.calibration.report import write_json_atomic
+    from cellcal.core.study.pool import default_jobs
+    from cellcal.core.study.table import headline, write_csv
+    from cellcal.core.study.trials import run_study
+
     progress = progress_factory("trials", "trial", args.quiet)
+    jobs = args.jobs if args.jobs is not None else default_jobs()
     started = time.perf_counter()
-    result = run_study(settings, progress=progress)
+    result = run_study(settings, progress=progress, jobs=jobs)
     elapsed = time.perf_counter() - started
     csv_path = write_csv(out / CSV_NAME, result.rows)
     head = headline(result.rows)
@@ -205,7 +216,7 @@ def _run(args: argparse.Namespace, settings: StudySettings, out: Path) -> int:
                      r["trial"]) for r in result.rows})
     write_json_atomic(out / HEADLINE_NAME, {**head.to_dict(), "trials_total": n_trials,
                                             "trials_per_condition": settings.trials, "seed": settings.seed,
-                                            "quick": bool(args.quick), "elapsed_s": elapsed,
+                                            "quick": bool(args.quick), "elapsed_s": elapsed, "jobs": jobs,
                                             "artefact_levels": list(settings.artefact_levels),
                                             "resolution_px": [int(v) for v in study_resolution(settings)],
                                             "full_frame_available": result.full_frame_available})
@@ -220,7 +231,7 @@ def _run(args: argparse.Namespace, settings: StudySettings, out: Path) -> int:
         print(format_headline(head))
         if not result.full_frame_available:
             print("  (cellcal.core.methods.fullframe not found: full frame not run)")
-        print(f"{n_trials} trials in {elapsed:.1f} s")
+        print(f"{n_trials} trials in {elapsed:.1f} s ({jobs} process{'es' if jobs > 1 else ''})")
     print(f"study written to {csv_path}" + (f" (+ {HEADLINE_NAME}, {len(paths)} plots)" if paths else
                                             f" (+ {HEADLINE_NAME})"))
     return 0

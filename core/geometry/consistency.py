@@ -59,8 +59,8 @@ class PosePlane:
         plane_base: The plane in the base frame (normal toward the camera).
         anchor_m: A point of the measured area on this plane, base frame, metres
             (where the optical axis meets it).
-        camera_rotation: The camera's orientation in the base frame (for the span check),
-            or None.
+        camera_rotation: The camera's orientation in the base frame (for the span check):
+            a :class:`~cellcal.devices.pose.Pose` (its translation unused), or None.
         normal_sigma_rad: 1-sigma RMS angular uncertainty of the normal, or None.
         offset_sigma_m: 1-sigma uncertainty of the plane's offset/height, or None.
     """
@@ -85,7 +85,7 @@ class PosePlane:
         except CalibrationError:
             anchor_cam = plane_cam.point_m
         return cls(plane_cam.transformed(camera_in_base), camera_in_base.apply(anchor_cam),
-                   camera_in_base.rotation, normal_sigma_rad, offset_sigma_m)
+                   Pose.from_rotation_matrix(camera_in_base.rotation_matrix), normal_sigma_rad, offset_sigma_m)
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,7 +187,7 @@ def _expected_rms(sigmas: Sequence[float | None], weights: FloatArray) -> float 
 def _orientation_span(rotations: Sequence[Any]) -> float | None:
     if any(r is None for r in rotations):
         return None
-    return max((float((a.inv() * b).magnitude()) for a, b in itertools.combinations(rotations, 2)), default=0.0)
+    return max((a.angle_to(b) for a, b in itertools.combinations(rotations, 2)), default=0.0)
 
 
 def plane_consistency(poses: Sequence[PosePlane], *, normal_tolerance_rad: float = DEFAULT_NORMAL_TOLERANCE_RAD,

@@ -243,7 +243,7 @@ class PlaneMap:
     def _apply(pose: Pose, points: FloatArray) -> FloatArray:
         """``pose`` applied to points of any leading shape (NaN rows stay NaN)."""
         flat = points.reshape(-1, 3)
-        out: FloatArray = flat @ pose.rotation.as_matrix().T + pose.translation
+        out: FloatArray = flat @ pose.rotation_matrix.T + pose.translation
         return out.reshape(points.shape)
 
     def __repr__(self) -> str:

@@ -1,56 +1,63 @@
-"""Accuracy study: simulated trials (scene, trials), their table and plots (``plots``, needs matplotlib)."""
+"""Accuracy study: design, simulated trials (scene, trials, a process pool), their table and plots.
 
-from cellcal.core.study.scene import (
-    OBSERVED_BOX_MIN_M,
-    BoxSpec,
-    PlaneRays,
-    capture_frame,
-    observed_clutter,
-    occluded,
-    place_boxes,
-    plane_rays,
-    trial_document,
-)
-from cellcal.core.study.table import (
-    COLUMNS,
-    Headline,
-    headline,
-    headline_level,
-    read_csv,
-    rows_to_csv,
-    select,
-    summary_table,
-    write_csv,
-    write_text_atomic,
-)
-from cellcal.core.study.trials import (
-    ARTEFACT_LEVELS,
-    ARTEFACT_TABLES,
-    BASE_ARTEFACTS,
-    FULL_FRAME,
-    GRID_METHODS,
-    METHODS,
-    PAPER_HEIGHTS_M,
-    PAPER_INCLINATION_DEG,
-    PAPER_PERIMETERS_PX,
-    TARGET_CLUTTER,
-    TARGET_COVERAGE,
-    TARGET_COVERAGE_CLUTTER,
-    TARGET_ERROR_CLUTTER_DEG,
-    TARGET_ERROR_DEG,
-    Condition,
-    FullFrameFit,
-    StudyResult,
-    StudySettings,
-    TrialData,
-    full_frame_fitter,
-    full_frame_row,
-    grid_rows,
-    quick_settings,
-    run_study,
-    run_trial,
-    study_intrinsics,
-)
+``plots`` needs matplotlib. The names below are imported on first use (PEP 562), so
+``cellcal study --help`` and ``import cellcal.core.study.design`` load no numerics (ADR 0021).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from cellcal.devices.lazy import lazy_exports
+
+#: Public name -> the module of this package that defines it.
+_EXPORTS = {
+    "OBSERVED_BOX_MIN_M": ".scene",
+    "BoxSpec": ".scene",
+    "PlaneRays": ".scene",
+    "capture_frame": ".scene",
+    "observed_clutter": ".scene",
+    "occluded": ".scene",
+    "place_boxes": ".scene",
+    "plane_rays": ".scene",
+    "trial_document": ".scene",
+    "COLUMNS": ".table",
+    "Headline": ".table",
+    "headline": ".table",
+    "headline_level": ".table",
+    "read_csv": ".table",
+    "rows_to_csv": ".table",
+    "select": ".table",
+    "summary_table": ".table",
+    "write_csv": ".table",
+    "write_text_atomic": ".table",
+    "ARTEFACT_LEVELS": ".design",
+    "ARTEFACT_TABLES": ".design",
+    "BASE_ARTEFACTS": ".design",
+    "FULL_FRAME": ".design",
+    "GRID_METHODS": ".design",
+    "METHODS": ".design",
+    "PAPER_HEIGHTS_M": ".design",
+    "PAPER_INCLINATION_DEG": ".design",
+    "PAPER_PERIMETERS_PX": ".design",
+    "TARGET_CLUTTER": ".design",
+    "TARGET_COVERAGE": ".design",
+    "TARGET_COVERAGE_CLUTTER": ".design",
+    "TARGET_ERROR_CLUTTER_DEG": ".design",
+    "TARGET_ERROR_DEG": ".design",
+    "Condition": ".design",
+    "FullFrameFit": ".trials",
+    "StudyResult": ".trials",
+    "StudySettings": ".design",
+    "TrialData": ".trials",
+    "full_frame_fitter": ".trials",
+    "full_frame_row": ".trials",
+    "grid_rows": ".trials",
+    "quick_settings": ".design",
+    "run_study": ".trials",
+    "run_trial": ".trials",
+    "study_intrinsics": ".trials",
+}
 
 __all__ = [
     "ARTEFACT_LEVELS",
@@ -99,3 +106,61 @@ __all__ = [
     "write_csv",
     "write_text_atomic",
 ]
+
+if TYPE_CHECKING:
+    from cellcal.core.study.design import (
+        ARTEFACT_LEVELS,
+        ARTEFACT_TABLES,
+        BASE_ARTEFACTS,
+        FULL_FRAME,
+        GRID_METHODS,
+        METHODS,
+        PAPER_HEIGHTS_M,
+        PAPER_INCLINATION_DEG,
+        PAPER_PERIMETERS_PX,
+        TARGET_CLUTTER,
+        TARGET_COVERAGE,
+        TARGET_COVERAGE_CLUTTER,
+        TARGET_ERROR_CLUTTER_DEG,
+        TARGET_ERROR_DEG,
+        Condition,
+        StudySettings,
+        quick_settings,
+    )
+    from cellcal.core.study.scene import (
+        OBSERVED_BOX_MIN_M,
+        BoxSpec,
+        PlaneRays,
+        capture_frame,
+        observed_clutter,
+        occluded,
+        place_boxes,
+        plane_rays,
+        trial_document,
+    )
+    from cellcal.core.study.table import (
+        COLUMNS,
+        Headline,
+        headline,
+        headline_level,
+        read_csv,
+        rows_to_csv,
+        select,
+        summary_table,
+        write_csv,
+        write_text_atomic,
+    )
+    from cellcal.core.study.trials import (
+        FullFrameFit,
+        StudyResult,
+        TrialData,
+        full_frame_fitter,
+        full_frame_row,
+        grid_rows,
+        run_study,
+        run_trial,
+        study_intrinsics,
+    )
+
+
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -18,17 +18,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.calibration.report import write_bytes_atomic
-from cellcal.core.study.table import headline_level, select
-from cellcal.core.study.trials import (
+from cellcal.core.study.design import (
     ARTEFACT_LEVELS,
     FULL_FRAME,
     METHODS,
     PAPER_HEIGHTS_M,
     PAPER_INCLINATION_DEG,
     TARGET_COVERAGE,
-    StudyResult,
-    TrialData,
 )
+from cellcal.core.study.table import headline_level, select
+from cellcal.core.study.trials import StudyResult, TrialData
 from cellcal.devices.errors import MissingDependencyError
 
 Rows = Sequence[Mapping[str, Any]]

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from cellcal.core.calibration.report import write_bytes_atomic
-from cellcal.core.study.trials import (
+from cellcal.core.study.design import (
     ARTEFACT_LEVELS,
     BASE_ARTEFACTS,
     FULL_FRAME,
@@ -150,7 +150,7 @@ def _same(a: Any, b: Any) -> bool:
 @dataclass(frozen=True)
 class Headline:
     """The issues' figures at the paper's settings (heights 0.46/0.59/0.61 m, 80 deg, default
-    noise) and one ToF artefact level (:data:`~cellcal.core.study.trials.BASE_ARTEFACTS`).
+    noise) and one ToF artefact level (:data:`~cellcal.core.study.design.BASE_ARTEFACTS`).
 
     Errors are mean absolute tilt errors in degrees over all trials (and, for the
     paper's methods, all perimeters); a failed estimate counts as missing and is

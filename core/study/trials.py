@@ -3,7 +3,8 @@
 A trial places the sim camera at one pose over the plane (height, inclination), with a
 fresh noise seed and fresh boxes and the ToF artefacts of its level, captures one frame
 and runs every method on it (:func:`run_trial`); :func:`run_study` runs every trial of
-every condition. Seeded throughout; the design and its rationale are in ADR 0012.
+every condition, in this process or on a process pool (:mod:`cellcal.core.study.pool`).
+Seeded throughout; the design and its rationale are in ADRs 0012 and 0021 (the pool).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import importlib
 import math
 import zlib
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,15 @@ from numpy.typing import NDArray
 from cellcal.core.calibration.calibrator import build_camera
 from cellcal.core.calibration.config import look_at_pose
 from cellcal.core.methods.measure import ExpectedGeometry, expected_geometry, measure_frames
+from cellcal.core.study.design import (
+    ARTEFACT_TABLES,
+    FULL_FRAME,
+    GRID_METHODS,
+    PAPER_INCLINATION_DEG,
+    TARGET_CLUTTER,
+    Condition,
+    StudySettings,
+)
 from cellcal.core.study.scene import (
     BoxSpec,
     capture_frame,
@@ -38,184 +48,16 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = [
-    "ARTEFACT_LEVELS",
-    "ARTEFACT_TABLES",
-    "BASE_ARTEFACTS",
-    "FULL_FRAME",
-    "GRID_METHODS",
-    "METHODS",
-    "PAPER_HEIGHTS_M",
-    "PAPER_INCLINATION_DEG",
-    "PAPER_PERIMETERS_PX",
-    "TARGET_CLUTTER",
-    "TARGET_COVERAGE",
-    "TARGET_COVERAGE_CLUTTER",
-    "TARGET_ERROR_CLUTTER_DEG",
-    "TARGET_ERROR_DEG",
-    "Condition",
     "FullFrameFit",
     "StudyResult",
-    "StudySettings",
     "TrialData",
     "full_frame_fitter",
     "full_frame_row",
     "grid_rows",
-    "quick_settings",
     "run_study",
     "run_trial",
     "study_intrinsics",
 ]
-
-#: The methods in the study's order: the paper's three on the grid, then the full frame.
-GRID_METHODS: tuple[str, ...] = ("law_of_cosines", "plane_fit_nominal", "plane_fit")
-FULL_FRAME = "full_frame"
-METHODS: tuple[str, ...] = (*GRID_METHODS, FULL_FRAME)
-
-#: The paper's experiment: three heights along the optical axis, 80 deg inclination.
-PAPER_HEIGHTS_M: tuple[float, ...] = (0.46, 0.59, 0.61)
-PAPER_INCLINATION_DEG = 80.0
-PAPER_PERIMETERS_PX: tuple[int, ...] = (20, 30, 40, 50)
-#: The issues' targets for the full-frame method at the paper's settings (mean |tilt error|:
-#: 0.05 deg in the first study, 0.01 deg once the sim has the ToF artefacts, issue 15).
-TARGET_ERROR_DEG = 0.01
-TARGET_ERROR_CLUTTER_DEG = 0.1
-TARGET_CLUTTER = 0.3
-TARGET_COVERAGE = (0.93, 0.97)
-#: Clutter range over which the interval coverage must hold (issue 15).
-TARGET_COVERAGE_CLUTTER = (0.0, 0.4)
-
-#: The ToF artefact levels of the study: the ``[sim.artefacts]`` table of each (ADR 0014).
-ARTEFACT_TABLES: dict[str, dict[str, bool]] = {
-    "off": {"mixed_pixels": False, "multipath": False, "amplitude_noise": False, "temperature_drift": False},
-    "all-but-multipath": {"multipath": False},
-    "all": {},
-}
-ARTEFACT_LEVELS: tuple[str, ...] = tuple(ARTEFACT_TABLES)
-#: The level of the inclination and noise sweeps and of the headline figures.
-BASE_ARTEFACTS = "all-but-multipath"
-
-
-# ---------------------------------------------------------------------- settings
-@dataclass(frozen=True)
-class Condition:
-    """One cell of the study's design.
-
-    Attributes:
-        height_m: Camera-to-plane distance along the optical axis, metres.
-        inclination_deg: Angle between optical axis and plane, degrees (90 = looking straight down).
-        noise_scale: Multiplier of the simulated camera's distance noise (1 = default).
-        clutter: Requested fraction of the image's plane pixels hidden by boxes, 0..1.
-        artefacts: ToF artefact level, a key of :data:`ARTEFACT_TABLES`.
-    """
-
-    height_m: float
-    inclination_deg: float
-    noise_scale: float
-    clutter: float
-    artefacts: str = BASE_ARTEFACTS
-
-    def key(self) -> str:
-        """Stable text key without the artefact level: seeds a condition's trials, so that the
-        levels of one condition see the same poses, boxes and noise draws (paired trials)."""
-        return f"{self.height_m:.4f}|{self.inclination_deg:.3f}|{self.noise_scale:.3f}|{self.clutter:.3f}"
-
-    def ident(self) -> str:
-        """Key with the artefact level (tells conditions apart)."""
-        return f"{self.key()}|{self.artefacts}"
-
-
-@dataclass(frozen=True)
-class StudySettings:
-    """What the study runs.
-
-    The design is one factor at a time around the paper's setting, each at every
-    height: clutter levels at every artefact level (paper inclination, default noise),
-    inclinations (no clutter, default noise) and noise scales (no clutter, paper
-    inclination), these two at ``base_artefacts``.
-
-    Attributes:
-        trials: Trials per condition.
-        seed: Root seed.
-        heights_m: Heights along the optical axis, metres.
-        inclinations_deg: Inclinations of the optical axis to the plane, degrees.
-        noise_scales: Noise multipliers of the simulated camera.
-        clutter_fractions: Requested fractions of the plane pixels hidden by boxes.
-        artefact_levels: ToF artefact levels of the clutter sweep (keys of :data:`ARTEFACT_TABLES`).
-        base_artefacts: Artefact level of the other sweeps and of the headline figures.
-        perimeters_px: Perimeters of the paper's methods, pixels.
-        window_px: Sampling window of the paper's methods, pixels (odd).
-        max_boxes: At most this many boxes per cluttered trial (at least 1).
-        box_height_m: Range of box heights, metres.
-        target_m: Plane point the optical axis hits, base frame, metres.
-        camera: Extra keys for the ``sim`` camera section (e.g. ``{"distortion": False}``).
-        full_frame: Keyword arguments for ``FullFrameSettings`` (empty: its defaults).
-        headline_factor: The headline conditions (paper inclination, default noise,
-            no clutter and 30 % clutter) run this many times ``trials``, to pin the
-            interval coverage down.
-    """
-
-    trials: int = 50
-    seed: int = 0
-    heights_m: tuple[float, ...] = PAPER_HEIGHTS_M
-    inclinations_deg: tuple[float, ...] = (60.0, 70.0, PAPER_INCLINATION_DEG, 85.0)
-    noise_scales: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)
-    clutter_fractions: tuple[float, ...] = (0.0, 0.1, 0.2, 0.3, 0.4)
-    artefact_levels: tuple[str, ...] = ARTEFACT_LEVELS
-    base_artefacts: str = BASE_ARTEFACTS
-    perimeters_px: tuple[int, ...] = PAPER_PERIMETERS_PX
-    window_px: int = 3
-    max_boxes: int = 3
-    box_height_m: tuple[float, float] = (0.03, 0.08)
-    target_m: tuple[float, float, float] = (0.3, 0.0, 0.0)
-    camera: Mapping[str, Any] = field(default_factory=dict)
-    full_frame: Mapping[str, Any] = field(default_factory=dict)
-    headline_factor: int = 4
-
-    def __post_init__(self) -> None:
-        if self.trials < 1:
-            raise CalibrationError(f"trials must be >= 1, got {self.trials}")
-        if self.seed < 0:
-            raise CalibrationError(f"seed must be >= 0, got {self.seed}")
-        if any(not 0.0 <= c < 0.9 for c in self.clutter_fractions):
-            raise CalibrationError(f"clutter fractions must be in [0, 0.9), got {self.clutter_fractions}")
-        if self.max_boxes < 1:
-            raise CalibrationError(f"max_boxes must be >= 1, got {self.max_boxes}")
-        if self.headline_factor < 1:
-            raise CalibrationError(f"headline_factor must be >= 1, got {self.headline_factor}")
-        unknown = [a for a in (*self.artefact_levels, self.base_artefacts) if a not in ARTEFACT_TABLES]
-        if unknown or not self.artefact_levels:
-            raise CalibrationError(f"artefact levels must be some of {', '.join(ARTEFACT_LEVELS)}, "
-                                   f"got {', '.join(unknown) or 'none'}")
-
-    def trials_for(self, condition: Condition) -> int:
-        """Trials of one condition (``trials``, times ``headline_factor`` for a headline condition)."""
-        headline = (condition.inclination_deg == PAPER_INCLINATION_DEG and condition.noise_scale == 1.0
-                    and condition.clutter in (0.0, TARGET_CLUTTER) and condition.artefacts == self.base_artefacts)
-        return self.trials * (self.headline_factor if headline else 1)
-
-    def conditions(self) -> list[Condition]:
-        """The design's conditions, without duplicates, in a stable order."""
-        base_noise = 1.0 if 1.0 in self.noise_scales or not self.noise_scales else self.noise_scales[0]
-        incl = PAPER_INCLINATION_DEG if PAPER_INCLINATION_DEG in self.inclinations_deg else self.inclinations_deg[0]
-        base = self.base_artefacts
-        out: dict[str, Condition] = {}
-        for h in self.heights_m:
-            cells = [Condition(h, incl, base_noise, c, a) for a in self.artefact_levels
-                     for c in self.clutter_fractions or (0.0,)]
-            cells += [Condition(h, i, base_noise, 0.0, base) for i in self.inclinations_deg]
-            cells += [Condition(h, incl, n, 0.0, base) for n in self.noise_scales]
-            for c in cells:
-                out.setdefault(c.ident(), c)
-        return list(out.values())
-
-
-def quick_settings(trials: int = 8, seed: int = 0, artefact_levels: tuple[str, ...] = (BASE_ARTEFACTS,)
-                   ) -> StudySettings:
-    """A small design for CI: the paper's heights and inclination, no clutter and 30 %, the base artefacts."""
-    return StudySettings(trials=trials, seed=seed, inclinations_deg=(PAPER_INCLINATION_DEG,),
-                         noise_scales=(1.0,), clutter_fractions=(0.0, TARGET_CLUTTER), headline_factor=1,
-                         artefact_levels=artefact_levels)
-
 
 # ---------------------------------------------------------------------- one trial
 @dataclass
@@ -409,36 +251,73 @@ def study_intrinsics(settings: StudySettings, registry: Registry | None = None) 
         return camera.intrinsics
 
 
+def _is_example(settings: StudySettings, condition: Condition, height_m: float, clutter: float) -> bool:
+    """Whether the condition's trials may serve as the plane-fit picture's example."""
+    return (condition.height_m == height_m and condition.clutter == clutter
+            and condition.inclination_deg == PAPER_INCLINATION_DEG and condition.artefacts == settings.base_artefacts)
+
+
 def run_study(settings: StudySettings, *, registry: Registry | None = None,
-              progress: Callable[[int], Any] | None = None) -> StudyResult:
+              progress: Callable[[int], Any] | None = None, jobs: int = 1) -> StudyResult:
     """Run every trial of every condition.
+
+    With ``jobs`` > 1 the trials run on that many worker processes
+    (:mod:`cellcal.core.study.pool`); the rows are the same, in the same order.
 
     Args:
         settings: The design.
         registry: Device registry (default: the process-wide one).
         progress: Optional factory ``total -> tqdm-like`` (``update(n)``, ``close()``).
+        jobs: Worker processes; 1 runs every trial in this process.
     """
+    if jobs < 1:
+        raise CalibrationError(f"jobs must be >= 1, got {jobs}")
     intr = study_intrinsics(settings, registry)
     fit = full_frame_fitter(settings.full_frame)
     conditions = settings.conditions()
     example_clutter = min((c.clutter for c in conditions), key=lambda v: abs(v - TARGET_CLUTTER))
     example_height = min(c.height_m for c in conditions)
-    bar = progress(sum(settings.trials_for(c) for c in conditions)) if progress else None
-    rows: list[dict[str, Any]] = []
-    example: TrialData | None = None
+    tasks = [(c, i) for c in conditions for i in range(settings.trials_for(c))]
+    candidates = [k for k, (c, _) in enumerate(tasks) if _is_example(settings, c, example_height, example_clutter)]
+    bar = progress(len(tasks)) if progress else None
+    trials: dict[int, TrialData] = {}
+    is_candidate = set(candidates)
+
+    def run_here(k: int) -> list[dict[str, Any]]:  # one trial in this process, its data kept if an example
+        trial, trial_rows = run_trial(settings, tasks[k][0], tasks[k][1], intr, fit, registry)
+        if not trials and k in is_candidate and (fit is None or trial.full_frame is not None):
+            trials[k] = trial  # the first good one only (a frame is large)
+        return trial_rows
+
+    def done(k: int, trial_rows: list[dict[str, Any]]) -> None:
+        if bar is not None:
+            bar.update(1)
+
     try:
-        for cond in conditions:
-            for i in range(settings.trials_for(cond)):
-                trial, trial_rows = run_trial(settings, cond, i, intr, fit, registry)
-                rows += trial_rows
-                if (example is None and cond.height_m == example_height and cond.clutter == example_clutter
-                        and cond.inclination_deg == PAPER_INCLINATION_DEG and cond.artefacts == settings.base_artefacts
-                        and (fit is None or trial.full_frame is not None)):
-                    example = trial
-                if bar is not None:
-                    bar.update(1)
+        if jobs == 1:
+            per_task = []
+            for k in range(len(tasks)):
+                per_task.append(run_here(k))
+                done(k, per_task[-1])
+        else:
+            from cellcal.core.study.pool import run_tasks
+
+            first = (candidates[0], lambda _task: run_here(candidates[0])) if candidates else None
+            per_task = run_tasks(tasks, jobs, settings, registry, done, local=first)
     finally:
         if bar is not None:
             bar.close()
-    return StudyResult(settings, rows, example, fit is not None)
+    return StudyResult(settings, [row for r in per_task for row in r],
+                       _example(trials, candidates, per_task, run_here), fit is not None)
 
+
+def _example(trials: dict[int, TrialData], candidates: list[int], per_task: list[list[dict[str, Any]]],
+             run_here: Callable[[int], Any]) -> TrialData | None:
+    """The first candidate trial whose full frame succeeded (re-run here if a worker ran it)."""
+    for k in candidates:
+        if k in trials:
+            return trials[k]
+        if all(r["ok"] for r in per_task[k] if r["method"] == FULL_FRAME):
+            run_here(k)  # deterministic: the same trial as the worker's
+            return trials.get(k)
+    return None

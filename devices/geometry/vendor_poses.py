@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
@@ -36,21 +35,21 @@ def _six(values: ArrayLike, what: str) -> FloatArray:
 def pose_from_ur(xyz_rotvec: ArrayLike) -> Pose:
     """Pose from UR's ``[x, y, z, rx, ry, rz]`` (metres, rotation vector in rad)."""
     v = _six(xyz_rotvec, "UR")
-    return Pose(Rotation.from_rotvec(v[3:]), v[:3])
+    return Pose.from_xyz_rotvec(v[:3], v[3:])
 
 
 def pose_to_ur(pose: Pose) -> FloatArray:
     """UR's ``[x, y, z, rx, ry, rz]`` (metres, rotation vector with angle in [0, pi])."""
-    out: FloatArray = np.concatenate([pose.translation, pose.rotation.as_rotvec()])
-    return out
+    return pose.as_xyz_rotvec()
 
 
 def pose_from_xarm(xyz_mm_rpy_rad: ArrayLike) -> Pose:
     """Pose from xArm's ``[x, y, z, roll, pitch, yaw]`` (mm, rad; extrinsic x-y-z)."""
     v = _six(xyz_mm_rpy_rad, "xArm")
-    return Pose(Rotation.from_euler("xyz", v[3:]), v[:3] * _MM)
+    return Pose.from_xyz_rpy(v[:3] * _MM, v[3:])
 
 
 def pose_to_xarm(pose: Pose) -> FloatArray:
     """xArm's ``[x, y, z, roll, pitch, yaw]`` (mm, rad; extrinsic x-y-z)."""
-    return np.concatenate([pose.translation / _MM, pose.rotation.as_euler("xyz")])
+    xyz_rpy = pose.as_xyz_rpy()
+    return np.concatenate([xyz_rpy[:3] / _MM, xyz_rpy[3:]])

@@ -10,10 +10,10 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.special import ndtri
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.flatness import (
@@ -87,7 +87,8 @@ def _final(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float
         e1, e2 = basis(n)
         if edge is not None:
             edge.scale = s
-        fin: FinalPass = final_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, keep)
+        fin: FinalPass = final_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, keep,
+                                    answer=k == FINAL_PASSES - 1)
         n_fin, offset_fin = step_plane(n, e1, e2, offset, fin.step)
         s = math.sqrt(fin.z2_sum / fin.n_inliers / cutoff.kept_var)   # truncation-corrected scale
         if k < FINAL_PASSES - 1:
@@ -178,7 +179,7 @@ def _assemble(fit: _Fit, settings: FullFrameSettings, model: Model, *, n_points:
     if not (math.isfinite(height) and height > 0):
         raise CalibrationError("full-frame fit: the plane does not cross the optical axis in front of the "
                                "camera, so its height is undefined; is the camera looking at the plane?")
-    z = float(ndtri(0.5 + settings.confidence / 2.0))   # two-sided normal quantile: value ± z sigma
+    z = NormalDist().inv_cdf(0.5 + settings.confidence / 2.0)   # two-sided normal quantile: value ± z sigma
     e = np.stack([fit.e1, fit.e2], axis=1)
     cov_n = e @ fit.cov[:2, :2] @ e.T                    # tangent steps -> unit normal (3x3)
     cov_nd = e @ fit.cov[:2, 2]
@@ -400,12 +401,17 @@ def _flatness(fit: _Fit, data: _FramePoints, model: Model, cfg: FullFrameSetting
     frame = PlaneFrame(pl.normal, e1, e2, pl.offset_m)
     sel = np.flatnonzero(fit.inliers)
     sel = sel[:: max(1, -(-sel.size // MAX_FLAT_POINTS))]   # strided inliers
-    pix = _pixels_of(sel, data.masks)
-    p_in = data.p[:, sel]
-    noise = _noise_orth(p_in, data.dm[sel], frame, model).astype(np.float64)
     grid = (min(cfg.flatness_grid[0], w), min(cfg.flatness_grid[1], h))
-    best = grid_flatness(frame.uvw(p_in), 1.0 / noise ** 2, grid_cells(pix, (h, w), grid), grid,
-                         fit.noise_scale_m, cfg.flatness_sigma)
+    cell = grid_cells(_pixels_of(sel, data.masks), (h, w), grid)
+    p_in = data.p[:, sel]
+    wt = _noise_orth(p_in, data.dm[sel], frame, model).astype(np.float64)
+    del sel                                                 # point-sized arrays go as soon as they are used
+    np.square(wt, out=wt)
+    np.divide(1.0, wt, out=wt)                              # weights 1 / noise^2
+    uvw = frame.uvw(p_in)
+    del p_in
+    best = grid_flatness(uvw, wt, cell, grid, fit.noise_scale_m, cfg.flatness_sigma)
+    del uvw, wt, cell
     step = max(1, round(max(h, w) / REGION_MAP_PX))
     start = 0
     for m in data.masks:

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
 
 from cellcal.core.methods.fullframe.settings import MIN_POINTS
 from cellcal.devices.errors import CalibrationError
@@ -43,7 +42,7 @@ def truncation(c: float) -> tuple[float, float]:
     the sandwich covariance of the hard-rejection estimator (its derivative loses the
     ``2 c phi(c)`` of the points crossing the cut).
     """
-    p = 2.0 * float(ndtr(c)) - 1.0                          # kept probability 2 Phi(c) - 1
+    p = math.erf(c / math.sqrt(2.0))                        # kept probability 2 Phi(c) - 1
     jump = 2.0 * c * math.exp(-0.5 * c * c) / _SQRT_2PI     # 2 c phi(c)
     kept_var = (p - jump) / p                               # E[z^2 | |z| < c]
     bread = p - jump
@@ -191,13 +190,15 @@ def gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offs
 
 
 def final_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
-               thr: float, model: Model, keep: KeepMask | None) -> FinalPass:
+               thr: float, model: Model, keep: KeepMask | None, *, answer: bool = True) -> FinalPass:
     """The pass over every point: step, sandwich meat, inliers, residual sums and the radial column.
 
     ``keep`` (if given) sees the inlier mask and the whitened residuals (units of the noise
     model) and returns the points allowed to stay.
     The radial column is the squared image radius ``(x² + y²) / z²`` of each point over its
     largest value: a range bias growing toward the border (ADR 0007, "Multipath").
+    Without ``answer`` (a pass whose plane only starts the next one) only the step, the
+    Hessian, the inliers and the scale's sum are formed; the rest is zero.
     """
     f32 = np.float32
     b = np.stack([n, e1, e2]).astype(f32) @ p
@@ -208,9 +209,15 @@ def final_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, o
     n_in = int(np.count_nonzero(inl))
     if n_in < MIN_POINTS:
         raise CalibrationError(_few_inliers(dm.size, n_near, n_in, keep is not None))
-    unweighted_shape = _model_shape(t, inv_c, model, inl) if isig is None else None
+    unweighted_shape = _model_shape(t, inv_c, model, inl) if isig is None and answer else None
     z *= inl
     isig = inl.astype(f32) if isig is None else np.multiply(isig, inl, out=isig)
+    if not answer:                             # a start for the next pass: step, Hessian, scale only
+        cols = _columns(b, dm, inv_c, t, isig)
+        h = gram(cols)
+        g = np.array([float(np.dot(c, z)) for c in cols])
+        return FinalPass(_solve(h, g), h, n_in, float(np.dot(z, z)), np.zeros((3, 3)), 0.0, 0.0, inl,
+                         (np.zeros((4, 4)), np.zeros(4)))
     rad = np.divide(dm, p[2])
     np.square(rad, out=rad)
     rad -= f32(1.0)                            # squared image radius (x² + y²) / z² = |p|² / z² - 1

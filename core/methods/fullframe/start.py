@@ -9,10 +9,10 @@ wider fixed points of hard rejection lie above it).
 from __future__ import annotations
 
 import math
+from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtri
 
 from cellcal.core.methods.fullframe.passes import Cutoff, Model, Pass, basis, gn_pass, step_plane, truncation
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
@@ -76,7 +76,8 @@ def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings) -> 
     h = min(max(int(settings.hypothesis_quantile * m), 3), m)
     res = np.abs(nrm.astype(np.float32) @ sub.T.astype(np.float32) + off.astype(np.float32)[:, None])
     res *= inv_norm.astype(np.float32)[None, :]           # (hypotheses, points), rows contiguous
-    score = np.partition(res, h - 1, axis=1)[:, h - 1]    # the quantile of each hypothesis
+    res.partition(h - 1, axis=1)                          # in place: no second (hypotheses, points) array
+    score = res[:, h - 1]                                 # the quantile of each hypothesis
     k = int(np.argmin(score))
     n, d = nrm[k], float(off[k])
     if d < 0 or (d == 0 and n[2] > 0):                   # normal toward the camera
@@ -110,7 +111,7 @@ def initial_scale(p: F32, dm: F32, model: Model, n: FloatArray, offset: float,
     az = np.abs(z)
     kq = min(int(q * az.size), az.size - 1)
     level = min(q / 0.5, 0.98)
-    s = float(np.partition(az, kq)[kq]) / float(ndtri(0.5 + level / 2.0))   # |z| quantile -> Gaussian sigma
+    s = float(np.partition(az, kq)[kq]) / NormalDist().inv_cdf(0.5 + level / 2.0)   # |z| quantile -> Gaussian sigma
     k_sig = settings.inlier_threshold_sigma
     kept_var, cov_factor = truncation(k_sig)
     cutoff = Cutoff(k_sig, settings.min_inlier_threshold_m / sig_med, settings.max_inlier_threshold_m / sig_med,

@@ -1,0 +1,117 @@
+"""The study's trials on a process pool: same rows, in the same order, as one process.
+
+Every trial is seeded from (root seed, condition, index) alone, so where it runs does not
+change its rows; :func:`run_tasks` returns them in task order. Workers ignore Ctrl-C (the
+terminal sends it to the whole process group): the parent gets it, terminates and joins
+its workers and re-raises, so no worker outlives the run (ADR 0021).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import signal
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from multiprocessing.pool import Pool
+
+    from cellcal.core.study.design import Condition, StudySettings
+    from cellcal.devices.registry import Registry
+
+__all__ = ["default_jobs", "run_tasks"]
+
+#: One task: a condition and the trial's index within it.
+Task = tuple["Condition", int]
+Rows = list[dict[str, Any]]
+
+#: The worker's state, set once per process by :func:`_init_worker`.
+_STATE: dict[str, Any] = {}
+
+
+def default_jobs() -> int:
+    """The cores this process may run on (its CPU affinity where the OS has one)."""
+    with contextlib.suppress(AttributeError, OSError):
+        return max(1, len(os.sched_getaffinity(0)))
+    return max(1, os.cpu_count() or 1)
+
+
+def _init_worker(settings: StudySettings, registry: Registry | None) -> None:
+    """Worker start: ignore Ctrl-C (the parent handles it) and build what every trial needs."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from cellcal.core.study.trials import full_frame_fitter, study_intrinsics
+
+    _STATE.update(settings=settings, registry=registry, intrinsics=study_intrinsics(settings, registry),
+                  fit=full_frame_fitter(settings.full_frame))
+
+
+def _run_one(task: Task) -> Rows:
+    """One trial in a worker; its rows (the frame stays in the worker)."""
+    from cellcal.core.study.trials import run_trial
+
+    condition, index = task
+    _, rows = run_trial(_STATE["settings"], condition, index, _STATE["intrinsics"], _STATE["fit"],
+                        _STATE["registry"])
+    return rows
+
+
+@contextlib.contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """Hold Ctrl-C back while workers start, so none of them ever runs the parent's handler.
+
+    A press in that window is delivered when the block ends, in the parent.
+    """
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _start_pool(jobs: int, settings: StudySettings, registry: Registry | None) -> Pool:
+    with _sigint_blocked():
+        return multiprocessing.get_context().Pool(jobs, _init_worker, (settings, registry))
+
+
+def run_tasks(tasks: Sequence[Task], jobs: int, settings: StudySettings, registry: Registry | None,
+              on_done: Callable[[int, Rows], None], local: tuple[int, Callable[[Task], Rows]] | None = None
+              ) -> list[Rows]:
+    """Run ``tasks`` on ``jobs`` worker processes; the rows of each task, in task order.
+
+    Args:
+        tasks: The trials to run.
+        jobs: Worker processes (at least 1).
+        settings: The study's design (sent to each worker once).
+        registry: Device registry for the workers (None: the process-wide one).
+        on_done: Called in the parent with (task index, rows) as tasks finish, in order.
+        local: (index, run) of one task the parent runs itself with ``run`` while the
+            workers run the others (the study's example trial, whose frame the parent
+            keeps); None: the workers run every task.
+
+    Raises:
+        KeyboardInterrupt: After the workers are terminated and joined.
+    """
+    out: list[Rows | None] = [None] * len(tasks)
+    remote = [task for i, task in enumerate(tasks) if local is None or i != local[0]]
+    pool = _start_pool(max(1, min(jobs, len(remote))), settings, registry)
+    try:
+        results = pool.imap(_run_one, remote)
+        if local is not None:
+            out[local[0]] = local[1](tasks[local[0]])
+        for i in range(len(tasks)):
+            rows = out[i]
+            if rows is None:
+                rows = out[i] = next(results)  # the workers' results come in task order
+            on_done(i, rows)
+    except BaseException:
+        pool.terminate()  # Ctrl-C or an error: stop the workers now
+        pool.join()
+        raise
+    pool.close()
+    pool.join()
+    return [rows for rows in out if rows is not None]
