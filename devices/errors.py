@@ -10,6 +10,7 @@
     │   │   └── BackendOverrunError a backend call overran its timeout and was abandoned
     │   ├── NotConnectedError       device used before connect() / after close()
     │   ├── ProtocolError           malformed bytes on a vendor wire
+    │   ├── FrameSyncError          two images of one capture came from different captures
     │   ├── VendorError             the device reported an error code
     │   └── MotionError             a move unconfirmed, or not arrived (arm stopped)
     ├── UsbBackendMissingError      pyusb found no native USB library (libusb-1.0)
@@ -121,6 +122,10 @@ class ProtocolError(DeviceError):
     def __init__(self, message: str, *, offset: int | None = None):
         self.offset = offset
         super().__init__(f"{message} (at byte offset {offset})" if offset is not None else message)
+
+
+class FrameSyncError(DeviceError):
+    """Images a device sent as one capture (e.g. depth and its grey image) belong to different captures."""
 
 
 class VendorError(DeviceError):

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import FrameType
-from typing import Any
+from typing import Any, TypeGuard
 
 from cellcal.devices.base import Device
 
@@ -75,13 +75,22 @@ def _local(frame: FrameType, name: str) -> Any:
         return None
 
 
+def _is_device(obj: object) -> TypeGuard[Device]:
+    """``isinstance(obj, Device)``; False for an object caught half-built (a mock's ``__class__``
+    can raise while another thread constructs it)."""
+    try:
+        return isinstance(obj, Device)
+    except Exception:
+        return False
+
+
 def _device_call(frame: FrameType | None) -> tuple[FrameType, Device, str] | None:
     """The innermost frame running a method of a device, its device, and the outermost such method's name."""
     inner: tuple[FrameType, Device] | None = None
     entry = ""
     while frame is not None:
         owner = _local(frame, "self")
-        if isinstance(owner, Device):
+        if _is_device(owner):
             if inner is None:
                 inner = (frame, owner)
             entry = frame.f_code.co_name

@@ -1,8 +1,9 @@
 """Luxonis OAK depth camera over ``depthai`` v3 (registered as ``oak``).
 
 Stereo or ToF depth (uint16 mm, Z-depth) aligned to one socket, turned into radial
-distance and optical-frame XYZ (metres) with the device's own calibration. ``depthai``
-is imported only in :meth:`OakCamera._connect`. Design: docs/adr/0015-vendor-drivers.md.
+distance and optical-frame XYZ (metres) with the device's own calibration, with the
+pixel-aligned grey image of the same capture as ``Frame.amplitude``. ``depthai`` is
+imported only in :meth:`OakCamera._connect`. Design: docs/adr/0015-vendor-drivers.md.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import contextlib
 import datetime
 import importlib.util
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
@@ -31,12 +33,14 @@ from cellcal.devices.errors import (
 from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 from cellcal.drivers._blocking import BoundedCaller
+from cellcal.drivers.oak.grey import check_same_capture, grey_image
 from cellcal.drivers.oak.usb_scan import find_usb_devices
 
 log = logging.getLogger(__name__)
 
 Socket = Literal["CAM_A", "CAM_B", "CAM_C", "CAM_D", "CAM_E", "CAM_F"]
 MONO_STEREO_SOCKETS = ("CAM_B", "CAM_C")
+DEPTH_KEY, IMAGE_KEY = "depth", "image"        # names of the two messages in a Sync group
 
 
 @dataclass(frozen=True)
@@ -51,9 +55,13 @@ class OakConfig:
         height: Depth output height, pixels.
         fps: Frame rate, Hz.
         stereo_preset: ``StereoDepth.PresetMode`` name.
-        distortion: ``"device"`` (the socket's calibrated distortion) or ``"none"``.
+        distortion: ``"device"`` (the socket's calibrated distortion) or ``"none"``; colour and
+            ToF sockets only (a rectified mono view has no distortion).
         timeout_s: Default I/O timeout, s (booting an OAK over USB takes a few seconds).
         queue_size: Host queue length, frames (oldest dropped when full).
+        amplitude: ``"image"``: ``Frame.amplitude`` is the grey image of the same capture,
+            pixel-aligned with the depth (see :class:`OakCamera`); ``"none"``: zeros, and
+            no image crosses the link (saves USB bandwidth).
     """
 
     device_id: str = field(default="", metadata={"max_len": 256})
@@ -67,6 +75,7 @@ class OakConfig:
     distortion: Literal["device", "none"] = "device"
     timeout_s: float = field(default=10.0, metadata={"ge": 0.01, "le": 600})
     queue_size: int = field(default=4, metadata={"ge": 1, "le": 64})
+    amplitude: Literal["none", "image"] = "image"
 
     def __post_init__(self) -> None:
         if self.depth_source == "stereo" and self.align_socket not in ("CAM_A", *MONO_STEREO_SOCKETS):
@@ -105,20 +114,47 @@ class OakCamera(Camera3D):
 
     * ``depth_source = "stereo"``: two ``dai.node.Camera`` on CAM_B / CAM_C feed a
       ``dai.node.StereoDepth`` (``build(left, right, presetMode)``). The depth is
-      aligned to ``align_socket`` at ``width`` x ``height``: for a mono socket through
-      ``setDepthAlign(socket)`` + ``setOutputSize``; for a colour socket by linking that
+      aligned to ``align_socket`` at ``width`` x ``height``: for a mono socket to that
+      socket's *rectified* view (``setDepthAlign(DepthAlign.RECTIFIED_LEFT / _RIGHT)`` +
+      ``setOutputSize``; ``setDepthAlign(socket)`` is aligned to neither the rectified
+      nor the raw view, depthai-core issue #840); for a colour socket by linking that
       camera's ``requestOutput((width, height))`` to ``stereo.inputAlignTo`` (RVC2) or
       through a ``dai.node.ImageAlign`` (RVC4).
     * ``depth_source = "tof"``: a ``dai.node.ToF`` built on ``align_socket``.
 
     Depth arrives as uint16 millimetres along the optical axis (Z-depth, not radial),
     0 = invalid; :func:`depth_to_xyz` makes XYZ and radial distance of it. Intrinsics
-    come from the device's own calibration for the aligned socket at the output size:
-    ``readCalibration().getCameraIntrinsics(socket, w, h)`` and
-    ``getDistortionCoefficients(socket)`` (14 OpenCV rational terms). With
+    come from the device's own calibration at the output size: for a colour or ToF
+    socket ``readCalibration().getCameraIntrinsics(socket, w, h)`` and
+    ``getDistortionCoefficients(socket)`` (14 OpenCV rational terms); with
     ``distortion = "none"`` the outputs are requested undistorted (colour camera
     ``enableUndistortion``, ToF ``setOutputUndistortion``) and the coefficients are
-    dropped. Fisheye-calibrated sockets need ``distortion = "none"``.
+    dropped. Fisheye-calibrated colour / ToF sockets need ``distortion = "none"``. A
+    rectified mono view is undistorted, and depthai rectifies both sides onto the
+    stereo right camera's matrix (rectification homography ``K_right · R · K⁻¹``,
+    ``CalibrationHandler.setStereoLeft/Right``), so its intrinsics are
+    ``getCameraIntrinsics(getStereoRightCameraId(), w, h)`` with no distortion, and its
+    optical frame is the rectified one (the sensor's, turned by the rectification
+    rotation ``R``).
+
+    ``amplitude = "image"`` (default) adds the grey image of the same capture,
+    pixel-aligned with the depth, as ``Frame.amplitude`` (float32; see
+    :func:`~cellcal.drivers.oak.grey.grey_image` for the units):
+
+    * mono socket: the StereoDepth ``rectifiedLeft`` / ``rectifiedRight`` output
+      matching it, brought to ``width`` x ``height`` by a ``dai.node.ImageManip``
+      (``CENTER_CROP``, as ``setOutputSize`` scales the depth); grey levels 0..255;
+    * colour socket: the luma (Y) plane of the very ``NV12`` output the depth is aligned
+      to; grey levels 0..255;
+    * ToF: the ToF node's ``amplitude`` output; raw amplitude counts.
+
+    Depth and image meet in a ``dai.node.Sync`` (threshold half a frame period) and
+    reach the host as one ``MessageGroup``. The host still checks that they belong to
+    one capture — equal sequence numbers where both come from one sensor frame
+    (rectified mono, ToF), capture times within the threshold where they come from two
+    sensors (colour) — and raises :class:`~cellcal.devices.errors.FrameSyncError`
+    otherwise; a depth without its image within the timeout is a
+    :class:`DeviceTimeoutError` like a missing depth.
 
     Timeouts: ``dai.Device(...)`` (search and boot) and ``Pipeline.start()`` (pipeline
     upload) take no timeout parameter, so both run in a
@@ -222,8 +258,8 @@ class OakCamera(Camera3D):
         rays = pixel_grid_rays(self._intr)
         self._rays_over_z = rays / rays[..., 2:3]
         self._pipeline = dai.Pipeline(device)
-        depth_out = self._build_graph(self._pipeline, socket)
-        self._queue = depth_out.createOutputQueue(maxSize=cfg.queue_size, blocking=False)
+        depth_out, image_out = self._build_graph(self._pipeline, socket)
+        self._queue = self._output_queue(self._pipeline, depth_out, image_out)
         remaining = deadline - time.monotonic()
         if remaining <= 0:
             raise DeviceTimeoutError(f"oak: no time left to start the pipeline on {who}")
@@ -233,13 +269,14 @@ class OakCamera(Camera3D):
             raise DeviceConnectionError(f"oak {self._identity['id']}: pipeline failed to start: {exc}") from None
         self._clock_offset_s = time.time() - dai.Clock.now().total_seconds()
 
-    def _build_graph(self, pipeline: Any, socket: Any) -> Any:
+    def _build_graph(self, pipeline: Any, socket: Any) -> tuple[Any, Any]:
+        """Create the nodes; return the depth output and the image output (None if not wanted)."""
         dai, cfg = self._dai, self.config
-        undistort = cfg.distortion == "none"
+        want_image = cfg.amplitude == "image"
         if cfg.depth_source == "tof":
             tof = pipeline.create(dai.node.ToF).build(socket, fps=cfg.fps)
-            tof.setOutputUndistortion(undistort)
-            return tof.depth
+            tof.setOutputUndistortion(cfg.distortion == "none")
+            return tof.depth, (tof.amplitude if want_image else None)
         left = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
         right = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
         preset = getattr(dai.node.StereoDepth.PresetMode, cfg.stereo_preset)
@@ -247,21 +284,54 @@ class OakCamera(Camera3D):
             left.requestFullResolutionOutput(fps=cfg.fps), right.requestFullResolutionOutput(fps=cfg.fps),
             presetMode=preset)
         if cfg.align_socket in MONO_STEREO_SOCKETS:
-            stereo.setDepthAlign(socket)
-            stereo.setOutputSize(cfg.width, cfg.height)
-            return stereo.depth
+            return stereo.depth, self._align_to_rectified(pipeline, stereo, want_image)
+        depth_out, color_out = self._align_to_colour(pipeline, stereo, socket)
+        return depth_out, (color_out if want_image else None)
+
+    def _align_to_rectified(self, pipeline: Any, stereo: Any, want_image: bool) -> Any:
+        """Depth in the aligned mono socket's rectified view; that view resized to the output size."""
+        dai, cfg = self._dai, self.config
+        align = dai.StereoDepthConfig.AlgorithmControl.DepthAlign
+        is_left = cfg.align_socket == "CAM_B"
+        stereo.setDepthAlign(align.RECTIFIED_LEFT if is_left else align.RECTIFIED_RIGHT)
+        stereo.setOutputSize(cfg.width, cfg.height)
+        if not want_image:
+            return None
+        manip = pipeline.create(dai.node.ImageManip)
+        manip.initialConfig.setOutputSize(cfg.width, cfg.height, dai.ImageManipConfig.ResizeMode.CENTER_CROP)
+        manip.setMaxOutputFrameSize(cfg.width * cfg.height)          # one byte per grey pixel
+        (stereo.rectifiedLeft if is_left else stereo.rectifiedRight).link(manip.inputImage)
+        return manip.out
+
+    def _align_to_colour(self, pipeline: Any, stereo: Any, socket: Any) -> tuple[Any, Any]:
+        """Depth aligned to the colour socket's NV12 output; return the depth output and that output."""
+        dai, cfg = self._dai, self.config
         color = pipeline.create(dai.node.Camera).build(socket)
-        color_out = color.requestOutput((cfg.width, cfg.height), fps=cfg.fps, enableUndistortion=undistort)
+        color_out = color.requestOutput((cfg.width, cfg.height), type=dai.ImgFrame.Type.NV12, fps=cfg.fps,
+                                        enableUndistortion=cfg.distortion == "none")
         if self._device.getPlatform() == dai.Platform.RVC4:
             align = pipeline.create(dai.node.ImageAlign)
             stereo.depth.link(align.input)
             color_out.link(align.inputAlignTo)
-            return align.outputAligned
+            return align.outputAligned, color_out
         color_out.link(stereo.inputAlignTo)
-        return stereo.depth
+        return stereo.depth, color_out
+
+    def _output_queue(self, pipeline: Any, depth_out: Any, image_out: Any) -> Any:
+        """The host queue: plain depth frames, or depth + image groups from a ``dai.node.Sync``."""
+        dai, cfg = self._dai, self.config
+        if image_out is None:
+            return depth_out.createOutputQueue(maxSize=cfg.queue_size, blocking=False)
+        sync = pipeline.create(dai.node.Sync)
+        sync.setSyncThreshold(datetime.timedelta(seconds=self._max_pair_dt_s))
+        depth_out.link(sync.inputs[DEPTH_KEY])
+        image_out.link(sync.inputs[IMAGE_KEY])
+        return sync.out.createOutputQueue(maxSize=cfg.queue_size, blocking=False)
 
     def _read_intrinsics(self, calib: Any, socket: Any) -> Intrinsics:
         dai, cfg = self._dai, self.config
+        if cfg.depth_source == "stereo" and cfg.align_socket in MONO_STEREO_SOCKETS:
+            return self._rectified_intrinsics(calib)
         try:
             k = calib.getCameraIntrinsics(socket, cfg.width, cfg.height)
             coeffs: list[float] = []
@@ -274,6 +344,15 @@ class OakCamera(Camera3D):
         except RuntimeError as exc:
             raise DeviceError(f"oak: no calibration for {cfg.align_socket}: {exc}") from None
         return Intrinsics.from_opencv(cfg.width, cfg.height, k, coeffs)
+
+    def _rectified_intrinsics(self, calib: Any) -> Intrinsics:
+        """A rectified mono view: the stereo right camera's matrix at the output size, no distortion."""
+        cfg = self.config
+        try:
+            k = calib.getCameraIntrinsics(calib.getStereoRightCameraId(), cfg.width, cfg.height)
+        except RuntimeError as exc:
+            raise DeviceError(f"oak: no stereo calibration for the rectified {cfg.align_socket} view: {exc}") from None
+        return Intrinsics.from_opencv(cfg.width, cfg.height, k, [])
 
     def _close(self) -> None:
         for action in (lambda: self._pipeline.stop(), lambda: self._queue.close(), lambda: self._device.close()):
@@ -293,31 +372,58 @@ class OakCamera(Camera3D):
         return self._intr
 
     # ------------------------------------------------------------ capture
+    @property
+    def _max_pair_dt_s(self) -> float:
+        """Largest capture-time difference of a depth / image pair: half a frame period, s."""
+        return 0.5 / self.config.fps
+
     def _capture(self, timeout: float) -> Frame:
         dai = self._dai
         gone = (RuntimeError, dai.MessageQueue.QueueException)
+        what = "depth frame" if self.config.amplitude == "none" else "depth + image pair"
         try:
             if self._device.isClosed():
                 raise DeviceConnectionError(f"oak {self._identity.get('id', '')}: device disconnected")
             now = dai.Clock.now().total_seconds()
             # Frames queued earlier are used only if younger than the timeout.
             queued = [m for m in self._queue.tryGetAll() if m is not None]
-            msg = queued[-1] if queued and now - queued[-1].getTimestamp().total_seconds() <= timeout else None
+            newest_s = self._depth_of(queued[-1]).getTimestamp().total_seconds() if queued else -math.inf
+            msg = queued[-1] if now - newest_s <= timeout else None
             if msg is None:
                 msg = self._queue.get(datetime.timedelta(seconds=timeout))
         except gone as exc:
             raise DeviceConnectionError(f"oak {self._identity.get('id', '')}: device disconnected ({exc})") from None
         if msg is None:
-            raise DeviceTimeoutError(f"oak: no depth frame within {timeout:g} s")
+            raise DeviceTimeoutError(f"oak: no {what} within {timeout:g} s")
         return self._to_frame(msg)
+
+    def _depth_of(self, msg: Any) -> Any:
+        """The depth ``ImgFrame`` of a queued message (itself, or the depth of a Sync group)."""
+        if self.config.amplitude == "none":
+            return msg
+        if not isinstance(msg, self._dai.MessageGroup) or DEPTH_KEY not in msg.getMessageNames():
+            raise ProtocolError(f"oak: expected a depth + image group, got {type(msg).__name__}")
+        return msg[DEPTH_KEY]
+
+    def _image_of(self, group: Any, depth: Any, shape: tuple[int, int]) -> NDArray[np.float32]:
+        """The group's grey image as float32, after checking it belongs to the depth's capture."""
+        if IMAGE_KEY not in group.getMessageNames():
+            raise ProtocolError(f"oak: depth + image group has no image (got {group.getMessageNames()})")
+        image = group[IMAGE_KEY]
+        colour = self.config.depth_source == "stereo" and self.config.align_socket not in MONO_STEREO_SOCKETS
+        check_same_capture(depth, image, "time" if colour else "sequence", self._max_pair_dt_s)
+        return grey_image(image, shape)
 
     def _to_frame(self, msg: Any) -> Frame:
         intr = self._intrinsics()
         assert self._rays_over_z is not None
-        depth = np.asarray(msg.getFrame())
+        depth_msg = self._depth_of(msg)
+        depth = np.asarray(depth_msg.getFrame())
         if depth.dtype != np.uint16 or depth.shape != intr.shape:
             raise ProtocolError(f"oak: depth frame is {depth.dtype} {depth.shape}, expected uint16 {intr.shape}")
+        amplitude = (np.zeros(intr.shape, dtype=np.float32) if self.config.amplitude == "none"
+                     else self._image_of(msg, depth_msg, intr.shape))
         xyz, distance, valid = depth_to_xyz(depth, self._rays_over_z)
-        return Frame(distance=distance, xyz=xyz, amplitude=np.zeros(intr.shape, dtype=np.float32), valid=valid,
-                     intrinsics=intr, timestamp=self._clock_offset_s + msg.getTimestamp().total_seconds(),
-                     sequence=int(msg.getSequenceNum()))
+        return Frame(distance=distance, xyz=xyz, amplitude=amplitude, valid=valid, intrinsics=intr,
+                     timestamp=self._clock_offset_s + depth_msg.getTimestamp().total_seconds(),
+                     sequence=int(depth_msg.getSequenceNum()))
