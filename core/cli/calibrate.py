@@ -65,14 +65,18 @@ def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
 
 
 #: Config keys that say where a device is, shown by ``--check``.
-ADDRESS_KEYS = ("host", "xmlrpc_port", "port", "pcic_port", "device_id", "baudrate", "axes", "file")
+ADDRESS_KEYS = ("host", "xmlrpc_port", "tcp_port", "port", "pcic_port", "device_id", "baudrate", "axes", "file")
+#: Keys that only mean something on a serial line (left out when the device is reached by ``host``).
+_SERIAL_KEYS = ("baudrate",)
 
 
 def _where(device: Any) -> str:
     config = getattr(device, "config", None)
     if config is None or not dataclasses.is_dataclass(config):
         return ""
-    parts = [f"{k}={getattr(config, k)!r}" for k in ADDRESS_KEYS if hasattr(config, k)]
+    networked = bool(getattr(config, "host", None))
+    parts = [f"{k}={getattr(config, k)!r}" for k in ADDRESS_KEYS
+             if getattr(config, k, None) is not None and not (networked and k in _SERIAL_KEYS)]
     return f" at {', '.join(parts)}" if parts else ""
 
 

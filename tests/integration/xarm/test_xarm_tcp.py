@@ -282,3 +282,14 @@ def test_cli_names_both_keys_in_one_line_when_port_and_host_are_given(tmp_path: 
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "port" in lines[0] and "host" in lines[0] and "Traceback" not in done.stderr
+
+
+def test_check_names_the_tcp_address_not_the_serial_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = (REPO_ROOT / "configs" / "xarm_tcp_emulated.toml").read_text()
+    arm = text[text.index("[arm]"):text.index("\n[", text.index("[arm]") + 1)]
+    cell = text.replace(arm, '[arm]\nbackend = "xarm"\nhost = "192.168.1.185"\naxes = 5\n')
+    (tmp_path / "cell.toml").write_text(cell)
+    assert main(["calibrate", "--config", str(tmp_path / "cell.toml"), "--check"]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("arm:"))
+    assert "at host='192.168.1.185', tcp_port=502, axes=5 (" in line
+    assert "port=None" not in line and "baudrate" not in line
