@@ -209,6 +209,27 @@ def _check_range(value: Any, meta: Mapping[str, Any], key: str, source: str | No
 _LIMITS = {"gt": (">", operator.gt), "ge": (">=", operator.ge), "lt": ("<", operator.lt), "le": ("<=", operator.le)}
 
 
+def check_value(value: Any, tp: Any, metadata: Mapping[str, Any], key: str, source: str | None = None) -> Any:
+    """One value against its type and its field's limits, as in a config file; the converted value.
+
+    For a dataclass checking its own fields at construction (``__post_init__``), so that a
+    direct construction and a config file are held to the same schema.
+
+    Args:
+        value: The value.
+        tp: Its resolved type (``typing.get_type_hints``), e.g. ``float`` or ``tuple[int, int]``.
+        metadata: The field's metadata (``gt``, ``ge``, ``lt``, ``le``, ...).
+        key: Dotted key for messages.
+        source: File name (or other origin) for messages.
+
+    Raises:
+        ConfigError: Naming ``key`` and what was expected.
+    """
+    converted = _convert(value, tp, key, source)
+    _check_range(converted, metadata, key, source)
+    return converted
+
+
 def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str = "",
                   source: str | None = None, ignore: tuple[str, ...] = ()) -> T:
     """Validate a mapping against a config dataclass and build an instance.
@@ -253,9 +274,7 @@ def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str
             if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
                 raise ConfigError(f"missing required value ({_describe(hints[name])})", source=source, key=full)
             continue
-        value = _convert(section[name], hints[name], full, source)
-        _check_range(value, f.metadata, full, source)
-        kwargs[name] = value
+        kwargs[name] = check_value(section[name], hints[name], f.metadata, full, source)
     try:
         return cls(**kwargs)
     except ConfigError as exc:  # a check across keys (__post_init__): add what it could not know

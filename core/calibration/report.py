@@ -219,7 +219,8 @@ def _ci(value: Any, ci: Any, spec: str) -> str:
 
 
 _GATE_LABEL = {"valid_fraction": ("valid", 100.0, "%", "min"), "inlier_fraction": ("inliers", 100.0, "%", "min"),
-               "residual_rms_m": ("rms", 1000.0, "mm", "max"), "coverage": ("coverage", 100.0, "%", "min")}
+               "residual_rms_m": ("rms", 1000.0, "mm", "max"), "coverage": ("coverage", 100.0, "%", "min"),
+               "flatness": ("flatness", 1000.0, "mm", "max")}
 
 
 def _gates(gates: Mapping[str, Any]) -> str:
@@ -230,6 +231,19 @@ def _gates(gates: Mapping[str, Any]) -> str:
         mark = "ok" if g["passed"] else "FAILED"
         parts.append(f"{label} {value} {unit} ({side} {g['threshold'] * k:.3g} {unit}, {mark})")
     return "; ".join(parts)
+
+
+def _multipath(ff: Mapping[str, Any]) -> str:
+    """The multipath (radial range bias) estimate and the shift it implies: a bias the intervals do not cover."""
+    beta, ci, shift = ff.get("multipath_border_m"), ff.get("multipath_border_ci_m"), ff.get("multipath_shift")
+    if beta is None:
+        return ""
+    ci_mm = [None if c is None else c * 1000.0 for c in ci] if ci else None
+    text = f"multipath border bias {_ci(beta * 1000.0, ci_mm, '+.3f')} mm"
+    if shift:
+        text += (f", would move tilt_x {shift['tilt_x_deg']:+.4f} deg, tilt_y {shift['tilt_y_deg']:+.4f} deg, "
+                 f"height {shift['height_m'] * 1000.0:+.3f} mm")
+    return text + " (a bias: not in the intervals)"
 
 
 def _vec(v: Iterable[float]) -> str:
@@ -252,6 +266,9 @@ def format_full_frame(document: Mapping[str, Any]) -> str:
                 f"height {_ci(ff['height_m'], ff['height_ci_m'], '.5f')} m"
                 + (f" (expected tilt_x {exp['tilt_x_deg']:.4f}, tilt_y {exp['tilt_y_deg']:.4f} deg, "
                    f"height {exp['height_m']:.5f} m)" if exp else ""))
+            mp = _multipath(ff)
+            if mp:
+                lines.append(f"          {mp}")
             lines.append(f"          gates: {_gates(ff['gates'])}")
             pb = ff.get("plane_base")
             if pb:

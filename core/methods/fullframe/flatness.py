@@ -76,13 +76,23 @@ class PlaneFrame:
 
 
 def _moments(uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp], n_cells: int) -> FloatArray:
-    """Per cell: the count and the 9 weighted least-squares sums of w on (u, v, 1), shape (10, C)."""
+    """Per cell: the count and the 9 weighted least-squares sums of w on (u, v, 1), shape (10, C).
+
+    One product column at a time (a buffer reused), so that at most three point-sized
+    float64 arrays are alive besides the inputs.
+    """
     u, v, w = uvw
-    wu, wv = wt * u, wt * v
-    cols = (wt, wu, wv, wu * u, wu * v, wv * v, wt * w, wu * w, wv * w)
-    sums = [np.bincount(cell, minlength=n_cells).astype(np.float64)]
-    sums += [np.bincount(cell, weights=c, minlength=n_cells).astype(np.float64) for c in cols]
-    return np.stack(sums)
+    out = np.empty((10, n_cells))
+    out[0] = np.bincount(cell, minlength=n_cells)
+    out[1] = np.bincount(cell, weights=wt, minlength=n_cells)
+    buf = np.empty_like(wt)
+    for k, (base, x) in enumerate(((wt, u), (wt, v), (wt, w)), start=2):   # wu, wv, ww
+        out[k] = np.bincount(cell, weights=np.multiply(base, x, out=buf), minlength=n_cells)
+    wu = np.multiply(wt, u)
+    wv = np.multiply(wt, v)
+    for k, (base, x) in enumerate(((wu, u), (wu, v), (wv, v), (wu, w), (wv, w)), start=5):
+        out[k] = np.bincount(cell, weights=np.multiply(base, x, out=buf), minlength=n_cells)
+    return out[[0, 1, 2, 3, 5, 6, 7, 4, 8, 9]]        # count, w, wu, wv, wuu, wuv, wvv, ww, wuw, wvw
 
 
 def _excess(a: FloatArray, b: FloatArray, centre: FloatArray, half: FloatArray, scale: FloatArray,

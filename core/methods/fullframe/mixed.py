@@ -45,6 +45,16 @@ def _open(mask: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return np.asarray(cv2.morphologyEx(mask, cv2.MORPH_OPEN, _K3), dtype=np.uint8)
 
 
+def _near(patches: NDArray[np.uint8], reach: int) -> NDArray[np.uint8]:
+    """1 where a patch pixel lies within ``reach`` pixels (chessboard distance), else 0.
+
+    The same as ``_distance(patches) <= reach``, by a dilation with a square (separable,
+    several times faster than the distance transform).
+    """
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach + 1, 2 * reach + 1))
+    return np.asarray(cv2.dilate(patches, kernel), dtype=np.uint8)
+
+
 def _distance(patches: NDArray[np.uint8]) -> NDArray[np.uint8]:
     """Chessboard distance (pixels, saturating at 255) of every pixel to the nearest patch pixel."""
     if not patches.any():
@@ -87,32 +97,31 @@ class EdgeClean:
     def margin_keep(self) -> int:
         """How many points lie farther than ``floor_px`` from the solid patches of invalid pixels."""
         h, w = self.shape
-        return sum(int(np.count_nonzero(_distance(_open(inv.reshape(h, w))).reshape(-1)[m] > self.floor_px))
+        return sum(int(np.count_nonzero(_near(_open(inv.reshape(h, w)), self.floor_px).reshape(-1)[m] == 0))
                    for m, inv in zip(self.masks, self.invalid, strict=True))
 
     def __call__(self, inliers: BoolArray, z: F32) -> BoolArray:
         h, w = self.shape
-        dist = np.empty(inliers.size, dtype=np.uint8)
-        keep = np.empty(inliers.size, dtype=bool)
+        cap = self.max_px + 1                      # rings beyond max_px: the reference bin
+        ring = np.empty(inliers.size, dtype=np.uint8)
         start = 0
-        for m, invalid in zip(self.masks, self.invalid, strict=True):   # per frame: distances to the patches
+        for m, invalid in zip(self.masks, self.invalid, strict=True):   # per frame, in image space
             k = int(np.count_nonzero(m))
-            outlier = np.zeros(h * w, dtype=np.uint8)
-            outlier[m] = ~inliers[start:start + k]
-            # outliers and invalid pixels together: a wall seen at grazing incidence is both
-            keep[start:start + k] = _distance(_open((outlier | invalid).reshape(h, w))).reshape(-1)[m] > self.floor_px
-            dist[start:start + k] = _distance(_open(outlier.reshape(h, w))).reshape(-1)[m]
+            flat = np.zeros(h * w, dtype=np.uint8)
+            flat[m] = ~inliers[start:start + k]
+            outlier = flat.reshape(h, w)
+            # ring = distance to the outlier patches (capped), 0 within the floor of any patch:
+            # outliers and invalid pixels together there (a wall seen at grazing incidence is both)
+            code = np.minimum(_distance(_open(outlier)), np.uint8(cap))
+            code[_near(_open(outlier | invalid.reshape(h, w)), self.floor_px).view(np.bool_)] = 0
+            ring[start:start + k] = code.reshape(-1)[m]
             start += k
-        sel = inliers & keep
-        near = np.flatnonzero(sel & (dist <= self.max_px))
-        size = self.max_px + 2                     # the last bin: every pixel beyond max_px (the reference)
-        ring = dist[near]
-        sums = np.bincount(ring, weights=z[near], minlength=size).astype(np.float64)
-        counts = np.bincount(ring, minlength=size).astype(np.float64)
-        counts[-1] = float(np.count_nonzero(sel)) - counts.sum()
-        sums[-1] = float(np.dot(z, sel.astype(np.float32))) - sums.sum()
+        bins = np.where(inliers, ring, 0).astype(np.intp)   # inliers beyond the floor; bin 0: the rest
+        sums = np.bincount(bins, weights=z, minlength=cap + 1).astype(np.float64)
+        counts = np.bincount(bins, minlength=cap + 1).astype(np.float64)
+        sums[0] = counts[0] = 0.0
         margin = self._margin(sums, counts, float(np.count_nonzero(inliers)))
-        keep &= dist > margin
+        keep: BoolArray = ring > margin
         self.report = EdgeReport(margin, self.floor_px, int(np.count_nonzero(inliers & ~keep)))
         return keep
 

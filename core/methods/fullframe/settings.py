@@ -8,10 +8,12 @@ and ``FullFrameSettings.__post_init__`` to a direct construction.
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
+import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+from cellcal.devices.config import check_value
 from cellcal.devices.errors import ConfigError
 
 __all__ = ["MIN_POINTS", "FullFrameSettings"]
@@ -99,45 +101,16 @@ class FullFrameSettings:
     seed: int | None = field(default=None, metadata={"ge": 0})
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            _check_field(f.name, getattr(self, f.name), f.type, f.metadata)
+        hints = _field_types()
+        for f in dataclasses.fields(self):   # the config file's checks; store the converted value (int -> float)
+            value = check_value(getattr(self, f.name), hints[f.name], f.metadata, f"full_frame.{f.name}")
+            object.__setattr__(self, f.name, value)
         if self.max_inlier_threshold_m < self.min_inlier_threshold_m:
             raise ConfigError(f"max_inlier_threshold_m ({self.max_inlier_threshold_m}) must be "
                               f">= min_inlier_threshold_m ({self.min_inlier_threshold_m})", key="full_frame")
 
 
-def _check_field(name: str, value: Any, annotation: Any, meta: Any) -> None:
-    """Type and range of one field (ranges from the field metadata, as in a config file)."""
-    key = f"full_frame.{name}"
-    text = str(annotation)
-    if value is None:
-        if "None" not in text:
-            raise ConfigError("must be set, got None", key=key)
-        return
-    values = value if isinstance(value, tuple) else (value,)
-    if text.startswith("tuple") and (not isinstance(value, tuple) or len(value) != 2):
-        raise ConfigError(f"expected 2 integers, got {value!r}", key=key)
-    for v in values:
-        if text == "bool":
-            ok = isinstance(v, bool)
-        elif "float" in text:
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-        else:
-            ok = isinstance(v, int) and not isinstance(v, bool)
-        if not ok:
-            kind = "a boolean" if text == "bool" else "a finite number" if "float" in text else "an integer"
-            raise ConfigError(f"expected {kind}, got {value!r}", key=key)
-        for op, word in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
-            if op in meta and not _holds(op, v, meta[op]):
-                raise ConfigError(f"must be {word} {meta[op]}, got {value!r}", key=key)
-
-
-def _holds(op: str, value: float, bound: float) -> bool:
-    """``value op bound`` for the range keys of the field metadata (False for NaN)."""
-    if op == "gt":
-        return value > bound
-    if op == "ge":
-        return value >= bound
-    if op == "lt":
-        return value < bound
-    return value <= bound
+@functools.cache
+def _field_types() -> dict[str, Any]:
+    """The resolved field types of :class:`FullFrameSettings` (its annotations are strings)."""
+    return typing.get_type_hints(FullFrameSettings)

@@ -126,6 +126,19 @@ def test_cli_prints_intervals_gates_and_the_base_frame(tmp_path: Path, capsys: p
     assert "full_frame         mean |error|" in out
 
 
+def test_report_prints_flatness_in_mm_and_the_multipath_estimate(default_result: dict[str, Any]) -> None:
+    text = format_full_frame(default_result)
+    ff = default_result["poses"][0]["full_frame"]
+    flat = ff["gates"]["flatness"]
+    assert f"flatness {flat['value'] * 1000:.3g} mm (max {flat['threshold'] * 1000:.3g} mm, ok)" in text
+    assert "(max 1 mm, ok)" in text                              # the 1 mm tolerance, in mm
+    beta, (lo, hi) = ff["multipath_border_m"] * 1000, [c * 1000 for c in ff["multipath_border_ci_m"]]
+    line = next(x for x in text.splitlines() if "multipath border bias" in x)
+    assert f"{beta:+.3f} [{lo:+.3f}, {hi:+.3f}] mm" in line and "not in the intervals" in line
+    assert f"height {ff['multipath_shift']['height_m'] * 1000:+.3f} mm" in line
+    assert text.count("multipath border bias") == 3
+
+
 def test_a_failed_gate_exits_1_and_keeps_the_earlier_result(tmp_path: Path,
                                                             capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"

@@ -156,6 +156,15 @@ def test_settings_ranges_live_in_one_place() -> None:
             assert made.value.reason == read.value.reason, f.name
 
 
+def test_settings_store_what_the_config_file_would() -> None:
+    """One checker for both paths (``check_value``): a direct construction converts like a file does."""
+    made = FullFrameSettings(confidence=0.9, flatness_sigma=5, coverage_grid=[8, 6])   # type: ignore[arg-type]
+    read = parse_section(FullFrameSettings, {"confidence": 0.9, "flatness_sigma": 5, "coverage_grid": [8, 6]},
+                         where="full_frame")
+    assert made == read
+    assert type(made.flatness_sigma) is float and made.coverage_grid == (8, 6)
+
+
 def _doc(extra: str) -> dict[str, Any]:
     doc = tomllib.loads('[camera]\nbackend = "sim"\n[arm]\nbackend = "sim"\n'
                         '[plan]\nposes = [{xyz_m = [0.3, 0.0, 0.5]}]\n')

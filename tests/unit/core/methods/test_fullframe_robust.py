@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from tof_frames import ToFSetup, draw, make_frame, render, scattered_boxes, with_
 
-from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings, fit_full_frame
+from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings, fit_full_frame, mixed
 from cellcal.core.methods.fullframe.mixed import EdgeClean
 
 
@@ -58,6 +58,17 @@ def test_edge_clean_drops_rims_of_patches_not_of_isolated_outliers() -> None:
     assert keep[7, 10] and keep[10, 22] and keep[22, 22]
     assert keep[29:32, 44:47].all()                      # the isolated outlier leaves its neighbours
     assert clean.report.margin_px == 2 and clean.report.n_dropped == 14 * 14 - 100
+
+
+def test_floor_by_dilation_is_the_chessboard_distance() -> None:
+    """The mixed-pixel floor is a dilation by a square: exactly 'distance transform <= floor'."""
+    rng = np.random.default_rng(3)
+    patches = (rng.random((90, 130)) < 0.02).astype(np.uint8)
+    patches[20:35, 40:70] = 1
+    for reach in (1, 2, 6, 13):
+        near = mixed._near(patches, reach).astype(bool)
+        assert np.array_equal(near, mixed._distance(patches) <= reach), reach
+        assert near.sum() > patches.sum()
 
 
 def test_edge_clean_follows_biased_rings_outward() -> None:
