@@ -77,6 +77,8 @@ def main() -> None:
         env = _env(cache)
         commands = {
             "python -c pass": [sys.executable, "-c", "pass"],
+            # the floor of calibrate: the two compiled libraries it cannot run without
+            "import numpy, cv2": [sys.executable, "-c", "import numpy, cv2"],
             "cellcal --help": [*_cellcal(), "--help"],
             "cellcal calibrate": [*_cellcal(), "calibrate", "--out", out],
         }
@@ -103,6 +105,9 @@ def main() -> None:
         cal = med["cellcal calibrate"]
         print(f"cellcal calibrate (default sim, end to end): {cal:.3f} s (target < {CALIBRATE_TARGET_S} s: "
               f"{'met' if cal < CALIBRATE_TARGET_S else 'MISSED'}); CPU {cpu['cellcal calibrate']:.3f} s")
+        floor = med["import numpy, cv2"]
+        print(f"  of which the floor (interpreter + numpy + OpenCV import): {floor:.3f} s; cellcal's own "
+              f"imports and the 3-pose run: {cal - floor:.3f} s")
         if args.imports:
             for name in ("cellcal --help", "cellcal calibrate"):
                 top = ", ".join(f"{mod} {ms:.0f}" for ms, mod in _top_imports(commands[name], env))
