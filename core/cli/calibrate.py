@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import shlex
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import path_arg
-from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_OK
 from cellcal.core.cli.options import add_config_option, add_viz_port_option
 from cellcal.core.cli.progress import progress_factory
-from cellcal.devices.errors import CellcalError, ConfigError
+from cellcal.core.cli.resumable import resume_command, run_resumable
+from cellcal.devices.errors import ConfigError
 
 if TYPE_CHECKING:  # the calibration (numpy, OpenCV) is imported when the command runs, not by `cellcal --help`
     from cellcal.core.calibration.config import CellConfig
@@ -99,16 +99,6 @@ def _check(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
-    """Where this run's measured poses are, and the command that continues it."""
-    from cellcal.core.calibration.journal import journal_path
-    from cellcal.core.calibration.report import RESULT_FILENAME
-
-    config = f" --config {shlex.quote(args.config)}" if args.config else ""
-    return (f"{saved} of {total} poses are saved in {journal_path(Path(args.out) / RESULT_FILENAME)}; "
-            f"'cellcal calibrate{config} --out {shlex.quote(args.out)} --resume' continues the run")
-
-
 def _print_report(document: dict[str, Any]) -> None:
     """The per-measurement table, the mean error per method, the full-frame block and the run time."""
     from cellcal.core.calibration.report import format_full_frame, format_table
@@ -140,7 +130,7 @@ def _disagreement(document: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal calibrate``; returns the exit status."""
-    from cellcal.core.calibration.calibrator import Calibrator, poses_saved, run_to_file
+    from cellcal.core.calibration.calibrator import Calibrator, run_to_file
     from cellcal.core.calibration.report import RESULT_FILENAME
 
     if args.check:
@@ -161,17 +151,10 @@ def run(args: argparse.Namespace) -> int:
     calibrator = Calibrator(config, camera, arm, progress=progress_factory("poses", "pose", args.quiet),
                             observer=None if view is None else view.observe_pose(config.mount.pose()))
     try:
-        document = run_to_file(calibrator, out, resume=getattr(args, "resume", False))
-    except KeyboardInterrupt:
-        saved = poses_saved(calibrator)
-        hint = f"; {_resume_hint(args, saved, len(calibrator.poses))}" if saved else ""
-        print(f"cellcal: interrupted{hint}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except CellcalError as exc:
-        saved = poses_saved(calibrator)
-        if saved:  # keep the type (it sets the exit status) and the one-line message
-            exc.args = (f"{exc}; {_resume_hint(args, saved, len(calibrator.poses))}",)
-        raise
+        document = run_resumable(lambda: run_to_file(calibrator, out, resume=getattr(args, "resume", False)),
+                                 calibrator, len(calibrator.poses), out, resume_command("calibrate", args))
+        if isinstance(document, int):  # interrupted: the exit status
+            return document
     finally:
         if view is not None:
             view.close()

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import shlex
-import sys
 from pathlib import Path
 from typing import Any
 
 from cellcal.core.cli.argtypes import path_arg
-from cellcal.core.cli.exits import EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.exits import EXIT_OK
 from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.resumable import resume_command, run_resumable
 
 
 def register(sub: Any) -> None:
@@ -41,16 +40,6 @@ def register(sub: Any) -> None:
                    help="print every move of the plan with its safety checks and what it can observe; "
                    "connect and move nothing")
     p.set_defaults(func=run)
-
-
-def _resume_hint(args: argparse.Namespace, saved: int, total: int) -> str:
-    """Where this run's measured poses are, and the command that continues it."""
-    from cellcal.core.calibration.journal import journal_path
-    from cellcal.core.handeye.result import HANDEYE_FILENAME
-
-    config = f" --config {shlex.quote(args.config)}" if args.config else ""
-    return (f"{saved} of {total} poses are saved in {journal_path(Path(args.out) / HANDEYE_FILENAME)}; "
-            f"'cellcal handeye{config} --plan {args.plan} --out {shlex.quote(args.out)} --resume' continues the run")
 
 
 def _dry_run(config: Any, poses: list[Any], seen: Any) -> int:
@@ -151,19 +140,9 @@ def _recorder(stack: contextlib.ExitStack, args: argparse.Namespace, config: Any
 
 def _run(args: argparse.Namespace, calibrator: Any, n_poses: int) -> dict[str, Any] | int:
     """Run the plan into ``DIR/handeye.json``; the document, or the exit status of an interrupted run."""
-    from cellcal.core.calibration.calibrator import poses_saved
+    from cellcal.core.handeye.result import HANDEYE_FILENAME
     from cellcal.core.handeye.run import run_handeye
-    from cellcal.devices.errors import CellcalError
 
-    try:
-        return run_handeye(calibrator, args.out, plan_kind=args.plan, resume=args.resume)
-    except KeyboardInterrupt:
-        saved = poses_saved(calibrator)
-        hint = f"; {_resume_hint(args, saved, n_poses)}" if saved else ""
-        print(f"cellcal: interrupted{hint}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except CellcalError as exc:
-        saved = poses_saved(calibrator)
-        if saved:  # keep the type (it sets the exit status) and the one-line message
-            exc.args = (f"{exc}; {_resume_hint(args, saved, n_poses)}",)
-        raise
+    return run_resumable(lambda: run_handeye(calibrator, args.out, plan_kind=args.plan, resume=args.resume),
+                         calibrator, n_poses, Path(args.out) / HANDEYE_FILENAME,
+                         resume_command("handeye", args, f"--plan {args.plan}"))
