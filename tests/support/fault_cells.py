@@ -80,10 +80,25 @@ def make_probe(doc: dict[str, Any], source: str = "<fault-cell>") -> Probe:
 
 
 def interrupt() -> None:
-    """Deliver SIGINT to this process now (Python turns it into KeyboardInterrupt in the main thread)."""
+    """Deliver SIGINT to this process now, as Ctrl-C would (Python turns it into KeyboardInterrupt).
+
+    A test process started with SIGINT ignored (a background job, some CI runners) would drop
+    the signal, and one with the OS default would die: for the delivery, Python's own handler
+    is installed then. When Python's handler is in place and no KeyboardInterrupt arrives,
+    this fails loudly instead of letting the run go on. (A handler of the code under test that
+    holds the signal for later, like the recorder's, is left in charge.)
+    """
     assert threading.current_thread() is threading.main_thread()
-    signal.raise_signal(signal.SIGINT)
-    time.sleep(1.0)  # not reached: the handler raises before this returns
+    current = signal.getsignal(signal.SIGINT)
+    python_handler = current in (signal.SIG_IGN, signal.SIG_DFL, None, signal.default_int_handler)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler) if python_handler else None
+    try:
+        signal.raise_signal(signal.SIGINT)  # the handler runs before this call returns
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    if python_handler:
+        raise AssertionError("SIGINT was delivered but no KeyboardInterrupt arrived")
 
 
 def leftovers(threads_before: set[threading.Thread], fds_before: set[tuple[str, str]],

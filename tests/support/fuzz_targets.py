@@ -54,6 +54,7 @@ from cellcal.drivers.o3r.pcic import (
     TICKET_ASYNC_ERROR,
     TICKET_ASYNC_NOTIFICATION,
     TICKET_IMAGE,
+    Chunk,
     encode_message,
     iter_messages,
     parse_async_error,
@@ -165,22 +166,72 @@ def pcic_seeds() -> list[bytes]:
     return seeds
 
 
+#: Bytes per pixel of the PIXEL_FORMAT codes an image chunk may carry (ifm's table: 8/16/32/64-bit
+#: integers and floats, 3 x float32 for XYZ), written out here for the oracle.
+_PIXEL_BYTES = {0: 1, 1: 1, 2: 2, 3: 2, 4: 4, 5: 4, 6: 4, 7: 8, 8: 12}
+
+
+def check_decoded(payload: bytes, chunks: list[Chunk], frame: Frame, count: int) -> None:
+    """The oracle: a decoded frame must agree with the sizes its payload declares.
+
+    Raises:
+        AssertionError: A chunk outside the payload or overlapping the next one, a frame whose
+            images do not have the declared size, a pixel chunk shorter than its declared
+            image, or a validity mask that disagrees with the distances.
+    """
+    end = 4  # after 'star'
+    for c in chunks:
+        assert end <= c.offset < c.data_offset <= c.data_offset + c.data_size <= len(payload) - 6, c
+        end = c.data_offset + c.data_size
+    by_type = {c.chunk_type: c for c in chunks}
+    dist_c, info_c = by_type[100], by_type[420]
+    h, w = frame.distance.shape
+    assert (dist_c.width, dist_c.height) == (info_c.width, info_c.height) == (w, h)
+    assert frame.xyz.shape == (h, w, 3) and frame.valid.shape == frame.amplitude.shape == (h, w)
+    for ctype in (100, 101, 300):  # every pixel chunk the decoder read holds its whole image
+        c = by_type.get(ctype)
+        if c is not None and (ctype == 100 or ctype == 101 or frame.confidence is not None):
+            assert (c.width, c.height) == (w, h) and c.data_size >= w * h * _PIXEL_BYTES[c.pixel_format], c
+    assert frame.confidence is None or frame.confidence.shape == (h, w)
+    assert np.array_equal(frame.valid, np.isfinite(frame.distance)) and count == dist_c.frame_count
+
+
 def parse_pcic(data: bytes) -> None:
-    """Everything the driver does with a received stream (minus the socket)."""
+    """Everything the driver does with a received stream (minus the socket), and the oracle on each frame."""
     for msg in iter_messages(data, max_payload=1 << 20):
         if msg.ticket == TICKET_IMAGE:
-            FrameDecoder().decode(msg.payload, walk_chunks(msg.payload))
+            chunks = walk_chunks(msg.payload)
+            decoded = FrameDecoder().decode(msg.payload, chunks)
+            check_decoded(bytes(msg.payload), chunks, decoded.frame, decoded.frame_count)
         elif msg.ticket == TICKET_ASYNC_ERROR:
             parse_async_error(msg.content)
         elif msg.ticket == TICKET_ASYNC_NOTIFICATION:
             parse_notification(msg.content)
 
 
+def size_lie(seed: bytes, rng: random.Random) -> bytes:
+    """The seed's first image with a size its pixel data does not have, told consistently.
+
+    Every image chunk and the TOF_INFO header claim the same larger (or differently shaped)
+    image, so no cross-check between them can notice: only the chunk-size check can.
+    """
+    n = len(next(iter_messages(seed, max_payload=1 << 20)).payload)
+    payload = bytearray(seed[16:16 + n])  # the first message's payload follows its 16-byte header
+    chunks = walk_chunks(payload)
+    w, h = chunks[0].width, chunks[0].height
+    new_w, new_h = rng.choice([(w + 1, h), (w, h + 1), (2 * w, 2 * h), (w * h, 2), (w + rng.randrange(1, 64), h)])
+    for c in chunks:
+        struct.pack_into("<2I", payload, c.offset + 16, new_w, new_h)  # IMAGE_WIDTH, IMAGE_HEIGHT
+    return seed[:16] + bytes(payload) + seed[16 + n:]
+
+
 def mutate_pcic(seed: bytes, rng: random.Random) -> bytes:
-    """Byte edits of a valid stream, or random bytes (bare, or inside a valid image envelope)."""
+    """Byte edits of a valid stream, a consistent size lie, or random bytes (bare, or in a valid image envelope)."""
     kind = rng.random()
-    if kind < 0.8:
+    if kind < 0.7:
         return mutate_bytes(seed, rng)
+    if kind < 0.8:
+        return size_lie(seed, rng)
     raw = random_bytes(rng)
     if kind < 0.9:
         return b"0000L%09d\r\n0000star" % (len(raw) + 14) + raw + b"stop\r\n"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -49,4 +50,15 @@ def test_emulated_configs_differ_from_sim_only_in_one_backend(config_name: str) 
 @pytest.mark.parametrize("config_name", ["xarm_emulated.toml", "o3r_emulated.toml"])
 def test_cli_runs_the_emulated_cells(config_name: str, tmp_path: Path) -> None:
     assert main(["calibrate", "--config", str(CONFIGS / config_name), "--out", str(tmp_path), "--quiet"]) == 0
-    assert (tmp_path / "result.json").exists()
+    result = json.loads((tmp_path / "result.json").read_text(encoding="utf-8"))
+    assert result["schema"] == "cellcal.calibration/2"
+    emulated = tomllib.loads((CONFIGS / config_name).read_text())
+    assert {k: result["config"][k]["backend"] for k in ("camera", "arm")} == {
+        k: emulated[k]["backend"] for k in ("camera", "arm")}
+    # the file holds the run's measurements: the pure sim's angles, pose by pose, and the full frame
+    sim = angles(run("sim.toml"))
+    written = angles(result)
+    assert [a[:3] for a in written] == [a[:3] for a in sim] and len(result["poses"]) == 3
+    assert max(abs(w[3] - s[3]) for w, s in zip(written, sim, strict=True)) < 0.01
+    assert all(p["full_frame"]["angle_deg"] == pytest.approx(80.0, abs=0.05) for p in result["poses"])
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == ["result.json"]

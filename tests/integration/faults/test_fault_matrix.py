@@ -43,7 +43,6 @@ directory, and the journal holds exactly the poses measured before the fault.
 from __future__ import annotations
 
 import errno
-import json
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -209,10 +208,20 @@ def matrix_summary(request: pytest.FixtureRequest) -> Iterator[None]:
 
 
 def test_matrix_covers_every_step_and_fault() -> None:
-    assert len(CASES) == len(set(CASES)) == (1 + 2 * N_POSES) * len(DEVICE_FAULTS) + len(WRITE_FAULTS)
+    """The cases are written out here, independently of the constants that build them."""
+    device_steps = ["connect", "move1", "move2", "move3", "capture1", "capture2", "capture3"]
+    faults = ["drop", "stall", "corrupt", "vendor_error", "protective_stop", "interrupt"]
+    expected = {(s, f) for s in device_steps for f in faults} | {("write", "interrupt"), ("write", "io_error"),
+                                                                   ("write", "disk_full")}
+    assert len(expected) == 45 and len(CASES) == len(set(CASES)) and set(CASES) == expected
+    errors = {"drop": (DeviceConnectionError, MotionError), "stall": (DeviceTimeoutError,),
+              "corrupt": (ProtocolError, MotionError), "vendor_error": (VendorError,),
+              "protective_stop": (VendorError,), "interrupt": (KeyboardInterrupt,)}
     for step, fault in CASES:
         if step != "write":
-            arrange(step, fault)  # every device case has an injection
+            case, inject = arrange(step, fault)  # every device case has an injection and a typed error
+            assert callable(inject) and case.expected in errors[fault], (step, fault, case.expected)
+            assert case.budget_s <= 20.0
 
 
 @pytest.mark.parametrize(("step", "fault"), CASES)
@@ -280,4 +289,7 @@ def test_fault(step: str, fault: str, tmp_path: Path, earlier_result: bytes,
         cal: Calibrator = probe.calibrator
         entries = read_journal(journal, plan_fingerprint(cal.config.document, cal.poses))
         assert [e.index for e in entries] == list(range(saved))
-        assert all(json.dumps(e.pose) for e in entries)
+        for e in entries:  # each record is the measured pose of its plan index, with its measurements
+            assert e.pose["index"] == e.index and e.pose["measurements"]
+            commanded = e.pose["commanded_flange_pose"]["translation_m"]
+            assert commanded == pytest.approx(list(cal.poses[e.index].translation), abs=1e-12)

@@ -12,6 +12,7 @@ seeded run in ``benchmarks/fuzz_parsers.py``; here each gets a few hundred examp
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import random
 import tomllib
@@ -23,6 +24,7 @@ from fuzz_targets import (
     CONFIG_DIR,
     ODD_VALUES,
     Target,
+    check_decoded,
     config_target,
     dump_toml,
     mutate_document,
@@ -37,6 +39,8 @@ from hypothesis import strategies as st
 from xarm_wire_helpers import encode_reply, parse_request
 
 from cellcal.devices.errors import CellcalError, ConfigError, ProtocolError, VendorError
+from cellcal.drivers.o3r.decode import FrameDecoder
+from cellcal.drivers.o3r.pcic import iter_messages, walk_chunks
 from cellcal.drivers.xarm.protocol import encode_request, parse_reply
 
 BOUNDED = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow,
@@ -193,3 +197,23 @@ def test_structural_mutation_changes_the_document() -> None:
 def test_documented_errors() -> None:
     assert PCIC.documented is ProtocolError and XARM.documented is ProtocolError
     assert XMLRPC.documented == (ProtocolError, VendorError, ConfigError)
+
+
+def test_the_pcic_oracle_refuses_a_frame_that_disagrees_with_its_declared_sizes() -> None:
+    """A decoder that dropped a size check would hand out such frames: the oracle must notice."""
+    seed = PCIC.seeds[0]
+    msg = next(iter_messages(seed))
+    chunks = walk_chunks(msg.payload)
+    frame = FrameDecoder().decode(msg.payload, chunks).frame
+    check_decoded(bytes(msg.payload), chunks, frame, 7)  # the seed is consistent
+    h, w = frame.distance.shape
+    narrower = dataclasses.replace(frame.intrinsics, width=w - 1)
+    cropped = dataclasses.replace(frame, distance=frame.distance[:, :-1], xyz=frame.xyz[:, :-1],
+                                  amplitude=frame.amplitude[:, :-1], valid=frame.valid[:, :-1], confidence=None,
+                                  intrinsics=narrower)
+    short = [dataclasses.replace(c, data_size=w * h * 2 - 2) if c.chunk_type == 100 else c for c in chunks]
+    past_end = [dataclasses.replace(c, data_size=len(msg.payload)) if c.chunk_type == 101 else c for c in chunks]
+    for spoiled_chunks, spoiled_frame, count in ((chunks, cropped, 7), (short, frame, 7), (past_end, frame, 7),
+                                                 (chunks, frame, 8)):
+        with pytest.raises(AssertionError):
+            check_decoded(bytes(msg.payload), spoiled_chunks, spoiled_frame, count)

@@ -6,6 +6,8 @@ import errno
 import json
 import os
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -92,3 +94,48 @@ def test_a_full_disk_is_an_environment_failure_and_a_bad_path_bad_input(
         write_bytes_atomic(target, b"new")
     assert info.value.errno == code and info.value.bad_path is bad_path
     assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+_PARTIAL_WRITE = """
+import resource, signal, sys
+from cellcal.core.calibration.report import write_bytes_atomic
+from cellcal.devices.errors import OutputError
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # past the limit write() fails with EFBIG instead of killing us
+resource.setrlimit(resource.RLIMIT_FSIZE, (65536, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+try:
+    write_bytes_atomic(sys.argv[1], bytes(1 << 20), fsync_dir=True)
+except OutputError as exc:
+    print(exc.errno, exc.bad_path, exc)
+"""
+
+
+def test_a_write_that_fails_part_way_leaves_the_old_file_and_the_folder_as_they_were(tmp_path: Path) -> None:
+    """A real short write (the file-size limit stops it at 64 KiB of 1 MiB), in a child process."""
+    target = tmp_path / "result.json"
+    target.write_bytes(b'{"old": true}')
+    done = subprocess.run([sys.executable, "-c", _PARTIAL_WRITE, str(target)], capture_output=True, text=True,
+                          timeout=60, check=True)
+    code, bad_path, message = done.stdout.strip().split(" ", 2)
+    assert int(code) == errno.EFBIG and bad_path == "False"  # an environment failure: exit status 1
+    assert message == f"cannot write {target}: {os.strerror(errno.EFBIG)}"
+    assert target.read_bytes() == b'{"old": true}'
+    assert [p.name for p in tmp_path.iterdir()] == ["result.json"]  # no temp file left
+
+
+def test_an_interrupt_while_syncing_leaves_the_old_file_and_is_not_swallowed(tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    target = tmp_path / "result.json"
+    target.write_bytes(b"old")
+    seen: list[bytes] = []
+    real_fsync = os.fsync
+
+    def interrupted_fsync(fd: int) -> None:
+        real_fsync(fd)
+        seen.append(Path(f"/proc/self/fd/{fd}").read_bytes())  # the temp file was complete ...
+        raise KeyboardInterrupt  # ... when Ctrl-C came
+
+    monkeypatch.setattr(os, "fsync", interrupted_fsync)
+    with pytest.raises(KeyboardInterrupt):
+        write_bytes_atomic(target, b"new content")
+    assert seen == [b"new content"]
+    assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["result.json"]
