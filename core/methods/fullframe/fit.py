@@ -26,7 +26,16 @@ from cellcal.core.methods.fullframe.flatness import (
 )
 from cellcal.core.methods.fullframe.gates import gate_table, image_coverage
 from cellcal.core.methods.fullframe.mixed import EdgeClean, EdgeReport
-from cellcal.core.methods.fullframe.passes import Cutoff, FinalPass, KeepMask, Model, basis, final_pass, step_plane
+from cellcal.core.methods.fullframe.passes import (
+    Cutoff,
+    FinalPass,
+    KeepMask,
+    Model,
+    Scratch,
+    basis,
+    final_pass,
+    step_plane,
+)
 from cellcal.core.methods.fullframe.result import Estimate, FullFrameResult
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.start import initial_scale, refine, robust_start
@@ -83,12 +92,13 @@ def _final(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float
     The second pass starts from the first one's full-data plane and scale, so that the
     inliers and the edge clean-up of the answer do not depend on where the start was.
     """
+    scratch = Scratch(dm.size)                                 # point-sized rows reused by both passes
     for k in range(FINAL_PASSES):
         e1, e2 = basis(n)
         if edge is not None:
             edge.scale = s
         fin: FinalPass = final_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, keep,
-                                    answer=k == FINAL_PASSES - 1)
+                                    answer=k == FINAL_PASSES - 1, scratch=scratch)
         n_fin, offset_fin = step_plane(n, e1, e2, offset, fin.step)
         s = math.sqrt(fin.z2_sum / fin.n_inliers / cutoff.kept_var)   # truncation-corrected scale
         if k < FINAL_PASSES - 1:
@@ -403,7 +413,7 @@ def _flatness(fit: _Fit, data: _FramePoints, model: Model, cfg: FullFrameSetting
     sel = sel[:: max(1, -(-sel.size // MAX_FLAT_POINTS))]   # strided inliers
     grid = (min(cfg.flatness_grid[0], w), min(cfg.flatness_grid[1], h))
     cell = grid_cells(_pixels_of(sel, data.masks), (h, w), grid)
-    p_in = data.p[:, sel]
+    p_in = _gather(data.p, sel)
     wt = _noise_orth(p_in, data.dm[sel], frame, model).astype(np.float64)
     del sel                                                 # point-sized arrays go as soon as they are used
     np.square(wt, out=wt)
@@ -441,10 +451,22 @@ def _region_flatness(frame: PlaneFrame, p: F32, dm: F32, m: BoolArray, inl: Bool
     lab = labels.reshape(-1)[m]
     pick = np.flatnonzero(np.isin(lab, big))
     pick = pick[:: max(1, -(-pick.size // MAX_FLAT_POINTS))]                # strided, at most 65536
-    p_off = p[:, pick]
+    p_off = _gather(p, pick)
     noise = fit.noise_scale_m * _noise_orth(p_off, dm[pick], frame, model).astype(np.float64)
     return region_flatness(frame, p_off, noise, lab[pick], sizes, min_size, cfg.flatness_sigma, step ** 2,
                            k)
+
+
+def _gather(p: F32, sel: NDArray[np.intp]) -> F32:
+    """``p[:, sel]`` of points ``p`` (3, N), 2.5x faster: one ``take`` per coordinate.
+
+    Laid out as ``p[:, sel]`` is (column-major), so that the float32 products downstream
+    round exactly as they did.
+    """
+    out = np.empty((3, sel.size), dtype=np.float32, order="F")
+    for k in range(3):
+        np.take(p[k], sel, out=out[k])
+    return out
 
 
 def _pixels_of(sel: NDArray[np.intp], masks: list[BoolArray]) -> NDArray[np.intp]:

@@ -12,6 +12,7 @@ in-plane coordinates ``(u, v)`` of the global fit; a region departs by the large
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass
@@ -78,21 +79,32 @@ class PlaneFrame:
 def _moments(uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp], n_cells: int) -> FloatArray:
     """Per cell: the count and the 9 weighted least-squares sums of w on (u, v, 1), shape (10, C).
 
-    One product column at a time (a buffer reused), so that at most three point-sized
-    float64 arrays are alive besides the inputs.
+    Points come in pixel order, so a cell's points form runs (a row's stretch inside the
+    cell): each product column is summed over the runs with ``np.add.reduceat`` and the
+    few run sums are then binned into cells. One product column at a time (a buffer
+    reused), so that at most three point-sized float64 arrays are alive besides the inputs.
     """
     u, v, w = uvw
+    if wt.size == 0:
+        return np.zeros((10, n_cells))
+    starts = np.flatnonzero(cell[1:] != cell[:-1]) + 1
+    starts = np.concatenate([[0], starts])                  # first point of each run
+    run_cell = cell[starts]
     out = np.empty((10, n_cells))
-    out[0] = np.bincount(cell, minlength=n_cells)
-    out[1] = np.bincount(cell, weights=wt, minlength=n_cells)
+    out[0] = np.bincount(run_cell, weights=np.diff(np.append(starts, wt.size)), minlength=n_cells)
+
+    def add(k: int, col: FloatArray) -> None:               # sums over the runs, then runs -> cells
+        out[k] = np.bincount(run_cell, weights=np.add.reduceat(col, starts), minlength=n_cells)
+
+    add(1, wt)
     buf = np.empty_like(wt)
-    for k, (base, x) in enumerate(((wt, u), (wt, v), (wt, w)), start=2):   # wu, wv, ww
-        out[k] = np.bincount(cell, weights=np.multiply(base, x, out=buf), minlength=n_cells)
     wu = np.multiply(wt, u)
     wv = np.multiply(wt, v)
-    for k, (base, x) in enumerate(((wu, u), (wu, v), (wv, v), (wu, w), (wv, w)), start=5):
-        out[k] = np.bincount(cell, weights=np.multiply(base, x, out=buf), minlength=n_cells)
-    return out[[0, 1, 2, 3, 5, 6, 7, 4, 8, 9]]        # count, w, wu, wv, wuu, wuv, wvv, ww, wuw, wvw
+    add(2, wu)
+    add(3, wv)
+    for k, (base, x) in enumerate(((wu, u), (wu, v), (wv, v), (wt, w), (wu, w), (wv, w)), start=4):
+        add(k, np.multiply(base, x, out=buf))               # wuu, wuv, wvv, ww (= sum wt w), wuw, wvw
+    return out                                              # count, w, wu, wv, wuu, wuv, wvv, ww, wuw, wvw
 
 
 def _excess(a: FloatArray, b: FloatArray, centre: FloatArray, half: FloatArray, scale: FloatArray,
@@ -116,8 +128,12 @@ def _excess(a: FloatArray, b: FloatArray, centre: FloatArray, half: FloatArray, 
     return out
 
 
+@functools.lru_cache(maxsize=8)
 def _blocks(grid: tuple[int, int]) -> tuple[FloatArray, list[str]]:
-    """Regions made of grid cells: each cell, the image's halves and quarters. (cells, regions) 0/1, names."""
+    """Regions made of grid cells: each cell, the image's halves and quarters. (cells, regions) 0/1, names.
+
+    Cached per grid (read-only: callers must not modify the result).
+    """
     cols, rows = grid
     c = np.arange(cols * rows) % cols
     r = np.arange(cols * rows) // cols
@@ -135,7 +151,9 @@ def _blocks(grid: tuple[int, int]) -> tuple[FloatArray, list[str]]:
         for (vn, vm), (hn, hm) in itertools.product(sides[2:], sides[:2]):
             masks.append(vm & hm)
             names.append(f"the {vn}-{hn} quarter of the image")
-    return np.stack(masks, axis=1).astype(np.float64), names
+    out = np.stack(masks, axis=1).astype(np.float64)
+    out.flags.writeable = False
+    return out, names
 
 
 def grid_flatness(uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp], grid: tuple[int, int],
@@ -243,11 +261,19 @@ def off_plane_regions(off_plane: NDArray[np.uint8], step: int = 1) -> tuple[NDAr
     return labels, sizes
 
 
-def grid_cells(pixels: NDArray[np.intp], shape: tuple[int, int], grid: tuple[int, int]) -> NDArray[np.intp]:
-    """Cell ``row * columns + column`` of a ``(columns, rows)`` grid for each flat pixel index."""
+@functools.lru_cache(maxsize=8)
+def _cell_map(shape: tuple[int, int], grid: tuple[int, int]) -> NDArray[np.intp]:
+    """Flat (H*W,) map of each pixel's cell ``row * columns + column`` (cached per size; read-only)."""
     h, w = shape
     cols, rows = grid
-    r = (pixels // w) * rows // h
-    c = (pixels % w) * cols // w
-    out: NDArray[np.intp] = r * cols + c
+    r = np.arange(h) * rows // h                            # cell row of each image row
+    c = np.arange(w) * cols // w                            # cell column of each image column
+    out: NDArray[np.intp] = (r[:, None] * cols + c[None, :]).reshape(-1)
+    out.flags.writeable = False
+    return out
+
+
+def grid_cells(pixels: NDArray[np.intp], shape: tuple[int, int], grid: tuple[int, int]) -> NDArray[np.intp]:
+    """Cell ``row * columns + column`` of a ``(columns, rows)`` grid for each flat pixel index."""
+    out: NDArray[np.intp] = np.take(_cell_map(shape, grid), pixels)
     return out

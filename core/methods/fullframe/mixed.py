@@ -23,6 +23,8 @@ _K3 = np.ones((3, 3), np.uint8)
 MIN_REFERENCE = 1000
 #: A band of rings matters when its residuals could move the fit by this many of its standard errors.
 RELEVANT_PULL = 0.1
+#: Points binned into rings per block.
+CHUNK = 1 << 16
 
 
 @dataclass
@@ -61,6 +63,23 @@ def _distance(patches: NDArray[np.uint8]) -> NDArray[np.uint8]:
         return np.full(patches.shape, 255, np.uint8)
     out = cv2.distanceTransform(np.uint8(1) - patches, cv2.DIST_C, 3, dstType=cv2.CV_8U)
     return np.asarray(out, dtype=np.uint8)
+
+
+def _ring_sums(ring: NDArray[np.uint8], inliers: BoolArray, z: F32, n_bins: int
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Sum of ``z`` and count of the inliers in each ring (bin 0: every other point).
+
+    In blocks of ``CHUNK`` points: the bin index array ``bincount`` wants (intp: other
+    index types are cast on every call, 3x slower with weights) and its float64 copy of
+    the weights then stay block-sized (16 B per point less at the peak of the fit) and in cache.
+    """
+    sums = np.zeros(n_bins)
+    counts = np.zeros(n_bins)
+    for s in range(0, ring.size, CHUNK):
+        bins = np.multiply(ring[s:s + CHUNK], inliers[s:s + CHUNK], dtype=np.uint8).astype(np.intp)
+        sums += np.bincount(bins, weights=z[s:s + CHUNK], minlength=n_bins)
+        counts += np.bincount(bins, minlength=n_bins)
+    return sums, counts
 
 
 class EdgeClean:
@@ -108,17 +127,16 @@ class EdgeClean:
         for m, invalid in zip(self.masks, self.invalid, strict=True):   # per frame, in image space
             k = int(np.count_nonzero(m))
             flat = np.zeros(h * w, dtype=np.uint8)
-            flat[m] = ~inliers[start:start + k]
+            flat[m] = ~inliers[start:start + k]    # boolean scatter: 4x faster than by index at 98 % valid
             outlier = flat.reshape(h, w)
             # ring = distance to the outlier patches (capped), 0 within the floor of any patch:
             # outliers and invalid pixels together there (a wall seen at grazing incidence is both)
             code = np.minimum(_distance(_open(outlier)), np.uint8(cap))
-            code[_near(_open(outlier | invalid.reshape(h, w)), self.floor_px).view(np.bool_)] = 0
+            far = np.subtract(np.uint8(1), _near(_open(outlier | invalid.reshape(h, w)), self.floor_px))
+            code *= far                             # 0 within the floor (multiply: no boolean-mask pass)
             ring[start:start + k] = code.reshape(-1)[m]
             start += k
-        bins = np.where(inliers, ring, 0).astype(np.intp)   # inliers beyond the floor; bin 0: the rest
-        sums = np.bincount(bins, weights=z, minlength=cap + 1).astype(np.float64)
-        counts = np.bincount(bins, minlength=cap + 1).astype(np.float64)
+        sums, counts = _ring_sums(ring, inliers, z, cap + 1)
         sums[0] = counts[0] = 0.0
         margin = self._margin(sums, counts, float(np.count_nonzero(inliers)))
         keep: BoolArray = ring > margin

@@ -105,21 +105,38 @@ class FinalPass(Pass):
     radial: tuple[FloatArray, FloatArray]   # (4x4 J^T W J, J^T W rho) with the radial column
 
 
-def residuals(b0: F32, dm: F32, offset: float, thr: float, model: Model
+class Scratch:
+    """Point-sized float32 rows reused by the passes over every point of one fit.
+
+    Fresh point-sized temporaries cost page faults (the allocator returns large blocks to
+    the system when they are freed and the next pass touches new pages): with these rows
+    allocated once per fit, the passes compute the same values in place.
+    """
+
+    ROWS = 8
+
+    def __init__(self, n: int) -> None:
+        self.f = np.empty((self.ROWS, n), dtype=np.float32)
+        self.mask = np.empty(n, dtype=np.bool_)
+
+
+def residuals(b0: F32, dm: F32, offset: float, thr: float, model: Model, scratch: Scratch | None = None
               ) -> tuple[F32, F32, F32, F32 | None, BoolArray]:
     """Whitened range residuals of points with ``b0 = p·n`` (N,) and ranges ``dm``.
 
     Returns ``1/cos``, the predicted range ``t``, the whitened residual ``z``, the
     inverse sigma (None when unweighted) and the inlier mask ``|z| < thr`` (in front).
+    With ``scratch`` the first four live in its rows 0-3 (row 4 is used and left free).
     """
     f32 = np.float32
-    inv_c = np.divide(dm, b0)                  # 1 / cos(ray, normal), negative in front
-    t = inv_c * f32(-offset)                   # predicted range along the ray
-    z = np.subtract(dm, t)                     # range residual rho ...
+    buf = scratch or Scratch(dm.size)
+    inv_c = np.divide(dm, b0, out=buf.f[0])    # 1 / cos(ray, normal), negative in front
+    t = np.multiply(inv_c, f32(-offset), out=buf.f[1])   # predicted range along the ray
+    z = np.subtract(dm, t, out=buf.f[2])       # range residual rho ...
     if model.sigma is not None:
-        isig: F32 | None = np.divide(f32(1.0), model.sigma)
+        isig: F32 | None = np.divide(f32(1.0), model.sigma, out=buf.f[3])
     elif model.weighted:                       # 1 / (t^e / sqrt|cos|)
-        isig = np.multiply(t, inv_c)
+        isig = np.multiply(t, inv_c, out=buf.f[3])
         np.abs(isig, out=isig)
         if model.exponent == 1.5:
             np.sqrt(isig, out=isig)
@@ -132,8 +149,8 @@ def residuals(b0: F32, dm: F32, offset: float, thr: float, model: Model
         isig = None
     if isig is not None:
         z *= isig                              # ... whitened
-    inl = np.abs(z) < f32(thr)                 # inliers: within the cut-off ...
-    inl &= t > 0                               # ... and the plane in front along the ray
+    inl = np.less(np.abs(z, out=buf.f[4]), f32(thr))   # inliers: within the cut-off ...
+    inl &= np.greater(t, 0, out=buf.mask)      # ... and the plane in front along the ray
     return inv_c, t, z, isig, inl
 
 
@@ -154,43 +171,60 @@ def _solve(h: FloatArray, g: FloatArray) -> FloatArray:
         raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
 
 
-def _columns(b: F32, dm: F32, inv_c: F32, t: F32, isig: F32) -> tuple[F32, F32, F32]:
-    """Whitened, masked Jacobian columns (t reused in place); ``isig`` already masked."""
+def _columns(b: F32, dm: F32, inv_c: F32, t: F32, isig: F32, out: F32 | None = None) -> tuple[F32, F32, F32]:
+    """Whitened, masked Jacobian columns (t and inv_c reused in place, the first in ``out``); ``isig`` masked."""
     t *= inv_c
     t /= dm
     t *= isig                                  # q = t / (|p| cos) / sigma
-    a1 = np.multiply(t, b[1])
+    a1 = np.multiply(t, b[1], out=out)
     a2 = np.multiply(t, b[2], out=t)
     a3 = np.multiply(inv_c, isig, out=inv_c)
     return a1, a2, a3
 
 
+def _projections(p: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, out: F32 | None = None) -> F32:
+    """(3, N) float32: p·n, p·e1, p·e2 (into ``out`` when given)."""
+    return np.matmul(np.stack([n, e1, e2]).astype(np.float32), p, out=out)
+
+
+def _mask_weights(z: F32, isig: F32 | None, inl: BoolArray, scratch: Scratch) -> F32:
+    """Residuals and inverse sigmas of the outliers set to 0 (in place); the masked inverse sigmas."""
+    z *= inl
+    if isig is not None:
+        return np.multiply(isig, inl, out=isig)
+    ones: F32 = scratch.f[3]                   # unweighted: the mask as float32 weights
+    ones[...] = inl
+    return ones
+
+
 def gn_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
-            thr: float, model: Model) -> Pass:
+            thr: float, model: Model, scratch: Scratch | None = None) -> Pass:
     """One reweighted Gauss-Newton pass of the range model over points ``p`` (3, N).
 
     The range along the ray ``r = p / |p|`` predicted by the plane is
     ``t = -offset / (r·n)``; the residual ``rho = |p| - t`` has the Jacobian
     ``(t (r·e1) / (r·n), t (r·e2) / (r·n), 1 / (r·n))`` with respect to the normal's
     tangent steps along ``e1``, ``e2`` and the offset. Everything is whitened by the
-    point's noise sigma and masked to the inliers, in place on a few float32 buffers.
+    point's noise sigma and masked to the inliers, in place on a few float32 buffers
+    (``scratch``'s rows, reused by the passes of one fit, when given).
     """
-    b = np.stack([n, e1, e2]).astype(np.float32) @ p     # (3, N): p·n, p·e1, p·e2
-    inv_c, t, z, isig, inl = residuals(b[0], dm, offset, thr, model)
+    buf = scratch or Scratch(dm.size)
+    b = _projections(p, n, e1, e2, out=buf.f[5:8])
+    inv_c, t, z, isig, inl = residuals(b[0], dm, offset, thr, model, buf)
     n_in = int(np.count_nonzero(inl))
     if n_in < MIN_POINTS:
         raise CalibrationError(f"full-frame fit: only {n_in} of {dm.size} points lie near the start plane; "
                                "no plane is defined")
-    z *= inl
-    isig = inl.astype(np.float32) if isig is None else np.multiply(isig, inl, out=isig)
-    cols = _columns(b, dm, inv_c, t, isig)
+    isig = _mask_weights(z, isig, inl, buf)
+    cols = _columns(b, dm, inv_c, t, isig, out=buf.f[4])
     h = gram(cols)
     g = np.array([float(np.dot(c, z)) for c in cols])   # J^T W rho
     return Pass(_solve(h, g), h, n_in, float(np.dot(z, z)))
 
 
 def final_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float,
-               thr: float, model: Model, keep: KeepMask | None, *, answer: bool = True) -> FinalPass:
+               thr: float, model: Model, keep: KeepMask | None, *, answer: bool = True,
+               scratch: Scratch | None = None) -> FinalPass:
     """The pass over every point: step, sandwich meat, inliers, residual sums and the radial column.
 
     ``keep`` (if given) sees the inlier mask and the whitened residuals (units of the noise
@@ -198,11 +232,12 @@ def final_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, o
     The radial column is the squared image radius ``(x² + y²) / z²`` of each point over its
     largest value: a range bias growing toward the border (ADR 0007, "Multipath").
     Without ``answer`` (a pass whose plane only starts the next one) only the step, the
-    Hessian, the inliers and the scale's sum are formed; the rest is zero.
+    Hessian, the inliers and the scale's sum are formed; the rest is zero. ``scratch``
+    (rows for ``p.shape[1]`` points) is reused by the passes of one fit.
     """
-    f32 = np.float32
-    b = np.stack([n, e1, e2]).astype(f32) @ p
-    inv_c, t, z, isig, inl = residuals(b[0], dm, offset, thr, model)
+    buf = scratch or Scratch(dm.size)
+    b = _projections(p, n, e1, e2, out=buf.f[5:8])
+    inv_c, t, z, isig, inl = residuals(b[0], dm, offset, thr, model, buf)
     n_near = int(np.count_nonzero(inl))
     if keep is not None:
         inl &= keep(inl, z)                    # image-space clean-up of the inliers
@@ -210,24 +245,32 @@ def final_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, o
     if n_in < MIN_POINTS:
         raise CalibrationError(_few_inliers(dm.size, n_near, n_in, keep is not None))
     unweighted_shape = _model_shape(t, inv_c, model, inl) if isig is None and answer else None
-    z *= inl
-    isig = inl.astype(f32) if isig is None else np.multiply(isig, inl, out=isig)
+    isig = _mask_weights(z, isig, inl, buf)
     if not answer:                             # a start for the next pass: step, Hessian, scale only
-        cols = _columns(b, dm, inv_c, t, isig)
+        cols = _columns(b, dm, inv_c, t, isig, out=buf.f[4])
         h = gram(cols)
         g = np.array([float(np.dot(c, z)) for c in cols])
         return FinalPass(_solve(h, g), h, n_in, float(np.dot(z, z)), np.zeros((3, 3)), 0.0, 0.0, inl,
                          (np.zeros((4, 4)), np.zeros(4)))
-    rad = np.divide(dm, p[2])
+    return _answer_sums(p, dm, b, (inv_c, t, z, isig), inl, offset, n_in, unweighted_shape, buf)
+
+
+def _answer_sums(p: F32, dm: F32, b: F32, rows: tuple[F32, F32, F32, F32], inl: BoolArray, offset: float,
+                 n_in: int, unweighted_shape: float | None, buf: Scratch) -> FinalPass:
+    """The answer pass's sums from the masked residuals: step, Hessian, meat, radial column, residual sums."""
+    f32 = np.float32
+    inv_c, t, z, isig = rows
+    cols = _columns(b, dm, inv_c, t, isig, out=buf.f[4])   # rows 4, 1, 0; rows 6 (p·e1) and 7 (p·e2) free
+    rad = np.divide(dm, p[2], out=buf.f[7])
     np.square(rad, out=rad)
     rad -= f32(1.0)                            # squared image radius (x² + y²) / z² = |p|² / z² - 1
-    rad *= isig / f32(max(float(rad.max()), 1e-12))
-    cols = _columns(b, dm, inv_c, t, isig)
+    rad *= np.divide(isig, f32(max(float(rad.max()), 1e-12)), out=isig)   # isig is in a3 already
     h4 = gram((*cols, rad))
     g4 = np.array([float(np.dot(c, z)) for c in (*cols, rad)])
-    meat = gram([np.multiply(c, z) for c in cols])        # sum (w rho)^2 J J^T
-    if unweighted_shape is None:                          # orthogonal noise shape sigma |cos| = 1 / a3
-        inv_a3 = np.zeros_like(z)
+    meat = gram([np.multiply(c, z, out=buf.f[k]) for k, c in zip((3, 6, 7), cols, strict=True)])
+    if unweighted_shape is None:               # sum (w rho)^2 J J^T above; orthogonal noise shape sigma |cos| = 1 / a3
+        inv_a3 = buf.f[3]
+        inv_a3.fill(0.0)
         np.divide(f32(1.0), cols[2], out=inv_a3, where=inl)
         model_ortho2 = float(np.dot(inv_a3, inv_a3))
     else:

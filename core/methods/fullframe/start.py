@@ -8,13 +8,14 @@ wider fixed points of hard rejection lie above it).
 
 from __future__ import annotations
 
+import functools
 import math
 from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.methods.fullframe.passes import Cutoff, Model, Pass, basis, gn_pass, step_plane, truncation
+from cellcal.core.methods.fullframe.passes import Cutoff, Model, Pass, Scratch, basis, gn_pass, step_plane, truncation
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.devices.errors import CalibrationError
 
@@ -27,14 +28,21 @@ FIXED_SEED = 0x5EED
 LINE_RATIO = 1e-4
 
 
+@functools.lru_cache(maxsize=16)
 def fixed_subsample(n_points: int, limit: int) -> NDArray[np.intp]:
-    """Indices of at most ``limit`` points, one at a fixed random place in each of ``limit`` equal strata."""
+    """Indices of at most ``limit`` points, one at a fixed random place in each of ``limit`` equal strata.
+
+    Cached per size (read-only: callers must not modify the result).
+    """
     if n_points <= limit:
-        return np.arange(n_points)
-    start = (np.arange(limit) * n_points) // limit
-    width = np.diff(np.append(start, n_points))
-    jitter = np.random.default_rng(FIXED_SEED).random(limit)
-    return start + (jitter * width).astype(np.intp)
+        out = np.arange(n_points)
+    else:
+        start = (np.arange(limit) * n_points) // limit
+        width = np.diff(np.append(start, n_points))
+        jitter = np.random.default_rng(FIXED_SEED).random(limit)
+        out = start + (jitter * width).astype(np.intp)
+    out.flags.writeable = False
+    return out
 
 
 def _triplet_planes(sub: FloatArray, count: int, seed: int | None) -> tuple[FloatArray, FloatArray]:
@@ -76,13 +84,31 @@ def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings) -> 
     h = min(max(int(settings.hypothesis_quantile * m), 3), m)
     res = np.abs(nrm.astype(np.float32) @ sub.T.astype(np.float32) + off.astype(np.float32)[:, None])
     res *= inv_norm.astype(np.float32)[None, :]           # (hypotheses, points), rows contiguous
-    res.partition(h - 1, axis=1)                          # in place: no second (hypotheses, points) array
-    score = res[:, h - 1]                                 # the quantile of each hypothesis
-    k = int(np.argmin(score))
+    k = _best_quantile(res, h)
     n, d = nrm[k], float(off[k])
     if d < 0 or (d == 0 and n[2] > 0):                   # normal toward the camera
         n, d = -n, -d
     return np.asarray(n, dtype=np.float64), d
+
+
+def _best_quantile(res: F32, h: int) -> int:
+    """Index of the row of ``res`` with the smallest ``h``-th smallest value (first on ties).
+
+    The same answer as partitioning every row, with far fewer rows ordered: a row whose
+    ``h``-th value could be at most that of a good row has at least ``h`` values ``<=`` it;
+    only those rows are ordered (exactly). The good row is the best by the same quantile
+    on every 8th column (a cheap guess; any row keeps the answer exact). Rows are sorted,
+    not partitioned: a noise-free plane gives rows of many equal residuals (zeros), where
+    numpy's introselect degrades (2.9 ms instead of 0.5 ms for 96 x 1024).
+    """
+    guess_cols = res[:, ::8]
+    g = min(max(h // 8, 1), guess_cols.shape[1]) - 1
+    guess = int(np.argmin(np.sort(guess_cols, axis=1)[:, g]))
+    q0 = np.sort(res[guess])[h - 1]                       # the guess's exact quantile
+    cand = np.flatnonzero(np.count_nonzero(res <= q0, axis=1) >= h)   # rows whose quantile is <= q0
+    score = np.full(res.shape[0], np.inf, dtype=np.float32)
+    score[cand] = np.sort(res[cand], axis=1)[:, h - 1]
+    return int(np.argmin(score))                          # rows left out have a larger quantile
 
 
 def initial_scale(p: F32, dm: F32, model: Model, n: FloatArray, offset: float,
@@ -137,8 +163,9 @@ def refine(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float
            settings: FullFrameSettings) -> tuple[FloatArray, float, float]:
     """Reweighted Gauss-Newton passes (on the subsample) until converged: normal, offset, scale."""
     e1, e2 = basis(n)
+    scratch = Scratch(dm.size)                                  # rows reused by every pass
     for _ in range(settings.max_iterations):
-        it = gn_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model)
+        it = gn_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, scratch)
         n, offset = step_plane(n, e1, e2, offset, it.step)
         e1, e2 = basis(n)
         s_new = math.sqrt(it.z2_sum / it.n_inliers / cutoff.kept_var)   # inlier RMS, truncation-corrected
