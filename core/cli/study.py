@@ -224,7 +224,7 @@ def _run(args: argparse.Namespace, settings: StudySettings, out: Path) -> int:
     if not args.no_plots:
         from cellcal.core.study.plots import write_plots
 
-        paths = write_plots(result, out)
+        paths = write_plots(result, out, jobs)
     if not args.quiet:
         print(format_summary(result.rows))
         print()

@@ -343,25 +343,35 @@ def _trial_errors(trial: TrialData) -> str:
             f"95 % interval {lo:.4f}..{hi:.4f} deg; {res.inlier_fraction * 100:.1f} % of the valid pixels are inliers")
 
 
-def write_plots(result: StudyResult, out_dir: str | Path) -> dict[str, Path]:
+def write_plots(result: StudyResult, out_dir: str | Path, jobs: int = 1) -> dict[str, Path]:
     """Write every picture of a study run into ``out_dir``; returns name -> path.
+
+    Args:
+        result: The study's rows and example trial.
+        out_dir: Folder for the PNG files.
+        jobs: Worker processes drawing the pictures side by side (1: in this process).
 
     Raises:
         MissingDependencyError: If matplotlib is not installed (extra ``plots``).
     """
+    from cellcal.core.study.pool import run_calls
+
+    _pyplot()  # imported once here: forked workers inherit it (and a missing matplotlib is said here)
     out = Path(out_dir)
     all_rows = result.rows
     rows = select(all_rows, artefacts=headline_level(all_rows))  # one artefact level in the other plots
-    paths = {"perimeter": plot_error_vs_perimeter(rows, out / PLOT_FILES["perimeter"])}
+    calls: dict[str, tuple[Any, tuple[Any, ...]]] = {
+        "perimeter": (plot_error_vs_perimeter, (rows, out / PLOT_FILES["perimeter"]))}
     if len({r["clutter_target"] for r in rows}) > 1:
-        paths["clutter"] = plot_error_vs_clutter(rows, out / PLOT_FILES["clutter"])
+        calls["clutter"] = (plot_error_vs_clutter, (rows, out / PLOT_FILES["clutter"]))
     if len({r["noise_scale"] for r in rows}) > 1 or len({r["inclination_deg"] for r in rows}) > 1:
-        paths["conditions"] = plot_error_vs_conditions(rows, out / PLOT_FILES["conditions"])
+        calls["conditions"] = (plot_error_vs_conditions, (rows, out / PLOT_FILES["conditions"]))
     if len({r.get("artefacts") for r in all_rows}) > 1:
-        paths["artefacts"] = plot_artefacts(all_rows, out / PLOT_FILES["artefacts"])
+        calls["artefacts"] = (plot_artefacts, (all_rows, out / PLOT_FILES["artefacts"]))
     if result.example is not None:
-        paths["plane"] = plot_plane_fit(result.example, out / PLOT_FILES["plane"])
-    return paths
+        calls["plane"] = (plot_plane_fit, (result.example, out / PLOT_FILES["plane"]))
+    # the perimeter picture, the slowest, is first: it starts at once
+    return dict(zip(calls, run_calls(list(calls.values()), jobs), strict=True))
 
 
 __all__ = ["PLOT_FILES", "inlier_image", "plot_artefacts", "plot_error_vs_clutter", "plot_error_vs_conditions",

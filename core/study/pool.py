@@ -20,8 +20,9 @@ if TYPE_CHECKING:
 
     from cellcal.core.study.design import Condition, StudySettings
     from cellcal.devices.registry import Registry
+    from cellcal.devices.types import Intrinsics
 
-__all__ = ["default_jobs", "run_tasks"]
+__all__ = ["default_jobs", "run_calls", "run_tasks"]
 
 #: One task: a condition and the trial's index within it.
 Task = tuple["Condition", int]
@@ -38,12 +39,16 @@ def default_jobs() -> int:
     return max(1, os.cpu_count() or 1)
 
 
-def _init_worker(settings: StudySettings, registry: Registry | None) -> None:
-    """Worker start: ignore Ctrl-C (the parent handles it) and build what every trial needs."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from cellcal.core.study.trials import full_frame_fitter, study_intrinsics
+def _init_worker(settings: StudySettings, registry: Registry | None, intrinsics: Intrinsics) -> None:
+    """Worker start: ignore Ctrl-C (the parent handles it) and build what every trial needs.
 
-    _STATE.update(settings=settings, registry=registry, intrinsics=study_intrinsics(settings, registry),
+    ``intrinsics`` come from the parent (building the study's camera for them costs a
+    second or so, once per process otherwise).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from cellcal.core.study.trials import full_frame_fitter
+
+    _STATE.update(settings=settings, registry=registry, intrinsics=intrinsics,
                   fit=full_frame_fitter(settings.full_frame))
 
 
@@ -73,14 +78,43 @@ def _sigint_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _start_pool(jobs: int, settings: StudySettings, registry: Registry | None) -> Pool:
+def _start_pool(jobs: int, initializer: Callable[..., None], initargs: tuple[Any, ...]) -> Pool:
     with _sigint_blocked():
-        return multiprocessing.get_context().Pool(jobs, _init_worker, (settings, registry))
+        return multiprocessing.get_context().Pool(jobs, initializer, initargs)
+
+
+def _ignore_sigint() -> None:
+    """Worker start for :func:`run_calls`: Ctrl-C is the parent's."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _call(function: Callable[..., Any], args: tuple[Any, ...]) -> Any:
+    return function(*args)
+
+
+def run_calls(calls: Sequence[tuple[Callable[..., Any], tuple[Any, ...]]], jobs: int) -> list[Any]:
+    """Independent calls on up to ``jobs`` worker processes; their results in call order.
+
+    Each call is a module-level function and its (picklable) arguments. With ``jobs`` 1 or
+    a single call they run in this process. Ctrl-C as in :func:`run_tasks`.
+    """
+    if jobs <= 1 or len(calls) <= 1:
+        return [function(*args) for function, args in calls]
+    pool = _start_pool(min(jobs, len(calls)), _ignore_sigint, ())
+    try:
+        results = pool.starmap(_call, calls)
+    except BaseException:
+        pool.terminate()  # Ctrl-C or an error: stop the workers now
+        pool.join()
+        raise
+    pool.close()
+    pool.join()
+    return results
 
 
 def run_tasks(tasks: Sequence[Task], jobs: int, settings: StudySettings, registry: Registry | None,
-              on_done: Callable[[int, Rows], None], local: tuple[int, Callable[[Task], Rows]] | None = None
-              ) -> list[Rows]:
+              on_done: Callable[[int, Rows], None], local: tuple[int, Callable[[Task], Rows]] | None = None,
+              *, intrinsics: Intrinsics) -> list[Rows]:
     """Run ``tasks`` on ``jobs`` worker processes; the rows of each task, in task order.
 
     Args:
@@ -92,13 +126,14 @@ def run_tasks(tasks: Sequence[Task], jobs: int, settings: StudySettings, registr
         local: (index, run) of one task the parent runs itself with ``run`` while the
             workers run the others (the study's example trial, whose frame the parent
             keeps); None: the workers run every task.
+        intrinsics: The study camera's intrinsics (:func:`~cellcal.core.study.trials.study_intrinsics`).
 
     Raises:
         KeyboardInterrupt: After the workers are terminated and joined.
     """
     out: list[Rows | None] = [None] * len(tasks)
     remote = [task for i, task in enumerate(tasks) if local is None or i != local[0]]
-    pool = _start_pool(max(1, min(jobs, len(remote))), settings, registry)
+    pool = _start_pool(max(1, min(jobs, len(remote))), _init_worker, (settings, registry, intrinsics))
     try:
         results = pool.imap(_run_one, remote)
         if local is not None:

@@ -303,7 +303,7 @@ def run_study(settings: StudySettings, *, registry: Registry | None = None,
             from cellcal.core.study.pool import run_tasks
 
             first = (candidates[0], lambda _task: run_here(candidates[0])) if candidates else None
-            per_task = run_tasks(tasks, jobs, settings, registry, done, local=first)
+            per_task = run_tasks(tasks, jobs, settings, registry, done, local=first, intrinsics=intr)
     finally:
         if bar is not None:
             bar.close()

@@ -35,6 +35,19 @@ def test_two_processes_give_the_table_of_one() -> None:
     assert two.full_frame_available == one.full_frame_available
 
 
+def test_pictures_drawn_side_by_side_are_the_pictures_of_one_process(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from cellcal.core.study.plots import write_plots
+
+    result = run_study(SMALL, jobs=1)
+    one = write_plots(result, tmp_path / "one", jobs=1)
+    two = write_plots(result, tmp_path / "two", jobs=2)
+    assert list(one) == list(two) and {"perimeter", "clutter", "plane"} <= set(one)
+    for name in one:
+        assert two[name].parent == tmp_path / "two"
+        assert two[name].read_bytes() == one[name].read_bytes(), name
+
+
 def test_more_workers_than_trials_and_a_bad_job_count() -> None:
     tiny = StudySettings(trials=1, seed=2, heights_m=(0.59,), inclinations_deg=(80.0,), noise_scales=(1.0,),
                          clutter_fractions=(0.0,), artefact_levels=(BASE_ARTEFACTS,), headline_factor=1)
