@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib.metadata as md
 import threading
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from .arm import RobotArm
@@ -33,13 +33,25 @@ class BackendEntry:
         kind: ``"camera"`` or ``"arm"``.
         name: Name used in configs (``backend = "..."``).
         target: ``"module:Class"`` it loads from.
-        origin: Where it comes from: the distribution name and version, or ``"runtime"``.
+        source: Where it comes from: ``"runtime"`` (or another label), or the
+            ``importlib.metadata`` distribution that declares it — read only when
+            :attr:`origin` is asked for (parsing every distribution's metadata at start-up
+            would cost every command tens of milliseconds).
     """
 
     kind: Kind
     name: str
     target: str
-    origin: str
+    source: Any = field(default="runtime", compare=False)
+
+    @property
+    def origin(self) -> str:
+        """The distribution name and version, ``"unknown distribution"``, or the given label."""
+        if isinstance(self.source, str):
+            return self.source
+        if self.source is None:
+            return "unknown distribution"
+        return f"{self.source.name} {self.source.version}"
 
 
 class Registry:
@@ -91,15 +103,14 @@ class Registry:
             found: dict[tuple[Kind, str], BackendEntry] = {}
             for kind, group in GROUPS.items():
                 for ep in md.entry_points(group=group):
-                    dist = getattr(ep, "dist", None)
-                    origin = f"{dist.name} {dist.version}" if dist is not None else "unknown distribution"
                     key = (kind, ep.name)
+                    entry = BackendEntry(kind, ep.name, ep.value, getattr(ep, "dist", None))
                     if key in found and found[key].target != ep.value:
                         raise RegistryError(
                             f"duplicate {kind} backend '{ep.name}': provided by {found[key].origin} "
-                            f"({found[key].target}) and by {origin} ({ep.value})"
+                            f"({found[key].target}) and by {entry.origin} ({ep.value})"
                         )
-                    found[key] = BackendEntry(kind, ep.name, ep.value, origin)
+                    found[key] = entry
             self._entries.update(found)
             self._discovered = True
 
