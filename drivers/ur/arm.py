@@ -272,12 +272,16 @@ class URArm(RobotArm):
         the receive timestamp has advanced :data:`SETTLE_PACKAGES` times.
         """
         cfg = self.config
+        # wait for the read-back to settle within the contract's tolerance (checked next by
+        # RobotArm) as well as this driver's own, so that check does not read a lagging package
+        contract = self.arrival_tolerance
+        tight_m, tight_rad = min(cfg.arrival_tolerance_m, contract.position_m), \
+            min(cfg.arrival_tolerance_rad, contract.angle_rad)
         last, fresh = float(receive.getTimestamp()), 0
         until = self._clock() + SETTLE_S
         while True:
             actual = pose_from_ur(self._vector(receive.getActualTCPPose(), 6, "getActualTCPPose"))
-            if actual.distance_to(pose) <= cfg.arrival_tolerance_m \
-                    and actual.angle_to(pose) <= cfg.arrival_tolerance_rad:
+            if actual.distance_to(pose) <= tight_m and actual.angle_to(pose) <= tight_rad:
                 return
             if fresh >= SETTLE_PACKAGES or self._clock() >= until:
                 break
@@ -285,6 +289,8 @@ class URArm(RobotArm):
             receive = self._fresh_receive(until + cfg.timeout_s)
             ts = float(receive.getTimestamp())
             fresh, last = (fresh + 1, ts) if ts != last else (fresh, last)
+        if actual.distance_to(pose) <= cfg.arrival_tolerance_m and actual.angle_to(pose) <= cfg.arrival_tolerance_rad:
+            return  # within this driver's tolerance: RobotArm's arrival check judges the rest
         # The motion ended short: a safety stop that landed after the status read above is the
         # usual cause, so read the status again before concluding.
         if self._not_ready_reason(receive):
