@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import random
-import selectors
 import signal
 import socket
 import subprocess
@@ -11,6 +10,7 @@ import sys
 import time
 
 import pytest
+from emulator_cli import first_line, stop
 
 pytest.importorskip("rtde_control")  # the ur extra
 import rtde_receive
@@ -37,15 +37,6 @@ def free_loopback_host() -> str:
     pytest.skip("no free loopback address for the UR ports")
 
 
-def first_line(proc: subprocess.Popen[str], timeout: float) -> str:
-    assert proc.stdout is not None
-    with selectors.DefaultSelector() as sel:
-        sel.register(proc.stdout, selectors.EVENT_READ)
-        if sel.select(timeout):
-            return proc.stdout.readline().strip()
-    pytest.fail(f"no ready line within {timeout} s")
-
-
 def test_module_prints_ready_serves_ur_rtde_and_exits_130_on_ctrl_c() -> None:
     host = free_loopback_host()
     proc = subprocess.Popen([sys.executable, "-m", "cellcal.sims.ur", "--host", host, "--time-scale", "0"],
@@ -57,13 +48,7 @@ def test_module_prints_ready_serves_ur_rtde_and_exits_130_on_ctrl_c() -> None:
         assert receive.getRobotMode() == 7 and abs(pose[0] - 0.3) < 1e-3 and abs(pose[2] - 0.5) < 1e-3
         del receive
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            out, err = proc.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
-            raise
+        out, err = stop(proc, signal.SIGINT)
     assert proc.returncode == 130, err
     assert out.strip() == ""                     # nothing after the ready line on stdout
 

@@ -2,30 +2,16 @@
 
 from __future__ import annotations
 
-import selectors
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
+from emulator_cli import first_line, stop
 
 from cellcal.devices.pose import Pose
 from cellcal.drivers.xarm.arm import XArmArm
-
-
-def _first_line(proc: subprocess.Popen[str], timeout: float) -> str:
-    assert proc.stdout is not None
-    with selectors.DefaultSelector() as sel:  # closed here, not whenever the garbage collector runs
-        sel.register(proc.stdout, selectors.EVENT_READ)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if sel.select(timeout=0.1):
-                return proc.stdout.readline().strip()
-            if proc.poll() is not None:
-                break
-    pytest.fail("emulator printed nothing in time")
 
 
 def _moves_where_told(cfg: XArmArm.Config, axes: int) -> None:
@@ -43,7 +29,7 @@ def test_module_prints_where_it_serves_and_serves(axes: int, tcp: bool) -> None:
     proc = subprocess.Popen([sys.executable, "-m", "cellcal.sims.xarm", "--axes", str(axes), "--time-scale", "0",
                              *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        line = _first_line(proc, 30.0)
+        line = first_line(proc, 30.0)
         if tcp:  # "ready 127.0.0.1 tcp=P report=Q" once both ports listen
             assert line.startswith("ready 127.0.0.1 ")
             ports = dict(w.split("=") for w in line.split()[2:])
@@ -54,12 +40,6 @@ def test_module_prints_where_it_serves_and_serves(axes: int, tcp: bool) -> None:
             cfg = XArmArm.Config(port=line, axes=axes)  # type: ignore[arg-type]
         _moves_where_told(cfg, axes)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            out, err = proc.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
-            raise
+        out, err = stop(proc, signal.SIGTERM)
     assert proc.returncode == 0, err
     assert out.strip() == ""  # nothing after the first line on stdout
