@@ -201,6 +201,7 @@ class SerialTransport:
         overall = started + total
         last_error: ProtocolError | None = None
         made = 0
+        timed_out = False  # an attempt of this request got no reply in time
         with self._lock:
             if self._serial is None:
                 raise DeviceConnectionError(f"xarm: serial port {self.port!r} is not open")
@@ -222,8 +223,13 @@ class SerialTransport:
                     self._resync(overall)
                     continue
                 if reply is not None:
+                    if timed_out:
+                        # an earlier attempt timed out: its reply may still come after this one, so the
+                        # next request first waits for a quiet line instead of meeting it as its own reply
+                        self._out_of_step = True
                     return reply
                 self.stats["timeouts"] += 1
+                timed_out = True
                 self._out_of_step = True  # a late reply may still be on its way
         sent = f"{made} attempts" if attempts > 1 else "sent once, not retried"
         if last_error is not None:
