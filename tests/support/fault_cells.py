@@ -133,9 +133,23 @@ def cellcal_argv() -> list[str]:
 
 #: What :class:`CellcalProcess` writes on stderr just before it calls ``main`` (``announce=True``).
 READY = "cellcal-test: calling main\n"
-#: The console script, with :data:`READY` written between importing ``main`` and calling it.
-_ANNOUNCING_SCRIPT = ("import sys\nfrom cellcal.core.cli import main\n"
-                      f"sys.stderr.write({READY!r}); sys.stderr.flush()\nsys.exit(main())\n")
+#: The console script, with :data:`READY` written between importing ``main`` and calling it. SIGINT is
+#: held back (blocked) from before the line until main has installed its handler, so a Ctrl-C sent as
+#: soon as the line appears lands in main, not in the interpreter's default handler a few bytecodes
+#: earlier (a traceback no test of cellcal's own code can prevent).
+_ANNOUNCING_SCRIPT = f"""\
+import signal, sys
+import cellcal.core.cli as cli
+install = cli._install
+def _install_then_unblock(handler):
+    previous = install(handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {{signal.SIGINT}})
+    return previous
+cli._install = _install_then_unblock
+signal.pthread_sigmask(signal.SIG_BLOCK, {{signal.SIGINT}})
+sys.stderr.write({READY!r}); sys.stderr.flush()
+sys.exit(cli.main())
+"""
 
 
 def slow_cell_document(settle_s: float = 0.4, **tables: dict[str, Any]) -> dict[str, Any]:
