@@ -210,14 +210,14 @@ def test_unconfirmed_move_is_never_resent(kind: str, leak_check: None) -> None:
         emu.inject(kind, register=Reg.MOVE_LINE, stall_s=0.3)  # the stalled reply comes 0.1 s after the timeout
         t0 = time.monotonic()
         with pytest.raises(MotionError, match=r"MOVE_LINE to .* was not confirmed") as err:
-            drv.move_linear(target, speed=0.1, acceleration=2.0, timeout=5.0)  # 1.45 s of motion
+            drv.move_linear(target, speed=0.05, acceleration=2.0, timeout=5.0)  # 2.8 s of motion
         elapsed = time.monotonic() - t0
         assert emu.requests[Reg.MOVE_LINE] == 1, "a motion command was sent twice"
         assert "the command was not sent again" in str(err.value)
         # the move took effect (real time: it is still under way), so the arm was stopped short of the target
         assert emu.stop_requests >= 1 and not sim.is_moving()
         assert sim.true_flange_pose().distance_to(start) > 1e-3 and sim.true_flange_pose().distance_to(target) > 1e-3
-        assert elapsed <= 0.2 + 1.0 + 0.5  # reply timeout + stop budget + slack
+        assert elapsed <= 0.2 + 1.0 + 1.0  # reply timeout + stop budget + slack for a busy machine
         drv.recover()
         drv.move_linear(target, speed=1.0, acceleration=20.0, timeout=5.0)  # in step again
         assert sim.true_flange_pose().distance_to(target) < 1e-6

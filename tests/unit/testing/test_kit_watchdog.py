@@ -126,7 +126,7 @@ def test_a_capture_that_never_returns_fails_one_rule_names_the_hook_and_the_kit_
     assert hung.rule == "camera.connect-idempotent" and verdicts[hung.rule] == "fail"
     assert f"hook {cls.__name__}._capture (called through capture())" in hung.detail
     elapsed = float(hung.detail.split("did not return after ")[1].split(" s")[0])
-    assert 0.9 <= elapsed < 2.0                               # 0.5 s timeout + 0.4 s watchdog, a poll or so late
+    assert 0.9 <= elapsed < 3.0                               # 0.5 s timeout + 0.4 s watchdog, late on a busy machine
     assert "allowed: its timeout 0.5 s + 0.4 s" in hung.detail
     assert [verdicts[r] for r in CAMERA_RULES[3:]] == ["skip"] * (len(CAMERA_RULES) - 3)
     assert "hung under camera.connect-idempotent" in report.results[-1].detail
@@ -146,7 +146,7 @@ def test_an_ignored_timeout_passes_against_a_fast_device_and_fails_against_a_sta
     assert not result.passed
     assert "against a stalled device (it sends nothing), capture() #1 with timeout 0.05 s took" in result.detail
     took = float(result.detail.split(" took ")[1].split(" s")[0])
-    assert took == pytest.approx(1.5, abs=0.2) and "the timeout is not honoured" in result.detail
+    assert 1.45 <= took < 3.0 and "the timeout is not honoured" in result.detail  # the 1.5 s stall, not 0.05 s
 
 
 def test_a_correct_camera_passes_every_rule_with_a_stalled_device() -> None:
@@ -275,4 +275,6 @@ def test_arm_reads_against_a_stalled_controller(careless: bool) -> None:
     assert result.passed is not careless
     if careless:
         assert result.detail.startswith("against a stalled device (it sends nothing), get_pose() with timeout 0.05 s "
-                                        "took 1.5")
+                                        "took ")
+        took = float(result.detail.split(" took ")[1].split(" s")[0])
+        assert 1.45 <= took < 3.0                             # its own 1.5 s wait, not the 0.05 s asked for

@@ -128,7 +128,7 @@ def test_move_answered_only_with_a_stale_id_times_out_and_is_sent_once() -> None
             t0 = time.monotonic()
             with pytest.raises(DeviceTimeoutError, match="not retried"):
                 link.transact(Reg.MOVE_LINE, bytes(43), expect_len=3)
-            assert time.monotonic() - t0 < 0.6
+            assert time.monotonic() - t0 < 0.2 + 1.0  # its one reply timeout (the count below: sent once)
             assert peer.registers() == [Reg.MOVE_LINE] and link.stats["stale_replies"] == 1
         finally:
             link.close()

@@ -171,7 +171,7 @@ def test_unconfirmed_move_is_assessed_stopped_and_never_resent(reply: bytes) -> 
                                           and peer.requests.index(r) > regs.index(Reg.MOVE_LINE))
     assert "state 1, 1 queued" in str(err) and "0.0 mm from where it started and 50.0 mm from the target" in str(err)
     assert str(err).endswith("the arm was stopped (clear_errors() before the next move)")
-    assert elapsed < 0.1 + 0.6 + 0.3  # reply timeout + stop budget + slack
+    assert elapsed < 0.1 + 0.6 + 1.0  # reply timeout + stop budget + slack for a busy machine
     assert set(threading.enumerate()) == threads
 
 
@@ -188,7 +188,7 @@ def test_unconfirmed_move_on_a_deaf_line_still_stops(deaf: str) -> None:
     else:
         assert "stopping the arm failed" in str(err)
     assert len(stops) >= 2  # the stop is repeated (a stop never moves the arm)
-    assert elapsed < 0.1 + 0.6 + 0.3
+    assert elapsed < 0.1 + 0.6 + 1.0
 
 
 def test_values_no_arm_can_report_are_protocol_errors() -> None:
