@@ -10,26 +10,17 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, Literal, get_type_hints
-
-import numpy as np
-from numpy.typing import NDArray
+from typing import Any, Literal
 
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.arrival import ArrivalTolerance
 from cellcal.devices.base import BackendContext
-from cellcal.devices.errors import ConfigError, NotConnectedError
-from cellcal.devices.pose import Pose
-from cellcal.devices.registry import default_registry
-from cellcal.devices.types import ArmStatus, DeviceInfo
+from cellcal.devices.errors import ConfigError
 from cellcal.sims.arm import SimArm, SimArmConfig
+from cellcal.sims.emulated import EmulatedArm, emulated_arm_config, sim_arm_settings
 
 from .emulator import XArmEmulator
 from .tcp_server import XArmTcpServer
-
-DRIVER_BACKEND = "xarm"
-"""Registry name of the driver the emulated arm connects (never imported by name: sims
-depend on devices only)."""
 
 _OWN_FIELDS: list[tuple[str, Any, Any]] = [
     ("axes", Literal[5, 6, 7], dataclasses.field(default=5, metadata={"doc": "axis count the emulator reports"})),
@@ -45,7 +36,6 @@ _OWN_FIELDS: list[tuple[str, Any, Any]] = [
     ("poll_interval_s", float, dataclasses.field(default=0.005, metadata={"ge": 0.001, "le": 1,
                                                                            "doc": "driver state polling period, s"})),
 ]
-_SIM_NAMES = tuple(f.name for f in dataclasses.fields(SimArmConfig))
 
 
 def _parse_firmware(text: str) -> tuple[int, int, int]:
@@ -55,40 +45,22 @@ def _parse_firmware(text: str) -> tuple[int, int, int]:
     return int(parts[0]), int(parts[1]), int(parts[2])
 
 
-def _post_init(self: Any) -> None:
-    SimArmConfig(**{name: getattr(self, name) for name in _SIM_NAMES})  # validates the sim part
-    _parse_firmware(self.firmware)
+def _check_firmware(text: str) -> None:
+    _parse_firmware(text)
 
 
-def _make_config() -> type[Any]:
-    hints = get_type_hints(SimArmConfig)
-    sim_fields = [(f.name, hints[f.name], dataclasses.field(default=f.default, metadata=f.metadata))
-                  for f in dataclasses.fields(SimArmConfig)]
-    own_names = {name for name, _, _ in _OWN_FIELDS}
-    clash = own_names.intersection(_SIM_NAMES)
-    if clash:  # pragma: no cover - guards a future change of the sim arm's config
-        raise RuntimeError(f"xarm-emulated config keys clash with the sim arm's: {sorted(clash)}")
-    cls = dataclasses.make_dataclass("Config", [*sim_fields, *_OWN_FIELDS], frozen=True,
-                                     namespace={"__post_init__": _post_init,
-                                                "__doc__": "The ``[arm]`` section for ``backend = \"xarm-emulated\"``: "
-                                                           "the sim arm's keys plus the emulator's."})
-    cls.__module__ = __name__
-    cls.__qualname__ = "EmulatedXArmArm.Config"
-    return cls
-
-
-class EmulatedXArmArm(RobotArm):
-    """The xArm driver over a pty to the xArm emulator of the shared simulated arm.
+class EmulatedXArmArm(EmulatedArm):
+    """The xArm driver over a pty (or TCP) to the xArm emulator of the shared simulated arm.
 
     Builds the simulated arm of the shared sim world (:class:`~cellcal.sims.arm.SimArm`),
     serves it with an :class:`~cellcal.sims.xarm.emulator.XArmEmulator` on a
-    pseudo-terminal, and delegates every call to the real xArm driver (the arm
-    registered as ``"xarm"``, built by the registry from a config section as a cell
-    config would build it) connected to that pty. ``close()`` shuts down the driver,
-    the emulator thread and the pty. Its config section accepts every key of the
-    ``sim`` arm (``time_scale``, ``reach_m``, ...) plus the emulator/driver keys of
-    ``_OWN_FIELDS``. A move's arrival is checked twice: by the driver (its read-back over
-    the wire) and by this backend, both with this backend's tolerance.
+    pseudo-terminal or on two TCP ports, and delegates every call to the real xArm driver
+    (the arm registered as ``"xarm"``, built by the registry from a config section as a
+    cell config would build it). ``close()`` shuts down the driver, the emulator thread
+    and the pty or sockets. Its config section accepts every key of the ``sim`` arm
+    (``time_scale``, ``reach_m``, ...) plus the emulator/driver keys of ``_OWN_FIELDS``.
+    A move's arrival is checked twice: by the driver (its read-back over the wire) and by
+    this backend, both with this backend's tolerance.
 
     Args:
         config: Validated :attr:`Config`; None uses the defaults.
@@ -97,21 +69,22 @@ class EmulatedXArmArm(RobotArm):
     Attributes:
         sim_arm: The simulated arm behind the emulator.
         emulator: The running emulator (None until connected).
+        server: The TCP server in front of it (None unless connected over TCP).
         driver: The connected ``xarm`` driver (None until connected).
     """
 
     backend_name = "xarm-emulated"
-    Config = _make_config()
+    driver_backend = "xarm"
+    Config = emulated_arm_config(
+        backend_name, __name__, "EmulatedXArmArm.Config", _OWN_FIELDS,
+        check=lambda cfg: _check_firmware(cfg.firmware),
+        doc="The ``[arm]`` section for ``backend = \"xarm-emulated\"``: the sim arm's keys plus the emulator's.")
 
     def __init__(self, config: Any = None, context: BackendContext | None = None):
-        super().__init__()
-        self.config = config if config is not None else EmulatedXArmArm.Config()
-        self.context = context
-        sim_cfg = SimArmConfig(**{name: getattr(self.config, name) for name in _SIM_NAMES})
-        self.sim_arm = SimArm(sim_cfg, context)
+        super().__init__(config if config is not None else EmulatedXArmArm.Config(), context)
+        self.sim_arm = SimArm(SimArmConfig(**sim_arm_settings(self.config)), context)
         self.emulator: XArmEmulator | None = None
         self.server: XArmTcpServer | None = None
-        self.driver: RobotArm | None = None
         #: Fault injection (tests): called with the started emulator before the driver connects.
         self.on_emulator_started: Callable[[XArmEmulator], None] | None = None
 
@@ -120,35 +93,27 @@ class EmulatedXArmArm(RobotArm):
         """The emulator's pty path ("" when not connected or over TCP)."""
         return self.emulator.path if self.emulator is not None else ""
 
-    def _wire_section(self) -> dict[str, Any]:
-        """Start the emulator on the configured transport; the driver's section keys that reach it."""
-        assert self.emulator is not None
-        if self.config.transport == "tcp":
-            self.server = XArmTcpServer(self.emulator, report_hz=self.config.report_hz)
-            tcp_port, report_port = self.server.start()
-            return {"host": self.server.host, "tcp_port": tcp_port, "report_port": report_port}
-        return {"port": self.emulator.start()}
-
-    def _connect(self, timeout: float) -> None:
+    def _start_emulator(self, timeout: float) -> dict[str, Any]:
         cfg = self.config
         self.sim_arm.connect(timeout)
         self.emulator = XArmEmulator(self.sim_arm, axes=cfg.axes, firmware=_parse_firmware(cfg.firmware))
-        wire = self._wire_section()
+        if cfg.transport == "tcp":
+            self.server = XArmTcpServer(self.emulator, report_hz=cfg.report_hz)
+            tcp_port, report_port = self.server.start()
+            wire: dict[str, Any] = {"host": self.server.host, "tcp_port": tcp_port, "report_port": report_port}
+        else:
+            wire = {"port": self.emulator.start()}
         if self.on_emulator_started is not None:
             self.on_emulator_started(self.emulator)
-        section = {"backend": DRIVER_BACKEND, **wire, "axes": cfg.axes, "reply_timeout_s": cfg.reply_timeout_s,
-                   "retries": cfg.retries, "poll_interval_s": cfg.poll_interval_s}
-        self.driver = default_registry().create_arm(section, self.context)
-        self.driver.default_motion_timeout_s = self.default_motion_timeout_s
-        self.driver.arrival_tolerance = self.arrival_tolerance
-        self.driver.connect(timeout)
+        return {**wire, "axes": cfg.axes, "reply_timeout_s": cfg.reply_timeout_s, "retries": cfg.retries,
+                "poll_interval_s": cfg.poll_interval_s}
 
-    def _close(self) -> None:
-        driver, self.driver = self.driver, None
+    def _configure_driver(self, driver: RobotArm) -> None:
+        driver.arrival_tolerance = self.arrival_tolerance
+
+    def _stop_emulator(self) -> None:
         emulator, self.emulator = self.emulator, None
         server, self.server = self.server, None
-        if driver is not None:
-            driver.close()
         if server is not None:
             server.close()
         if emulator is not None:
@@ -163,34 +128,6 @@ class EmulatedXArmArm(RobotArm):
         super()._set_arrival_tolerance(value)
         if self.driver is not None:
             self.driver.arrival_tolerance = value
-
-    def _drv(self) -> RobotArm:
-        if self.driver is None:
-            raise NotConnectedError("xarm-emulated: not connected")
-        return self.driver
-
-    def _info(self) -> DeviceInfo:
-        inner = self._drv().info()
-        return DeviceInfo(backend=self.backend_name, vendor=inner.vendor, model=f"{inner.model} (emulated)",
-                          serial=inner.serial, firmware=inner.firmware, extra={**inner.extra, "emulated": True})
-
-    def _get_pose(self, timeout: float) -> Pose:
-        return self._drv().get_pose(timeout)
-
-    def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
-        self._drv().move_linear(pose, speed=speed, acceleration=acceleration, timeout=timeout)
-
-    def _stop(self, timeout: float) -> None:
-        self._drv().stop(timeout)
-
-    def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
-        return self._drv().joint_positions(timeout)
-
-    def _status(self, timeout: float) -> ArmStatus:
-        return self._drv().status(timeout)
-
-    def _clear_errors(self, timeout: float) -> None:
-        self._drv().clear_errors(timeout)
 
     def recover(self, timeout: float | None = None) -> None:
         """The xArm recovery sequence (the driver's ``clear_errors``: clean warning, clean error,
