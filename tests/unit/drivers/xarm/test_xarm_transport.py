@@ -116,6 +116,43 @@ def test_stray_bytes_before_a_request_are_flushed_first(link: Callable[..., tupl
     assert transport.stats["stale_bytes"] == 6 and transport.stats["resyncs"] == 1 and transport.stats["retries"] == 0
 
 
+def test_a_read_answered_only_on_its_retry_leaves_the_next_request_clear_of_the_late_reply(link: Callable[..., tuple[
+        ScriptedPeer, SerialTransport]]) -> None:
+    """The first attempt's reply comes just after the retry's: the next request (a move) must not meet it."""
+    pose = encode_reply(0, struct.pack("<6f", 300, 0, 500, math.pi, 0, 0))
+    poses = 0
+    peer: ScriptedPeer | None = None
+    later: list[threading.Timer] = []
+
+    def send_later(delay_s: float, frame: bytes) -> None:
+        assert peer is not None
+        later.append(threading.Timer(delay_s, peer.send, (frame,)))
+        later[-1].start()
+
+    def answer(request: Request) -> bytes:
+        nonlocal poses
+        if request.register == Reg.GET_TCP_POSE:
+            poses += 1
+            if poses == 1:
+                return b""  # late: sent after the retry's reply, below
+            send_later(0.01, pose)
+            return pose
+        send_later(0.03, encode_reply(0))  # a move is confirmed after a while
+        return b""
+
+    peer, transport = link(answer)
+    assert transport.transact(Reg.GET_TCP_POSE, expect_len=24).data == pose[4:-2]
+    assert transport.stats["retries"] == 1 and transport.stats["timeouts"] == 1
+    resyncs = transport.stats["resyncs"]
+    # sent at once: the late reply is still on its way; met in the move's wait, it would leave the move
+    # unconfirmed (a reply of 24 bytes does not belong to MOVE_LINE). The line is resynchronised first.
+    assert transport.transact(Reg.MOVE_LINE, bytes(36), expect_len=0).data == b""
+    assert transport.stats["resyncs"] == resyncs + 1 and transport.stats["bad_frames"] == 0
+    assert peer.registers() == [Reg.GET_TCP_POSE, Reg.GET_TCP_POSE, Reg.MOVE_LINE]
+    for timer in later:
+        timer.join(5.0)
+
+
 # ---------------------------------------------------------------- the driver after an unconfirmed MOVE_LINE
 class Controller:
     """A scripted xArm: idle at 300/0/400 mm, a MOVE_LINE starts a motion that never ends until stopped.
