@@ -175,8 +175,8 @@ def test_the_script_role_moves_the_arm_with_the_register_handshake(emulator: URE
         while _out(client)[0] != 1:
             pass
         before = _out(client)[2]
-        emulator.set_time_scale(1.0)                                         # real time: ~1.5 s, stopped early
-        _command(client, 3, [*pose_to_ur(HOME), 0.05, 1.0], 1)                # moveL, asynchronous
+        emulator.set_time_scale(1.0)                                         # real time: ~7 s, stopped early
+        _command(client, 3, [*pose_to_ur(HOME), 0.01, 1.0], 1)                # moveL, asynchronous
         while True:
             state, _result, progress = _out(client)
             if state == 2:
