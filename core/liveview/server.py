@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import socket
 import sys
+import time
 from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
@@ -26,6 +28,8 @@ __all__ = ["HOST", "LiveView", "import_foxglove", "open_live_view"]
 HOST = "127.0.0.1"
 #: Name the server gives itself in Foxglove's connection list.
 SERVER_NAME = "cellcal"
+#: Longest wait in :meth:`LiveView.close` for the SDK to release the port, s.
+RELEASE_TIMEOUT_S = 2.0
 
 
 def import_foxglove() -> Any:
@@ -106,10 +110,12 @@ class LiveView:
         return observer
 
     def close(self) -> None:
-        """Stop the server and close the channels. Idempotent."""
+        """Stop the server, close the channels, and wait (at most :data:`RELEASE_TIMEOUT_S`) for the
+        port to be released, so a next run can listen on it at once. Idempotent."""
         server, self._server = self._server, None
         if server is not None:
-            server.stop()
+            server.stop()  # asynchronous: the SDK's runtime drops the listener a moment later
+            _wait_until_released(self.port, time.monotonic() + RELEASE_TIMEOUT_S)
         self._close_channels()
 
     def _close_channels(self) -> None:
@@ -123,6 +129,20 @@ class LiveView:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+
+def _wait_until_released(port: int, deadline: float) -> None:
+    """Return once nothing listens on ``HOST:port`` (a test bind succeeds) or ``deadline`` passes."""
+    while True:
+        with socket.socket() as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # TIME_WAIT connections do not count
+            try:
+                probe.bind((HOST, port))
+                return
+            except OSError:
+                if time.monotonic() >= deadline:
+                    return
+        time.sleep(0.002)
 
 
 def open_live_view(port: int | None, *, drift: bool = False) -> LiveView | None:

@@ -113,6 +113,16 @@ def test_calibrate_with_viz_port_serves_during_the_run_and_frees_the_port(
     assert (tmp_path / "result.json").is_file() and _port_free(port)
 
 
+def test_a_closed_live_view_has_released_its_port_when_close_returns() -> None:
+    """The SDK stops its server asynchronously; close() waits, so the next run can listen at once."""
+    port = _free_port()
+    for _ in range(20):
+        view = LiveView(port)
+        assert view.port == port
+        view.close()
+        assert _port_free(port)
+
+
 def _cellcal(*args: str, env: dict[str, str] | None = None, **kw: Any) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "cellcal.core.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env, **kw)
