@@ -23,7 +23,7 @@ from cellcal.drivers.xarm.arm import XArmArm
 from cellcal.drivers.xarm.registers import MOTION_REGISTERS, READ_REGISTERS, Reg
 from cellcal.drivers.xarm.transport import SerialTransport
 
-REPLY_TIMEOUT_S = 0.05
+REPLY_TIMEOUT_S = 0.2  # far above a reply's scheduling delay on a busy machine
 GARBLED = encode_reply(0, b"\x00\x00")[:-1] + b"\x00"  # a 2-byte reply with a bad CRC
 
 
@@ -135,20 +135,24 @@ def test_a_read_answered_only_on_its_retry_leaves_the_next_request_clear_of_the_
             poses += 1
             if poses == 1:
                 return b""  # late: sent after the retry's reply, below
-            send_later(0.01, pose)
+            if poses == 2:
+                send_later(0.01, pose)
             return pose
         send_later(0.03, encode_reply(0))  # a move is confirmed after a while
         return b""
 
     peer, transport = link(answer)
+    transport.quiet_s = 0.5  # the late reply comes well inside the quiet time a resynchronisation waits for
     assert transport.transact(Reg.GET_TCP_POSE, expect_len=24).data == pose[4:-2]
-    assert transport.stats["retries"] == 1 and transport.stats["timeouts"] == 1
+    # (on a busy machine both replies may be read together: out of step, and a third attempt)
+    assert transport.stats["retries"] in (1, 2) and transport.stats["timeouts"] == 1
+    retried = transport.stats["retries"]
     resyncs = transport.stats["resyncs"]
     # sent at once: the late reply is still on its way; met in the move's wait, it would leave the move
     # unconfirmed (a reply of 24 bytes does not belong to MOVE_LINE). The line is resynchronised first.
     assert transport.transact(Reg.MOVE_LINE, bytes(36), expect_len=0).data == b""
-    assert transport.stats["resyncs"] == resyncs + 1 and transport.stats["bad_frames"] == 0
-    assert peer.registers() == [Reg.GET_TCP_POSE, Reg.GET_TCP_POSE, Reg.MOVE_LINE]
+    assert transport.stats["resyncs"] == resyncs + 1 and transport.stats["bad_frames"] == retried - 1
+    assert peer.registers() == [Reg.GET_TCP_POSE] * (1 + retried) + [Reg.MOVE_LINE]
     for timer in later:
         timer.join(5.0)
 
@@ -184,7 +188,7 @@ class Controller:
 
 def _run(controller: Controller, **cfg: float) -> tuple[ScriptedPeer, BaseException, float]:
     with ScriptedPeer(controller) as peer:
-        drv = XArmArm(XArmArm.Config(port=peer.path, reply_timeout_s=0.1, stop_timeout_s=0.6, poll_interval_s=0.005,
+        drv = XArmArm(XArmArm.Config(port=peer.path, reply_timeout_s=0.3, stop_timeout_s=1.5, poll_interval_s=0.005,
                                      **cfg))  # type: ignore[arg-type]
         with drv:
             t0 = time.monotonic()
@@ -208,7 +212,7 @@ def test_unconfirmed_move_is_assessed_stopped_and_never_resent(reply: bytes) -> 
                                           and peer.requests.index(r) > regs.index(Reg.MOVE_LINE))
     assert "state 1, 1 queued" in str(err) and "0.0 mm from where it started and 50.0 mm from the target" in str(err)
     assert str(err).endswith("the arm was stopped (clear_errors() before the next move)")
-    assert elapsed < 0.1 + 0.6 + 1.0  # reply timeout + stop budget + slack for a busy machine
+    assert elapsed < 0.3 + 1.5 + 1.0  # reply timeout + stop budget + slack for a busy machine
     assert set(threading.enumerate()) == threads
 
 
@@ -225,7 +229,7 @@ def test_unconfirmed_move_on_a_deaf_line_still_stops(deaf: str) -> None:
     else:
         assert "stopping the arm failed" in str(err)
     assert len(stops) >= 2  # the stop is repeated (a stop never moves the arm)
-    assert elapsed < 0.1 + 0.6 + 1.0
+    assert elapsed < 0.3 + 1.5 + 1.0
 
 
 def test_values_no_arm_can_report_are_protocol_errors() -> None:
