@@ -239,7 +239,7 @@ def test_values_no_arm_can_report_are_protocol_errors() -> None:
         Reg.GET_STATE: [encode_reply(0, b"\x09")],
         Reg.GET_JOINT_POS: [encode_reply(0, struct.pack("<7f", 0, 0, math.inf, 0, 0, 0, 0))] * 3}
     with ScriptedPeer(_answers(script, Controller(None))) as peer, \
-            XArmArm(XArmArm.Config(port=peer.path, reply_timeout_s=0.1, enable_on_connect=False)) as drv:
+            XArmArm(XArmArm.Config(port=peer.path, reply_timeout_s=0.5, enable_on_connect=False)) as drv:
         with pytest.raises(ProtocolError, match="not a pose"):
             drv.get_pose()
         with pytest.raises(ProtocolError, match="not a pose"):
