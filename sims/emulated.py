@@ -9,6 +9,7 @@ it. What differs per vendor is only how the emulator runs and what it needs.
 from __future__ import annotations
 
 import dataclasses
+from abc import abstractmethod
 from collections.abc import Callable, Mapping
 from typing import Any, get_type_hints
 
@@ -97,13 +98,13 @@ class EmulatedArm(RobotArm):
         self.driver: RobotArm | None = None
 
     # ------------------------------------------------------------------ what subclasses provide
+    @abstractmethod
     def _start_emulator(self, timeout: float) -> dict[str, Any]:
         """Start the emulator; the driver's section keys that reach it (and its own settings)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _stop_emulator(self) -> None:
         """Stop the emulator; safe when it never started."""
-        raise NotImplementedError
 
     def _after_motion(self) -> None:
         """Called after every move and stop, successful or not."""
