@@ -30,7 +30,7 @@ SIM_DOC = tomllib.loads(resources.files("cellcal.configs").joinpath("sim.toml").
 
 #: Timeouts of the test cells, seconds (short, so a stall costs little).
 CAPTURE_TIMEOUT_S = 0.5
-MOVE_TIMEOUT_S = 0.5
+MOVE_TIMEOUT_S = 1.5  # a move of the fast cell takes milliseconds; a frozen one ends here
 O3R_IO_TIMEOUT_S = 2.0  # > capture timeout: a stalled frame ends as the capture's timeout
 XARM_REPLY_TIMEOUT_S = 0.3  # far above a reply's scheduling delay on a busy machine
 XARM_RETRIES = 1
