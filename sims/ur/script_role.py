@@ -80,7 +80,7 @@ class ScriptRole:
     Attributes:
         refuse_start: Fault injection: uploaded programs never start (as when the
             controller rejects the script).
-        programs_received: Programs written to the script port.
+        programs_received: Programs written to the script port, counted once each is started or refused.
         commands: Commands executed, by id.
     """
 
@@ -103,14 +103,16 @@ class ScriptRole:
     def load(self, text: str) -> bool:
         """A program arrived on the script port: stop the running one, start this one; True if it runs."""
         with self._lock:
-            self.programs_received += 1
-            names = _DEF.findall(text)
-            self.stop_program("a new program arrived")
-            if not names or names[0] != PROGRAM_NAME:
-                log.info("script port: program %s is not ur_rtde's control script; not run", names[:1])
-                return False
-            self.last_program = text
-            return self.start_program()
+            try:
+                names = _DEF.findall(text)
+                self.stop_program("a new program arrived")
+                if not names or names[0] != PROGRAM_NAME:
+                    log.info("script port: program %s is not ur_rtde's control script; not run", names[:1])
+                    return False
+                self.last_program = text
+                return self.start_program()
+            finally:
+                self.programs_received += 1  # counted once handled: a watcher then sees its effect
 
     def start_program(self) -> bool:
         """Start the last control script (``load`` or the dashboard's ``play``); False if refused."""

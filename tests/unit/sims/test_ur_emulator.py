@@ -6,6 +6,7 @@ emulator as a child process). Ports are any free ones on 127.0.0.1.
 
 from __future__ import annotations
 
+import select
 import socket
 import struct
 import threading
@@ -33,7 +34,7 @@ class RawRTDE:
 
     def __init__(self, port: int) -> None:
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=2.0)
-        self.buf = b""
+        self.buf = bytearray()  # consumed from the front with del (no copy of the rest per message)
 
     def close(self) -> None:
         self.sock.close()
@@ -48,7 +49,8 @@ class RawRTDE:
                 raise ConnectionError("closed")
             self.buf += chunk
         size = struct.unpack(">H", self.buf[:2])[0]
-        kind, payload, self.buf = chr(self.buf[2]), self.buf[3:size], self.buf[size:]
+        kind, payload = chr(self.buf[2]), bytes(self.buf[3:size])
+        del self.buf[:size]
         return kind, payload
 
     def request(self, kind: str, payload: bytes = b"") -> bytes:
@@ -71,6 +73,17 @@ class RawRTDE:
             kind, payload = self.read()
             if kind == "U":
                 return payload
+
+    def latest(self) -> bytes:
+        """The newest data package: the next one, then any already received after it (a client on a
+        busy machine reads slower than 500 Hz and would otherwise act on history)."""
+        payload = self.package()
+        while self._complete() or select.select([self.sock], [], [], 0)[0]:
+            payload = self.package()
+        return payload
+
+    def _complete(self) -> bool:
+        return len(self.buf) >= 3 and len(self.buf) >= struct.unpack(">H", self.buf[:2])[0]
 
 
 @pytest.fixture
@@ -151,7 +164,7 @@ def _command(client: RawRTDE, cmd: int, doubles: list[float], asynchronous: int)
 
 
 def _out(client: RawRTDE) -> tuple[int, int, int]:
-    return struct.unpack(">iii", client.package()[9:21])
+    return struct.unpack(">iii", client.latest()[9:21])
 
 
 def test_the_script_role_moves_the_arm_with_the_register_handshake(emulator: UREmulator) -> None:
@@ -183,6 +196,10 @@ def test_the_script_role_moves_the_arm_with_the_register_handshake(emulator: URE
                 break
         assert progress & 0x8000 and (progress >> 24) == ((before >> 24) + 1) & 0x7F   # running, new operation
         _command(client, 0, [0.0] * 8, 0)
+        # as ur_rtde does, wait for ready before the next command: the script takes a command only once
+        # it has seen the clear (sent at once, a busy machine's script cycle could miss the clear)
+        while _out(client)[0] != 1:
+            pass
         _command(client, 33, [5.0] + [0.0] * 7, 0)                            # stopL
         while _out(client)[2] & 0x8000:
             pass
