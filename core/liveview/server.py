@@ -115,8 +115,9 @@ class LiveView:
         server, self._server = self._server, None
         if server is not None:
             server.stop()  # asynchronous: the SDK's runtime drops the listener a moment later
-            _wait_until_released(self.port, time.monotonic() + RELEASE_TIMEOUT_S)
         self._close_channels()
+        if server is not None:
+            _wait_until_released(self.port, time.monotonic() + RELEASE_TIMEOUT_S)
 
     def _close_channels(self) -> None:
         for channel in self._channels.values():
