@@ -78,9 +78,20 @@ def _sigint_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _start_pool(jobs: int, initializer: Callable[..., None], initargs: tuple[Any, ...]) -> Pool:
+@contextlib.contextmanager
+def _pool(jobs: int, initializer: Callable[..., None], initargs: tuple[Any, ...]) -> Iterator[Pool]:
+    """A pool of ``jobs`` workers for one batch: started with Ctrl-C held back, closed and joined
+    after the batch, terminated and joined at once on Ctrl-C or an error (which is re-raised)."""
     with _sigint_blocked():
-        return multiprocessing.get_context().Pool(jobs, initializer, initargs)
+        pool = multiprocessing.get_context().Pool(jobs, initializer, initargs)
+    try:
+        yield pool
+    except BaseException:
+        pool.terminate()  # Ctrl-C or an error: stop the workers now
+        pool.join()
+        raise
+    pool.close()
+    pool.join()
 
 
 def _ignore_sigint() -> None:
@@ -100,16 +111,8 @@ def run_calls(calls: Sequence[tuple[Callable[..., Any], tuple[Any, ...]]], jobs:
     """
     if jobs <= 1 or len(calls) <= 1:
         return [function(*args) for function, args in calls]
-    pool = _start_pool(min(jobs, len(calls)), _ignore_sigint, ())
-    try:
-        results = pool.starmap(_call, calls)
-    except BaseException:
-        pool.terminate()  # Ctrl-C or an error: stop the workers now
-        pool.join()
-        raise
-    pool.close()
-    pool.join()
-    return results
+    with _pool(min(jobs, len(calls)), _ignore_sigint, ()) as pool:
+        return pool.starmap(_call, calls)
 
 
 def run_tasks(tasks: Sequence[Task], jobs: int, settings: StudySettings, registry: Registry | None,
@@ -133,8 +136,7 @@ def run_tasks(tasks: Sequence[Task], jobs: int, settings: StudySettings, registr
     """
     out: list[Rows | None] = [None] * len(tasks)
     remote = [task for i, task in enumerate(tasks) if local is None or i != local[0]]
-    pool = _start_pool(max(1, min(jobs, len(remote))), _init_worker, (settings, registry, intrinsics))
-    try:
+    with _pool(max(1, min(jobs, len(remote))), _init_worker, (settings, registry, intrinsics)) as pool:
         results = pool.imap(_run_one, remote)
         if local is not None:
             out[local[0]] = local[1](tasks[local[0]])
@@ -143,10 +145,4 @@ def run_tasks(tasks: Sequence[Task], jobs: int, settings: StudySettings, registr
             if rows is None:
                 rows = out[i] = next(results)  # the workers' results come in task order
             on_done(i, rows)
-    except BaseException:
-        pool.terminate()  # Ctrl-C or an error: stop the workers now
-        pool.join()
-        raise
-    pool.close()
-    pool.join()
     return [rows for rows in out if rows is not None]
