@@ -82,8 +82,6 @@ def _release(box: list[Any]) -> None:
     del handle
 
 
-
-
 class URArm(RobotArm):
     """A Universal Robots arm (CB3 / e-Series / UR Series) over ``ur_rtde`` 1.6.
 
