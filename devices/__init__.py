@@ -38,6 +38,7 @@ _EXPORTS = {
     "VendorError": ".errors",
     "ForwardingArm": ".forwarding",
     "ForwardingCamera": ".forwarding",
+    "MeasurementModel": ".measurement",
     "Pose": ".pose",
     "BackendEntry": ".registry",
     "Registry": ".registry",
@@ -77,6 +78,7 @@ __all__ = [
     "Frame",
     "FrameError",
     "Intrinsics",
+    "MeasurementModel",
     "MissingDependencyError",
     "MotionError",
     "NotConnectedError",
@@ -121,6 +123,7 @@ if TYPE_CHECKING:
         VendorError,
     )
     from .forwarding import ForwardingArm, ForwardingCamera
+    from .measurement import MeasurementModel
     from .pose import Pose
     from .registry import BackendEntry, Registry, default_registry
     from .safety import SafeArm, SafetyLimits

@@ -2,20 +2,63 @@
 
 from __future__ import annotations
 
+import dataclasses
 from abc import abstractmethod
+from collections.abc import Mapping
+from typing import Any, Self
 
-from .base import Device
+from .base import BackendContext, Device
 from .errors import CalibrationError
+from .measurement import UNKNOWN_MODEL, MeasurementModel
 from .types import Frame, Intrinsics
 
 
 class Camera3D(Device):
     """A 3D (depth) camera.
 
-    Implementations provide :meth:`_capture` and :meth:`_intrinsics`; the public
-    methods enforce the contract. ``capture`` never returns a frame older than its
-    timeout and never returns a frame whose shape disagrees with the intrinsics.
+    Implementations provide :meth:`_capture` and :meth:`_intrinsics`, and state how they
+    measure in :meth:`_measurement_model` (a backend that states nothing is ``unknown``);
+    the public methods enforce the contract. ``capture`` never returns a frame older than
+    its timeout and never returns a frame whose shape disagrees with the intrinsics, and
+    every frame it returns carries the camera's :attr:`measurement_model`.
+
+    Attributes:
+        measurement_override: A model from the config's ``[camera.model]`` table, which
+            replaces the backend's own (None: the backend's).
     """
+
+    measurement_override: MeasurementModel | None = None
+
+    @classmethod
+    def from_config(cls, section: Mapping[str, Any] | None, context: BackendContext | None = None) -> Self:
+        """As :meth:`Device.from_config`; a ``model`` table becomes :attr:`measurement_override`.
+
+        Raises:
+            ConfigError: On a bad key or value, naming it (``camera.model.baseline_m``).
+        """
+        context = context or BackendContext()
+        rest = dict(section or {})
+        table = rest.pop("model", None)
+        camera = super().from_config(rest, context)
+        if table is not None:
+            where = f"{context.section or 'camera'}.model"
+            camera.measurement_override = MeasurementModel.from_dict(
+                table, where=where, source=context.source).with_source("config")
+        return camera
+
+    @property
+    def measurement_model(self) -> MeasurementModel:
+        """How this camera measures: the config's override, else the backend's own statement.
+
+        Backends that read it from the device (the OAK's baseline) need a connection first;
+        before it they state what they know without one.
+        """
+        if self.measurement_override is not None:
+            return self.measurement_override
+        model = self._measurement_model()
+        if not isinstance(model, MeasurementModel):  # a backend bug, reported clearly
+            raise CalibrationError(f"{self.backend_name}: _measurement_model returned {type(model).__name__}")
+        return model
 
     def capture(self, timeout: float | None = None) -> Frame:
         """Return the newest complete frame.
@@ -33,6 +76,9 @@ class Camera3D(Device):
         frame = self._capture(self._resolve_timeout(timeout))
         if not isinstance(frame, Frame):  # a backend bug, reported clearly
             raise CalibrationError(f"{self.backend_name}: capture returned {type(frame).__name__}, not Frame")
+        model = self.measurement_model
+        if model is not frame.measurement and (self.measurement_override is not None or not frame.measurement.known):
+            frame = dataclasses.replace(frame, measurement=model)   # no copy of the arrays
         return frame
 
     @property
@@ -52,3 +98,7 @@ class Camera3D(Device):
     @abstractmethod
     def _intrinsics(self) -> Intrinsics:
         """Return the depth stream's intrinsics."""
+
+    def _measurement_model(self) -> MeasurementModel:
+        """How the camera measures (override in a backend; the default states nothing)."""
+        return UNKNOWN_MODEL

@@ -17,6 +17,7 @@ from .arrival import ArrivalTolerance
 from .base import Device
 from .camera import Camera3D
 from .pose import Pose
+from .measurement import MeasurementModel
 from .types import ArmStatus, DeviceInfo, Frame, Intrinsics
 
 D = TypeVar("D", bound=Device)
@@ -56,6 +57,9 @@ class ForwardingCamera(ForwardingDevice[Camera3D], Camera3D):
 
     def _intrinsics(self) -> Intrinsics:
         return self.inner.intrinsics
+
+    def _measurement_model(self) -> MeasurementModel:
+        return self.inner.measurement_model
 
 
 class ForwardingArm(ForwardingDevice[RobotArm], RobotArm):

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from .errors import CalibrationError, FrameError
 from .jsonsafe import json_safe
+from .measurement import UNKNOWN_MODEL, MeasurementModel
 
 #: Lens models of :class:`Intrinsics`: OpenCV's pinhole + Brown–Conrady, and OpenCV's fisheye.
 LENS_MODELS = ("brown", "fisheye")
@@ -185,6 +186,9 @@ class Frame:
         confidence: Raw vendor confidence / status image, if the device sends one.
         metadata: Per-frame vendor facts, JSON data only (e.g. the device's own clock
             reading ``device_timestamp_s``, an O3R's measurement block in a cycling mode).
+        measurement: How the camera measured (:class:`~cellcal.devices.measurement.MeasurementModel`);
+            :meth:`Camera3D.capture <cellcal.devices.camera.Camera3D.capture>` stamps the
+            camera's model on frames that carry none.
     """
 
     distance: NDArray[np.float32]
@@ -196,8 +200,11 @@ class Frame:
     sequence: int
     confidence: NDArray[Any] | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
+    measurement: MeasurementModel = UNKNOWN_MODEL
 
     def __post_init__(self) -> None:
+        if not isinstance(self.measurement, MeasurementModel):
+            raise FrameError(f"Frame.measurement must be a MeasurementModel, got {type(self.measurement).__name__}")
         h, w = self.intrinsics.height, self.intrinsics.width
         checks = (
             ("distance", self.distance, (h, w), np.float32),
