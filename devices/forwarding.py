@@ -16,8 +16,8 @@ from .arm import RobotArm
 from .arrival import ArrivalTolerance
 from .base import Device
 from .camera import Camera3D
-from .pose import Pose
 from .measurement import MeasurementModel
+from .pose import Pose
 from .types import ArmStatus, DeviceInfo, Frame, Intrinsics
 
 D = TypeVar("D", bound=Device)
