@@ -1,7 +1,7 @@
 """Cell configuration: a TOML document validated into typed objects (ADR 0004).
 
 Tables: ``[cell]``, ``[camera]``/``[arm]`` (``backend = "name"``, the rest validated by
-the backend), ``[mount]``, ``[reference]``, ``[safety]``, ``[plan]``, ``[monitor]``,
+the backend), ``[mount]``, ``[reference]``, ``[region]``, ``[safety]``, ``[plan]``, ``[monitor]``,
 ``[full_frame]`` and ``[sim]``; see ``configs/sim.toml``. Any problem raises
 :class:`~cellcal.devices.errors.ConfigError` naming the file, the dotted key and the expectation.
 """
@@ -21,6 +21,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 
 from cellcal.core.methods.fullframe import FullFrameSettings
@@ -32,7 +33,7 @@ from cellcal.devices.safety import SafetyLimits
 Vec3 = tuple[float, float, float]
 MethodName = Literal["law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame"]
 ALL_METHODS: tuple[MethodName, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal", "full_frame")
-TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "safety", "plan", "sim", "monitor",
+TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "region", "safety", "plan", "sim", "monitor",
                     "full_frame", "handeye")
 #: Backends built on the simulated world, the only readers of ``[sim]`` (tests/unit/core/calibration/test_config.py
 #: checks this against the registered backends that live in ``cellcal.sims``).
@@ -115,10 +116,19 @@ class HandEyeSection:
 
 @dataclass(frozen=True)
 class ReferenceSection:
-    """``[reference]``: the measuring plane as the cell believes it, base frame."""
+    """``[reference]``: the measuring plane as the cell believes it, base frame.
+
+    With ``search`` (default) and a ``[mount]`` table, the full-frame fit at each pose looks
+    for the plane within ``search_tolerance_deg`` (normal) and ``search_tolerance_m``
+    (distance from the camera) of this one seen from the camera, so that a floor, a wall or
+    a box top is not taken for it; ``search = false`` lets the whole image decide (ADR 0031).
+    """
 
     plane_point_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0})
     plane_normal: Vec3 = field(default=(0.0, 0.0, 1.0), metadata={"ge": -1e6, "le": 1e6})  # norm cannot overflow
+    search: bool = True
+    search_tolerance_deg: float = field(default=15.0, metadata={"gt": 0.0, "le": 90.0})
+    search_tolerance_m: float = field(default=0.1, metadata={"gt": 0.0, "le": 10.0})
 
     def __post_init__(self) -> None:
         if not np.linalg.norm(self.plane_normal) > 0:
@@ -146,6 +156,61 @@ class SafetySection:
         for axis, lo, hi in zip("xyz", self.workspace_min_m, self.workspace_max_m, strict=True):
             if not lo < hi:
                 raise ValueError(f"safety.workspace_min_m must be < workspace_max_m on {axis} ({lo} >= {hi})")
+
+    @property
+    def search_tolerance_rad(self) -> float:
+        """``search_tolerance_deg`` in radians."""
+        return math.radians(self.search_tolerance_deg)
+
+
+#: Most vertices a ``[region] polygon_px`` may have.
+MAX_POLYGON_VERTICES = 1000
+#: Largest |u| or |v| of a polygon vertex, pixels (far beyond any depth image).
+MAX_PIXEL_COORD = 100_000.0
+#: Smallest area a region polygon may enclose, square pixels.
+MIN_POLYGON_AREA_PX2 = 1.0
+
+
+@dataclass(frozen=True)
+class RegionSection:
+    """``[region]``: the region of interest of the full-frame fit and its gates (ADR 0031).
+
+    ``polygon_px``: vertices ``[u, v]`` of a polygon in pixels of the depth image (pixel
+    centres at integer coordinates, ``u`` along the columns, ``v`` down the rows).
+    ``box_min_m`` / ``box_max_m``: opposite corners of an axis-aligned box in the base frame,
+    metres; at each pose the region holds the pixels whose ray (from the camera pose the
+    arm reports, with ``[mount]``) passes through the box. Both given: the pixels in both.
+    Neither (an empty table, or no table): the whole image.
+    """
+
+    polygon_px: tuple[tuple[float, float], ...] | None = field(
+        default=None, metadata={"min_items": 3, "max_items": MAX_POLYGON_VERTICES})
+    box_min_m: Vec3 | None = field(default=None, metadata={"ge": -10.0, "le": 10.0})
+    box_max_m: Vec3 | None = field(default=None, metadata={"ge": -10.0, "le": 10.0})
+
+    def __post_init__(self) -> None:
+        if self.polygon_px is not None:
+            for i, (u, v) in enumerate(self.polygon_px):
+                if max(abs(u), abs(v)) > MAX_PIXEL_COORD:
+                    raise ConfigError(f"vertex ({u:g}, {v:g}) px is beyond +-{MAX_PIXEL_COORD:g} px",
+                                      key=f"polygon_px[{i}]")
+            area = cv2.contourArea(np.asarray(self.polygon_px, np.float32))   # shoelace area, px^2
+            if not area >= MIN_POLYGON_AREA_PX2:
+                raise ConfigError(f"the polygon encloses {area:g} px^2 (vertices on one line?); "
+                                  f"at least {MIN_POLYGON_AREA_PX2:g} px^2", key="polygon_px")
+        if (self.box_min_m is None) != (self.box_max_m is None):
+            missing = "box_min_m" if self.box_min_m is None else "box_max_m"
+            raise ConfigError("a base-frame box needs both box_min_m and box_max_m", key=missing)
+        if self.box_min_m is not None and self.box_max_m is not None:
+            for axis, lo, hi in zip("xyz", self.box_min_m, self.box_max_m, strict=True):
+                if not lo < hi:
+                    raise ConfigError(f"must exceed box_min_m on every axis ({axis}: {hi:g} <= {lo:g} m)",
+                                      key="box_max_m")
+
+    @property
+    def whole_image(self) -> bool:
+        """Whether no region is set (the fit and its gates see the whole image)."""
+        return self.polygon_px is None and self.box_min_m is None
 
 
 @dataclass(frozen=True)
@@ -260,6 +325,17 @@ class CellConfig:
     monitor: MonitorSection = field(default_factory=MonitorSection)
     full_frame: FullFrameSettings = field(default_factory=FullFrameSettings)
     handeye: HandEyeSection = field(default_factory=HandEyeSection)
+    region: RegionSection = field(default_factory=RegionSection)
+
+    @property
+    def search_reference(self) -> ReferenceSection | None:
+        """The ``[reference]`` the fit searches near, or None: no reference, ``search = false`` or no ``[mount]``.
+
+        Without a ``[mount]`` table the mount is the identity, which says nothing about where
+        the camera looks, so the plane it predicts cannot restrict the fit.
+        """
+        ref = self.reference
+        return ref if ref is not None and ref.search and "mount" in self.document else None
 
     @property
     def camera_section(self) -> Mapping[str, Any]:
@@ -329,6 +405,7 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
         monitor=parse_section(MonitorSection, document.get("monitor"), where="monitor", source=source),
         full_frame=parse_section(FullFrameSettings, document.get("full_frame"), where="full_frame", source=source),
         handeye=parse_section(HandEyeSection, document.get("handeye"), where="handeye", source=source),
+        region=parse_section(RegionSection, document.get("region"), where="region", source=source),
     )
 
 
