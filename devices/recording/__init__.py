@@ -7,20 +7,23 @@ from cellcal.devices.recording.codec import (
     decode_error,
     decode_frame,
     decode_info,
+    decode_model,
     decode_pose,
     encode_array,
     encode_error,
     encode_frame,
+    encode_model,
     encode_pose,
 )
 from cellcal.devices.recording.reader import Recording, read_recording
 from cellcal.devices.recording.scene import Scene
-from cellcal.devices.recording.schema import CHANNELS, RECORDING_FORMAT, SCHEMAS
+from cellcal.devices.recording.schema import CHANNELS, READABLE_FORMATS, RECORDING_FORMAT, SCHEMAS
 from cellcal.devices.recording.wrappers import RecordingArm, RecordingCamera
 from cellcal.devices.recording.writer import SessionRecorder
 
 __all__ = [
     "CHANNELS",
+    "READABLE_FORMATS",
     "RECORDING_FORMAT",
     "SCHEMAS",
     "Recording",
@@ -32,10 +35,12 @@ __all__ = [
     "decode_error",
     "decode_frame",
     "decode_info",
+    "decode_model",
     "decode_pose",
     "encode_array",
     "encode_error",
     "encode_frame",
+    "encode_model",
     "encode_pose",
     "read_recording",
 ]

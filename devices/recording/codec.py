@@ -1,4 +1,5 @@
-"""Exact JSON forms of what a recording stores: arrays, frames, poses, errors, device info, call results.
+"""Exact JSON forms of what a recording stores: arrays, frames, poses, errors, device info, call results,
+measurement models.
 
 Every ``decode_*`` inverts its ``encode_*`` bit for bit (ADR 0009, "Exactness rules").
 """
@@ -17,8 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices import errors as _errors
-from cellcal.devices.errors import CellcalError, DeviceError, RecordingError
+from cellcal.devices.errors import CellcalError, ConfigError, DeviceError, RecordingError
 from cellcal.devices.jsonsafe import json_safe
+from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo, Frame, Intrinsics
 
@@ -61,14 +63,45 @@ def decode_array(data: Mapping[str, Any], what: str) -> NDArray[Any]:
     return arr.astype(dtype.newbyteorder("="), copy=True)
 
 
+def encode_model(model: MeasurementModel) -> dict[str, Any]:
+    """JSON form of a camera's measurement model (:meth:`MeasurementModel.to_dict`, settings JSON-cleaned)."""
+    return json_safe(model.to_dict())  # type: ignore[no-any-return]
+
+
+def decode_model(data: Any, what: str) -> MeasurementModel:
+    """Inverse of :func:`encode_model`; None (a recording of format 1, an unknown model) is ``unknown``.
+
+    A recorded model that names no source keeps ``source = "recording"``; otherwise its source is
+    kept as recorded (who stated it: the device, the backend, the config; ADR 0032).
+
+    Args:
+        data: The recorded JSON object, or None.
+        what: Where it was recorded, for messages (``"frame.measurement"``).
+
+    Raises:
+        RecordingError: One line naming ``what``, the key and what was wrong.
+    """
+    if data is None:
+        return UNKNOWN_MODEL
+    if not isinstance(data, Mapping):
+        raise RecordingError(f"recorded {what} is a {type(data).__name__}, not an object")
+    try:
+        model = MeasurementModel.from_dict(data, where=what)
+    except ConfigError as exc:
+        raise RecordingError(f"recorded measurement model is malformed: {exc}") from None
+    return model.with_source("recording") if model.known and "source" not in data else model
+
+
 def encode_frame(frame: Frame) -> dict[str, Any]:
-    """JSON form of a frame that decodes to identical bits (arrays, timestamp, sequence, metadata)."""
+    """JSON form of a frame that decodes to identical bits (arrays, timestamp, sequence, metadata, model)."""
     arrays = {name: encode_array(getattr(frame, name)) for name in FRAME_ARRAYS
               if getattr(frame, name) is not None}
     doc = {"timestamp": float(frame.timestamp), "sequence": int(frame.sequence),
            "intrinsics": frame.intrinsics.to_dict(), "arrays": arrays}
     if frame.metadata:  # vendor facts per frame (device clock, measurement block); JSON data only
         doc["metadata"] = json_safe(frame.metadata)
+    if frame.measurement.known:  # format 2: the model the frame was measured with (none: unknown)
+        doc["measurement"] = encode_model(frame.measurement)
     return doc
 
 
@@ -85,8 +118,9 @@ def decode_frame(data: Mapping[str, Any]) -> Frame:
         metadata = data.get("metadata", {})
         if not isinstance(metadata, dict):
             raise RecordingError(f"recorded frame metadata is a {type(metadata).__name__}, not an object")
+        measurement = decode_model(data.get("measurement"), "frame.measurement")
         return Frame(intrinsics=intrinsics, timestamp=float(data["timestamp"]), sequence=int(data["sequence"]),
-                     metadata=dict(metadata), **kwargs)
+                     metadata=dict(metadata), measurement=measurement, **kwargs)
     except RecordingError:
         raise
     except (CellcalError, KeyError, TypeError, ValueError) as exc:

@@ -11,7 +11,7 @@ from cellcal.devices.errors import RecordingFileError
 
 from .schema import (
     MCAP_MAGIC,
-    RECORDING_FORMAT,
+    READABLE_FORMATS,
     TOPIC_ARM_CALL,
     TOPIC_ARM_INFO,
     TOPIC_CAMERA_INFO,
@@ -48,6 +48,11 @@ class Recording:
     arm_calls: list[dict[str, Any]] = field(default_factory=list)
     result: dict[str, Any] | None = None
     message_counts: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def format(self) -> str:
+        """The recording's format tag (one of :data:`~cellcal.devices.recording.schema.READABLE_FORMATS`)."""
+        return str(self.session.get("format"))
 
     @property
     def config_document(self) -> dict[str, Any] | None:
@@ -124,7 +129,7 @@ def _messages_by_topic(fh: BinaryIO, reader_mod: Any, source: str) -> dict[str, 
 
 
 def _session(by_topic: dict[str, _Messages], source: str) -> dict[str, Any]:
-    """The first ``/cellcal/session`` payload, checked to be of the format this cellcal reads.
+    """The first ``/cellcal/session`` payload, checked to be of a format this cellcal reads.
 
     Raises:
         RecordingFileError: If there is none, or its format is another one.
@@ -133,7 +138,8 @@ def _session(by_topic: dict[str, _Messages], source: str) -> dict[str, Any]:
     if not sessions:
         raise RecordingFileError(f"MCAP file has no {TOPIC_SESSION} message: not a cellcal recording", source=source)
     session = sessions[0][1]
-    if session.get("format") != RECORDING_FORMAT:
+    if session.get("format") not in READABLE_FORMATS:
         raise RecordingFileError(f"recording format {session.get('format')!r} is not supported "
-                                 f"(this cellcal reads {RECORDING_FORMAT!r})", source=source)
+                                 f"(this cellcal reads {', '.join(repr(f) for f in READABLE_FORMATS)})",
+                                 source=source)
     return session

@@ -9,8 +9,11 @@ from typing import Any
 
 from cellcal.devices.errors import MissingDependencyError
 
-#: Version tag of the recording layout; bump on any incompatible change.
-RECORDING_FORMAT = "cellcal.recording/1"
+#: Version tag of the recording layout; bump on any incompatible change. Version 2 adds the
+#: camera's measurement model (``/camera/info`` and each frame; docs/adr/0032-model-in-recordings-and-kit.md).
+RECORDING_FORMAT = "cellcal.recording/2"
+#: Formats this cellcal reads: version 1 recordings replay with an ``unknown`` measurement model.
+READABLE_FORMATS: tuple[str, ...] = ("cellcal.recording/1", RECORDING_FORMAT)
 #: MCAP profile field (custom profile: plain JSON channels).
 MCAP_PROFILE = ""
 #: First bytes of every MCAP file (MCAP specification).
@@ -47,6 +50,13 @@ _ERROR = {
     "properties": {"type": {"type": "string"}, "message": {"type": "string"}, "attrs": {"type": "object"}},
 }
 _XYZ = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
+_MODEL = {
+    "type": "object",
+    "description": "the camera's measurement model (MeasurementModel.to_dict: kind, SI values, source, settings); "
+                   "absent: unknown",
+    "properties": {"kind": {"type": "string", "enum": ["tof", "stereo", "structured_light", "unknown"]},
+                   "source": {"type": "string"}, "settings": {"type": "object"}},
+}
 
 #: JSON schemas by schema name (custom ``cellcal.*`` and the Foxglove ones we use).
 SCHEMAS: dict[str, dict[str, Any]] = {
@@ -65,7 +75,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "properties": {"event": {"type": "integer"}, "backend": {"type": "string"}, "vendor": {"type": "string"},
                        "model": {"type": "string"}, "serial": {"type": "string"}, "firmware": {"type": "string"},
                        "extra": {"type": "object"}, "intrinsics": {"type": ["object", "null"]},
-                       "default_timeout_s": {"type": "number"}},
+                       "measurement_model": _MODEL, "default_timeout_s": {"type": "number"}},
     },
     "cellcal.Capture": {
         "title": "cellcal.Capture", "type": "object",
@@ -73,7 +83,7 @@ SCHEMAS: dict[str, dict[str, Any]] = {
                        "timeout_s": {"type": "number"}, "duration_s": {"type": "number"},
                        "frame": {"type": ["object", "null"], "properties": {
                            "timestamp": {"type": "number"}, "sequence": {"type": "integer"},
-                           "intrinsics": {"type": "object"},
+                           "intrinsics": {"type": "object"}, "measurement": _MODEL,
                            "arrays": {"type": "object", "additionalProperties": _ARRAY}}},
                        "error": _ERROR},
     },

@@ -18,7 +18,7 @@ from cellcal.devices.forwarding import ForwardingArm, ForwardingCamera
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, Frame
 
-from .codec import encode_error, encode_frame, encode_info, encode_pose, encode_result
+from .codec import encode_error, encode_frame, encode_info, encode_model, encode_pose, encode_result
 from .foxglove import camera_calibration, depth_image, pose_in_frame, stamp
 from .schema import (
     TOPIC_ARM_CALL,
@@ -47,7 +47,10 @@ def _unless_interrupted(exc: BaseException) -> Iterator[None]:
 
 
 class RecordingCamera(ForwardingCamera):
-    """A :class:`Camera3D` that forwards to ``inner`` and logs identity, intrinsics and every capture.
+    """A :class:`Camera3D` that forwards to ``inner`` and logs identity, intrinsics, model and every capture.
+
+    ``/camera/info`` holds the camera's measurement model as stated at connect (its
+    ``[camera.model]`` override included); every recorded frame holds the model it carries.
 
     Args:
         inner: The camera to record; its life cycle is driven through this wrapper.
@@ -63,6 +66,7 @@ class RecordingCamera(ForwardingCamera):
         super()._connect(timeout)
         info, intr = self.inner.info(), self.inner.intrinsics
         self.recorder.log(TOPIC_CAMERA_INFO, {**encode_info(info), "intrinsics": intr.to_dict(),
+                                              "measurement_model": encode_model(self.inner.measurement_model),
                                               "default_timeout_s": self.inner.default_timeout_s})
         self.recorder.log(TOPIC_CAMERA_CALIBRATION, camera_calibration(intr, stamp(time.time())))
 

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import RecordingFileError, ReplayExhaustedError, ReplayMismatchError
-from cellcal.devices.recording import decode_error, decode_frame, decode_info
+from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
+from cellcal.devices.recording import decode_error, decode_frame, decode_info, decode_model
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
 from .state import decoded, load_recording, replay_state
@@ -32,6 +33,13 @@ class ReplayCamera(Camera3D):
     The capture position carries over a close/connect (a recording of a reconnect
     replays as one stream); :meth:`rewind` starts over.
 
+    The camera states the measurement model the recorded camera stated at its first
+    connect, with the source it had (the device, the backend, a ``[camera.model]``
+    table: a replay is that camera again; ADR 0032), and each replayed frame carries
+    the model it was recorded with. A recording of format 1 (none recorded) replays as
+    ``unknown``; a malformed recorded model is a :class:`RecordingFileError` naming the
+    file and the key, raised when the backend is built.
+
     Config (``[camera]`` table): ``backend = "replay"``, ``file = "session.mcap"``
     (relative to the configuration file's directory).
     """
@@ -51,6 +59,10 @@ class ReplayCamera(Camera3D):
         events = sorted(int(c.get("event", 0)) for c in self.recording.arm_calls if c.get("method") == "move_linear")
         #: Moves recorded before each capture.
         self._moves_before = [bisect.bisect_left(events, int(c.get("event", 0))) for c in self.recording.captures]
+        infos = self.recording.camera_infos
+        recorded = infos[0].get("measurement_model") if infos else None
+        self._model = (UNKNOWN_MODEL if recorded is None else
+                       decoded(self.recording, lambda: decode_model(recorded, "camera_info.measurement_model")))
 
     @property
     def remaining(self) -> int:
@@ -73,6 +85,9 @@ class ReplayCamera(Camera3D):
 
     def _close(self) -> None:
         pass
+
+    def _measurement_model(self) -> MeasurementModel:
+        return self._model
 
     def _info(self) -> DeviceInfo:
         assert self._device_info is not None  # set by _connect
