@@ -14,10 +14,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from numpy.typing import ArrayLike
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings, check_gates, fit_full_frame
+from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.paper import GridEstimate, error_pct, grid_estimates, nominal_model
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
@@ -162,7 +164,8 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
 
 
 def measure_full_frame(frames: Sequence[Frame], settings: FullFrameSettings | None = None, *,
-                       expected: ExpectedGeometry | None = None, check: bool = True
+                       expected: ExpectedGeometry | None = None, check: bool = True,
+                       region: NDArray[np.bool_] | None = None, expected_plane: ExpectedPlane | None = None,
                        ) -> tuple[Measurement, FullFrameResult]:
     """The ``full_frame`` method on the frames of one pose.
 
@@ -171,6 +174,10 @@ def measure_full_frame(frames: Sequence[Frame], settings: FullFrameSettings | No
         settings: The ``[full_frame]`` settings; None: defaults.
         expected: Expected geometry, to compute the row's error.
         check: Raise if a quality gate fails.
+        region: Region of interest, (H, W) bool mask of the frames' pixels: the fit and its
+            gates see only these pixels; None: the whole image.
+        expected_plane: The plane to look for (camera frame) and how far the answer may be
+            from it (gate ``expected_plane``); None: the whole image decides.
 
     Returns:
         The summary row (``perimeter_px`` None) and the full result.
@@ -181,7 +188,9 @@ def measure_full_frame(frames: Sequence[Frame], settings: FullFrameSettings | No
     """
     if not frames:
         raise CalibrationError("no frames captured")
-    res = fit_full_frame(list(frames), settings)
+    search: dict[str, Any] = {} if region is None and expected_plane is None else \
+        {"region": region, "expected": expected_plane}   # TRANSITIONAL until the fit takes both
+    res = fit_full_frame(list(frames), settings, **search)
     if check:
         check_gates(res, settings)
     m = Measurement(FULL_FRAME, None, res.angle_rad, res.angle_sigma_rad, res.tilt_x_rad, res.tilt_y_rad,
@@ -189,14 +198,36 @@ def measure_full_frame(frames: Sequence[Frame], settings: FullFrameSettings | No
     return _with_error(m, expected), res
 
 
+def expected_plane_document(expected_plane: ExpectedPlane | None, plane: Plane) -> dict[str, Any] | None:
+    """The ``expected_plane`` the fit searched near and how far the fitted ``plane`` is from it (JSON, rad, m).
+
+    Keys: ``plane_cam`` (camera frame), ``angle_tolerance_rad``, ``offset_tolerance_m``,
+    ``departure_angle_rad`` / ``departure_offset_m`` of the fitted plane and ``accepted``
+    (within both tolerances); None without an expected plane.
+    """
+    if expected_plane is None:
+        return None
+    angle_rad, offset_m = expected_plane.departure(plane)
+    return {
+        "plane_cam": expected_plane.plane.to_dict(),
+        "angle_tolerance_rad": expected_plane.angle_tolerance_rad,
+        "offset_tolerance_m": expected_plane.offset_tolerance_m,
+        "departure_angle_rad": angle_rad,
+        "departure_offset_m": offset_m,
+        "accepted": expected_plane.accepts(plane),
+    }
+
+
 def full_frame_document(result: FullFrameResult, camera_in_base: Pose,
-                        expected: ExpectedGeometry | None = None) -> dict[str, Any]:
+                        expected: ExpectedGeometry | None = None, *,
+                        expected_plane: ExpectedPlane | None = None) -> dict[str, Any]:
     """The pose record's ``full_frame`` section (JSON form, degrees and metres).
 
     :meth:`FullFrameResult.to_dict` plus ``plane_base`` (the plane in the base frame via
-    ``camera_in_base = T_base_flange @ T_flange_camera``) and, with an expected geometry,
-    ``error`` (estimate minus expected) and ``expected_in_ci`` (whether each interval
-    holds the expected value). The expected geometry comes from the arm's *reported* pose:
+    ``camera_in_base = T_base_flange @ T_flange_camera``), ``expected_plane``
+    (:func:`expected_plane_document`, radians and metres; None without a search) and, with
+    an expected geometry, ``error`` (estimate minus expected) and ``expected_in_ci``
+    (whether each interval holds the expected value). The expected geometry comes from the arm's *reported* pose:
     its read-back error (e.g. 0.1 mm on an xArm) can exceed the height interval (~0.01 mm
     on the sim), so ``expected_in_ci["height_m"]`` is often False through no fault of the
     camera; the angles are not affected by a translation error.
@@ -204,6 +235,7 @@ def full_frame_document(result: FullFrameResult, camera_in_base: Pose,
     out = result.to_dict()
     out["normal_offset_covariance"] = result.normal_offset_covariance.tolist()  # for the hand-eye fit's weights
     out["plane_base"] = result.plane.transformed(camera_in_base).to_dict()
+    out["expected_plane"] = expected_plane_document(expected_plane, result.plane)
     if expected is not None:
         pairs = {
             "angle_deg": (result.angle_rad, expected.angle_rad, result.angle_ci_rad, True),
