@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cellcal.core.calibration.config import CellConfig, plan_flange_poses
+from cellcal.core.calibration.region import describe_region
 from cellcal.devices.pose import Pose
 from cellcal.devices.safety import SafetyLimits, format_pose
 
@@ -81,6 +82,16 @@ def describe(check: MoveCheck, n_moves: int, limits: SafetyLimits, speed_m_s: fl
     return f"{head}; checks: " + ", ".join(checks)
 
 
+def describe_search(config: CellConfig) -> str:
+    """Where the full-frame fit will look (human text: degrees, millimetres): its region and expected plane."""
+    if "full_frame" not in config.plan.methods:
+        return "no full-frame fit"
+    ref = config.search_reference
+    near = "no expected plane" if ref is None else \
+        f"near [reference] within {ref.search_tolerance_deg:g} deg / {1000 * ref.search_tolerance_m:g} mm"
+    return f"full-frame fit over the {describe_region(config.region)}, {near}"
+
+
 def dry_run(config: CellConfig, emit: Callable[[str], None] = print) -> list[MoveCheck]:
     """Print every move of the plan with its checks; touch no device.
 
@@ -94,7 +105,8 @@ def dry_run(config: CellConfig, emit: Callable[[str], None] = print) -> list[Mov
     limits = config.safety_limits()
     poses = plan_flange_poses(config)
     emit(f"dry run of {config.source} (cell '{config.cell.name}'): {len(poses)} moves at "
-         f"{plan.speed_m_s:g} m/s, {plan.acceleration_m_s2:g} m/s^2; no device is connected, nothing moves")
+         f"{plan.speed_m_s:g} m/s, {plan.acceleration_m_s2:g} m/s^2; {describe_search(config)}; "
+         "no device is connected, nothing moves")
     checks = check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2)
     for check in checks:
         emit(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2))
@@ -105,4 +117,4 @@ def dry_run(config: CellConfig, emit: Callable[[str], None] = print) -> list[Mov
     return checks
 
 
-__all__ = ["MoveCheck", "check_moves", "describe", "dry_run"]
+__all__ = ["MoveCheck", "check_moves", "describe", "describe_search", "dry_run"]

@@ -109,7 +109,7 @@ def region_mask(region: RegionSection, intrinsics: Intrinsics, camera_in_base: P
     if region.box_min_m is not None and region.box_max_m is not None:
         mask &= box_mask(intrinsics, camera_in_base, region.box_min_m, region.box_max_m)
     if not mask.any():
-        raise CalibrationError(f"the region of interest ([region] {describe_region(region)}) holds no pixel "
+        raise CalibrationError(f"the region of interest ([region]: {describe_region(region)}) holds no pixel "
                                f"of the {intrinsics.width}x{intrinsics.height} image at this pose")
     return mask
 
@@ -123,7 +123,7 @@ def describe_region(region: RegionSection) -> str:
         lo = ", ".join(f"{1000 * x:.0f}" for x in region.box_min_m)
         hi = ", ".join(f"{1000 * x:.0f}" for x in region.box_max_m)
         parts.append(f"base-frame box [{lo}]..[{hi}] mm")
-    return " and ".join(parts) or "whole image"
+    return " within the ".join(parts) or "whole image"
 
 
 def region_document(region: RegionSection, mask: BoolArray | None) -> dict[str, Any] | None:

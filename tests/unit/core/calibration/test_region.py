@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from cellcal.core.calibration.config import RegionSection, look_at_pose, parse_config
+from cellcal.core.calibration.dryrun import dry_run
 from cellcal.core.calibration.region import box_mask, polygon_mask, region_document, region_mask
 from cellcal.devices.errors import CalibrationError, ConfigError
 from cellcal.devices.geometry.camera_model import pixel_grid_rays, project
@@ -176,3 +177,18 @@ def test_polygon_and_box_together_give_the_pixels_in_both() -> None:
     assert doc is not None and doc["n_pixels"] == int(mask.sum())
     assert doc["fraction_of_image"] == pytest.approx(mask.sum() / (172 * 224))
     assert doc["box_min_m"] == [0.2, -0.1, -0.01] and doc["polygon_px"][1] == [111.0, 0.0]
+
+
+def test_the_dry_run_says_where_the_fit_will_look() -> None:
+    doc = copy.deepcopy(SIM)
+    doc["region"] = {"box_min_m": [0.1, -0.2, -0.01], "box_max_m": [0.5, 0.2, 0.01]}
+    doc["reference"].update(search_tolerance_deg=5.0, search_tolerance_m=0.02)
+    out: list[str] = []
+    dry_run(parse_config(doc, "x"), emit=out.append)
+    assert ("; full-frame fit over the base-frame box [100, -200, -10]..[500, 200, 10] mm, near [reference] "
+            "within 5 deg / 20 mm; no device is connected") in out[0]
+    doc["reference"]["search"] = False
+    del doc["region"]
+    out.clear()
+    dry_run(parse_config(doc, "x"), emit=out.append)
+    assert "; full-frame fit over the whole image, no expected plane;" in out[0]
