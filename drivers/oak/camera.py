@@ -2,8 +2,9 @@
 
 Stereo or ToF depth (uint16 mm, Z-depth) aligned to one socket, turned into radial
 distance and optical-frame XYZ (metres) with the device's own calibration, with the
-pixel-aligned grey image of the same capture as ``Frame.amplitude``. ``depthai`` is
-imported only in :meth:`OakCamera._connect`. Design: docs/adr/0015-vendor-drivers.md.
+pixel-aligned grey image of the same capture as ``Frame.amplitude``; the measurement model
+(baseline, focal length, subpixel bits, filters) read from the device (:mod:`.model`).
+``depthai`` is imported only in :meth:`OakCamera._connect`. Design: docs/adr/0015-vendor-drivers.md.
 """
 
 from __future__ import annotations
@@ -31,9 +32,11 @@ from cellcal.devices.errors import (
     UsbBackendMissingError,
 )
 from cellcal.devices.geometry.camera_model import pixel_grid_rays
+from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 from cellcal.drivers._blocking import BoundedCaller
 from cellcal.drivers.oak.grey import check_same_capture, grey_image
+from cellcal.drivers.oak.model import stereo_model, tof_model
 from cellcal.drivers.oak.usb_scan import find_usb_devices
 
 log = logging.getLogger(__name__)
@@ -156,6 +159,15 @@ class OakCamera(Camera3D):
     otherwise; a depth without its image within the timeout is a
     :class:`DeviceTimeoutError` like a missing depth.
 
+    Measurement model: ToF depth states ``tof`` at any time; stereo depth states ``stereo``
+    once connected (before: ``unknown``), read from the device by
+    :func:`~cellcal.drivers.oak.model.stereo_model` — the baseline depthai converts
+    disparity with, the rectified right camera's focal length at the matching resolution,
+    the subpixel fractional bits and the filters of the StereoDepth node's config after its
+    preset. A device reporting an unusable value (a baseline of 0, NaN, 2 m) fails
+    ``connect`` with a one-line :class:`DeviceError` naming it, unless a ``[camera.model]``
+    table states the model instead (then it is logged).
+
     Timeouts: ``dai.Device(...)`` (search and boot) and ``Pipeline.start()`` (pipeline
     upload) take no timeout parameter, so both run in a
     :class:`~cellcal.drivers._blocking.BoundedCaller` worker joined with the connect
@@ -180,6 +192,8 @@ class OakCamera(Camera3D):
         self._rays_over_z: NDArray[np.float64] | None = None
         self._clock_offset_s = 0.0
         self._identity: dict[str, str] = {}
+        self._stereo_config: Any = None
+        self._model: MeasurementModel = tof_model() if config.depth_source == "tof" else UNKNOWN_MODEL
 
     # ------------------------------------------------------------ discovery
     @classmethod
@@ -254,11 +268,14 @@ class OakCamera(Camera3D):
         self._identity = {"id": str(device.getDeviceId()), "platform": str(device.getPlatformAsString()),
                           "product": str(device.getProductName() or "")}
         socket = getattr(dai.CameraBoardSocket, cfg.align_socket)
-        self._intr = self._read_intrinsics(device.readCalibration(), socket)
+        calib = device.readCalibration()
+        self._intr = self._read_intrinsics(calib, socket)
         rays = pixel_grid_rays(self._intr)
         self._rays_over_z = rays / rays[..., 2:3]
         self._pipeline = dai.Pipeline(device)
         depth_out, image_out = self._build_graph(self._pipeline, socket)
+        if cfg.depth_source == "stereo":
+            self._read_model(calib)
         self._queue = self._output_queue(self._pipeline, depth_out, image_out)
         remaining = deadline - time.monotonic()
         if remaining <= 0:
@@ -283,6 +300,7 @@ class OakCamera(Camera3D):
         stereo = pipeline.create(dai.node.StereoDepth).build(
             left.requestFullResolutionOutput(fps=cfg.fps), right.requestFullResolutionOutput(fps=cfg.fps),
             presetMode=preset)
+        self._stereo_config = stereo.initialConfig            # the preset's settings: the model reads them
         if cfg.align_socket in MONO_STEREO_SOCKETS:
             return stereo.depth, self._align_to_rectified(pipeline, stereo, want_image)
         depth_out, color_out = self._align_to_colour(pipeline, stereo, socket)
@@ -327,6 +345,20 @@ class OakCamera(Camera3D):
         depth_out.link(sync.inputs[DEPTH_KEY])
         image_out.link(sync.inputs[IMAGE_KEY])
         return sync.out.createOutputQueue(maxSize=cfg.queue_size, blocking=False)
+
+    def _read_model(self, calib: Any) -> None:
+        """Read the stereo model from the device (see :mod:`.model`); a bad value fails unless overridden."""
+        try:
+            self._model = stereo_model(self._device, calib, self._stereo_config, self.config.stereo_preset,
+                                       self._identity.get("id", ""))
+        except DeviceError as exc:
+            if self.measurement_override is None:
+                raise
+            self._model = UNKNOWN_MODEL
+            log.warning("%s; using the [camera.model] table", exc)
+
+    def _measurement_model(self) -> MeasurementModel:
+        return self._model
 
     def _read_intrinsics(self, calib: Any, socket: Any) -> Intrinsics:
         dai, cfg = self._dai, self.config

@@ -48,15 +48,49 @@ RIGHT_K = [[790.0, 0.0, 650.5], [0.0, 791.0, 398.5], [0.0, 0.0, 1.0]]  # stereo 
 LEFT_K = [[810.0, 0.0, 630.0], [0.0, 811.0, 405.0], [0.0, 0.0, 1.0]]
 
 
-def calibration() -> Any:
+BASELINE_CM = 7.5                                                     # design (spec) translation, as depthai stores it
+MONO_SIZE = (1280, 800)                                               # the stereo sensors' full resolution
+
+
+def calibration(right_k: list[list[float]] = RIGHT_K, size: tuple[int, int] = MONO_SIZE,
+                spec_cm: float = BASELINE_CM, measured_cm: float = 7.46) -> Any:
+    """A real CalibrationHandler as an OAK-D's EEPROM holds it: intrinsics, stereo pair, left-to-right extrinsics."""
     calib = dai.CalibrationHandler()
     calib.setCameraIntrinsics(dai.CameraBoardSocket.CAM_A, CAL_K, 1280, 800)
     calib.setDistortionCoefficients(dai.CameraBoardSocket.CAM_A, CAL_D)
-    calib.setCameraIntrinsics(dai.CameraBoardSocket.CAM_B, LEFT_K, 1280, 800)
-    calib.setCameraIntrinsics(dai.CameraBoardSocket.CAM_C, RIGHT_K, 1280, 800)
+    calib.setCameraIntrinsics(dai.CameraBoardSocket.CAM_B, LEFT_K, *size)
+    calib.setCameraIntrinsics(dai.CameraBoardSocket.CAM_C, right_k, *size)
+    calib.setCameraExtrinsics(dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C, np.eye(3).tolist(),
+                              [-measured_cm, 0.0, 0.0], [-spec_cm, 0.0, 0.0])
     calib.setStereoLeft(dai.CameraBoardSocket.CAM_B, np.eye(3).tolist())
     calib.setStereoRight(dai.CameraBoardSocket.CAM_C, np.eye(3).tolist())
     return calib
+
+
+def camera_features(size: tuple[int, int] = MONO_SIZE) -> list[Any]:
+    """``Device.getConnectedCameraFeatures()`` of an OAK-D: colour CAM_A, mono CAM_B / CAM_C of ``size``."""
+    out = []
+    for socket, (w, h) in (("CAM_A", (1920, 1080)), ("CAM_B", size), ("CAM_C", size)):
+        f = dai.CameraFeatures()
+        f.socket, f.width, f.height = getattr(dai.CameraBoardSocket, socket), w, h
+        out.append(f)
+    return out
+
+
+def apply_rvc2_preset(config: Any, preset: Any) -> None:
+    """What depthai-core's ``StereoDepth::setRvc2ProfilePreset`` sets of the fields the model reads."""
+    name = preset.name
+    config.setLeftRightCheck(True)
+    if name in ("DEFAULT", "ROBOTICS"):
+        config.setExtendedDisparity(False)
+        config.setSubpixel(True)
+        config.setSubpixelFractionalBits(3)
+        config.setMedianFilter(dai.StereoDepthConfig.MedianFilter.KERNEL_7x7)
+    elif name in ("FACE", "HIGH_DETAIL"):
+        config.setExtendedDisparity(True)
+        config.setSubpixel(True)
+        config.setSubpixelFractionalBits(5)
+        config.setMedianFilter(dai.StereoDepthConfig.MedianFilter.MEDIAN_OFF)
 
 
 def depth_message(depth_mm: np.ndarray, seq: int) -> Any:
@@ -145,6 +179,9 @@ class FakeOak:
         self.device.getPlatform.return_value = dai.Platform.RVC2
         self.device.isClosed.return_value = False
         self.device.readCalibration.return_value = calibration()
+        self.device.getConnectedCameraFeatures.return_value = camera_features()
+        #: Run on the StereoDepth node's config after its preset (a test's own stereo settings).
+        self.stereo_settings: Any = None
         self.opened_with: list[Any] = []
         self.nodes: list[Any] = []
         self.outputs: list[Any] = []
@@ -181,6 +218,17 @@ class FakeOak:
         if node_cls is dai.node.StereoDepth:
             node.depth, node.rectifiedLeft, node.rectifiedRight = self._output(), self._output(), self._output()
             node.inputAlignTo = strict_autospec(dai.Node.Input)
+            node.initialConfig = dai.StereoDepthConfig()           # the real config message
+            check_overloads = node.build.side_effect
+
+            def build(*args: Any, **kwargs: Any) -> Any:           # the device applies the preset in build()
+                result = check_overloads(*args, **kwargs)
+                apply_rvc2_preset(node.initialConfig, kwargs.get("presetMode", dai.node.StereoDepth.PresetMode.DEFAULT))
+                if self.stereo_settings is not None:
+                    self.stereo_settings(node.initialConfig)
+                return result
+
+            node.build.side_effect = build
         if node_cls is dai.node.ToF:
             node.depth, node.amplitude = self._output(), self._output()
         if node_cls is dai.node.ImageAlign:
