@@ -32,7 +32,24 @@ from cellcal.devices.errors import (
     ProtocolError,
     VendorError,
 )
+from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
+
+#: The O3R 3D head's range noise, 1-sigma at 1 m and normal incidence, metres: ifm's O3R222
+#: data sheet quotes a repeatability of < 7 mm at distances below 1 m (the figure the simulated
+#: camera is built on, docs/adr/0014-simulated-cell.md), read as 2 sigma: 3.5 mm. A data-sheet
+#: figure, not a measurement: change it here and in drivers/o3r/camera.py (the two drivers stand
+#: alone, and state the same model; a test checks both) when a real capture gives a better one.
+O3R_SIGMA_AT_1M_M = 0.0035
+#: Exponent of the range in the O3R's noise law (sigma ~ range^1.5 fits the data sheet's
+#: 1-2 m and 4 m figures as 2 sigma; docs/adr/0014-simulated-cell.md).
+O3R_DISTANCE_EXPONENT = 1.5
+
+
+def o3r_measurement_model() -> MeasurementModel:
+    """The O3R head's ToF model from the data sheet (``source = "backend"``)."""
+    return MeasurementModel(kind="tof", sigma_at_1m_m=O3R_SIGMA_AT_1M_M, distance_exponent=O3R_DISTANCE_EXPONENT,
+                            source="backend", settings={"basis": "O3R222 data sheet repeatability, read as 2 sigma"})
 
 #: ifm3dpy's buffers this backend asks for.
 _BUFFERS = ("RADIAL_DISTANCE_IMAGE", "XYZ", "NORM_AMPLITUDE_IMAGE", "CONFIDENCE_IMAGE", "TOF_INFO")
@@ -238,6 +255,9 @@ class O3RIfm3dCamera(Camera3D):
         if device_s and abs(device_s - received) <= self.config.clock_tolerance_s:
             return device_s, "device"
         return received, "receive"
+
+    def _measurement_model(self) -> MeasurementModel:
+        return o3r_measurement_model()
 
     def _intrinsics(self) -> Intrinsics:
         if self._intr is None:
