@@ -11,21 +11,21 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import threading
-from collections.abc import Callable
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Self
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.base import BackendContext
-from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.geometry.camera_model import pixel_grid_rays
+from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
+from .camera_shell import SimCameraShell
 from .charuco import BoardTexture
 from .mixed_pixels import PixelReturns, blend_edges
 from .multipath import SurfacePoints, second_bounce
@@ -37,8 +37,9 @@ from .tof import (
     drift_offset_m,
     noise_sigma_m,
     relative_amplitude,
+    stated_tof_model,
 )
-from .world import SimWorld, world_from_context
+from .world import SimWorld
 
 __all__ = ["CONF_INVALID", "CONF_LOW_AMPLITUDE", "CONF_OUT_OF_RANGE", "CONF_SATURATED", "REPEATABILITY_SIGMAS",
            "SIGMA_AT_1M_M", "SIGMA_DISTANCE_EXPONENT", "SimCamera", "SimCameraConfig", "datasheet_sigma_m",
@@ -126,23 +127,20 @@ class SimCameraConfig:
                                  self.principal_offset_px, **dist)
 
 
-class SimCamera(Camera3D):
+class SimCamera(SimCameraShell):
     """Simulated O3R222-like ToF camera rendering the shared :class:`SimWorld`.
 
     Each pixel's unit ray comes from
     :func:`cellcal.devices.geometry.camera_model.pixel_grid_rays` of exactly the
     camera's intrinsics and the point is ``XYZ = ray * distance``, so a frame agrees
-    with its intrinsics exactly. Randomness comes from one numpy Generator per camera,
-    seeded from the config's ``seed`` or the world's seed, so equal seeds give
-    identical frame sequences. Frames are paced by the simulated clock: each capture
-    advances it to the next frame period (``1 / frame_rate_hz``) and stamps the frame
-    with the simulated time.
+    with its intrinsics exactly. Noise stream, frame pacing, resume and fault injection
+    (:attr:`fault_hook`; for ``o3r-emulated`` it runs on the emulator's server thread,
+    the place to inject a wire fault into that very frame) are
+    :class:`~cellcal.sims.camera_shell.SimCameraShell`'s.
 
-    Fault injection (tests): :attr:`fault_hook`, if set, is called as
-    ``hook("connect", n)`` on the n-th connect and ``hook("capture", n)`` before the
-    n-th frame is rendered, on the thread that captures (an emulator's server thread
-    for ``o3r-emulated``, where it is the place to inject a wire fault into that very
-    frame).
+    ``[camera] kind`` picks the sim camera: ``"tof"`` (default, this class) or ``"stereo"``
+    (:class:`~cellcal.sims.stereo.SimStereoCamera`, an OAK-like stereo pair with its own
+    keys, :class:`~cellcal.sims.stereo.SimStereoConfig`).
 
     Args:
         config: Backend config; None uses the defaults.
@@ -153,11 +151,29 @@ class SimCamera(Camera3D):
     backend_name = "sim"
     Config = SimCameraConfig
 
+    @classmethod
+    def from_config(cls, section: Mapping[str, Any] | None, context: BackendContext | None = None) -> Self:
+        """As :meth:`Camera3D.from_config`; ``kind = "stereo"`` builds a :class:`~cellcal.sims.stereo.SimStereoCamera`.
+
+        Raises:
+            ConfigError: On a bad key or value, naming it (``camera.kind`` for an unknown kind).
+        """
+        rest = dict(section or {})
+        kind = rest.pop("kind", "tof")
+        where = (context.section if context is not None and context.section else "camera")
+        if kind == "stereo" and cls is SimCamera:
+            from .stereo import SimStereoCamera  # the stereo module imports this one
+
+            return SimStereoCamera.from_config(section, context)  # type: ignore[return-value]
+        if kind != "tof":
+            raise ConfigError(f"must be one of tof, stereo, got {kind!r}", key=f"{where}.kind",
+                              source=context.source if context is not None else None)
+        return super().from_config(rest, context)
+
     def __init__(self, config: SimCameraConfig | None = None, context: BackendContext | None = None, *,
                  world: SimWorld | None = None) -> None:
-        super().__init__()
         self.config = config or SimCameraConfig()
-        self.world = world if world is not None else world_from_context(context)
+        super().__init__(context, world, self.config.seed, self.config.frame_rate_hz)
         self._intr = self.config.intrinsics()
         rays = pixel_grid_rays(self._intr)
         self._rays_cam = rays.reshape(-1, 3)
@@ -165,14 +181,7 @@ class SimCamera(Camera3D):
         self._rays_safe = np.where(self._ray_ok[:, None], self._rays_cam, np.array([0.0, 0.0, 1.0]))
         # Solid angle of each pixel, sr: cos^3 (angle to the optical axis) / (fx fy) (pinhole).
         self._solid_angle = np.where(self._ray_ok, self._rays_safe[:, 2] ** 3, 0.0) / (self._intr.fx * self._intr.fy)
-        self._rng = self.world.rng("camera", self.config.seed)
-        self._lock = threading.Lock()
-        self._sequence = 0
-        self._last_frame_elapsed: float | None = None
         self._cos_grazing = math.cos(math.radians(self.config.grazing_limit_deg))
-        #: Fault-injection hook ``hook(event, n)``, see the class docstring.
-        self.fault_hook: Callable[[str, int], None] | None = None
-        self.connects = 0
         self._board: BoardTexture | None = None
 
     # ------------------------------------------------------------------ rendering
@@ -228,6 +237,7 @@ class SimCamera(Camera3D):
             timestamp=self.world.clock.now() if timestamp is None else float(timestamp),
             sequence=int(sequence),
             confidence=conf.reshape(h, w),
+            measurement=self._measurement_model(),
         )
 
     def _cast(self, camera_pose: Pose) -> _Cast:
@@ -325,14 +335,8 @@ class SimCamera(Camera3D):
         return valid, conf
 
     # ------------------------------------------------------------------ backend hooks
-    def _connect(self, timeout: float) -> None:
-        self.connects += 1
-        if self.fault_hook is not None:
-            self.fault_hook("connect", self.connects)
+    def _on_connect(self) -> None:
         self._board_texture()  # a ChArUco board's sub-rays are traced once, here, not in the first capture
-
-    def _close(self) -> None:
-        return None
 
     def _info(self) -> DeviceInfo:
         return DeviceInfo(backend="sim", vendor="cellcal (simulated ifm)", model="O3R222 (simulated)",
@@ -343,37 +347,11 @@ class SimCamera(Camera3D):
     def _intrinsics(self) -> Intrinsics:
         return self._intr
 
-    def _capture(self, timeout: float) -> Frame:
-        if self.fault_hook is not None:
-            self.fault_hook("capture", self._sequence + 1)
-        with self._lock:
-            period = 1.0 / self.config.frame_rate_hz
-            clock = self.world.clock
-            if self._last_frame_elapsed is not None:
-                clock.advance_to(self._last_frame_elapsed + period)
-            self._last_frame_elapsed = clock.elapsed_s
-            self._sequence += 1
-            return self.render(self.world.camera_pose(), sequence=self._sequence)
-
-    def resume_state(self) -> dict[str, Any]:
-        """JSON-able state of the noise stream and frame pacing (restored when a run resumes)."""
-        with self._lock:
-            return {"rng": self._rng.bit_generator.state, "sequence": self._sequence,
-                    "last_frame_elapsed_s": self._last_frame_elapsed, "clock_elapsed_s": self.world.clock.elapsed_s}
-
-    def restore_resume_state(self, state: dict[str, Any]) -> None:
-        """Continue from :meth:`resume_state`'s output: the next frame draws the noise it would have."""
-        with self._lock:
-            self._rng.bit_generator.state = state["rng"]
-            self._sequence = int(state["sequence"])
-            last = state["last_frame_elapsed_s"]
-            self._last_frame_elapsed = None if last is None else float(last)
-            self.world.clock.advance_to(float(state["clock_elapsed_s"]))
-
-    @property
-    def sequence(self) -> int:
-        """Sequence number of the last captured frame (0 before the first)."""
-        return self._sequence
+    def _measurement_model(self) -> MeasurementModel:
+        """ToF, with the noise law this camera draws from (:func:`~cellcal.sims.tof.stated_tof_model`)."""
+        cfg = self.config
+        return stated_tof_model(self.world.artefacts, noise=cfg.noise, noise_scale=cfg.noise_scale,
+                                range_step_m=cfg.quantisation_m)
 
     def describe(self) -> dict[str, Any]:
         """Model parameters for reports."""

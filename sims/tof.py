@@ -8,13 +8,16 @@ docs/adr/0014-simulated-cell.md. Mixed pixels and multipath are computed in
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cellcal.devices.errors import ConfigError
+from cellcal.devices.measurement import MeasurementModel
 
 from .scene import DEFAULT_REFLECTIVITY
 
@@ -163,3 +166,62 @@ def drift_offset_m(config: ArtefactsConfig, elapsed_s: float) -> float:
     if not config.temperature_drift:
         return 0.0
     return config.drift_m * math.exp(-(config.warm_up_s + max(0.0, elapsed_s)) / config.drift_time_constant_s)
+
+
+#: Ranges (m) and incidence cosines over which the amplitude law is summarised as a power law.
+STATED_RANGE_M = (0.25, 2.0)
+STATED_COS = (0.5, 1.0)
+
+
+def stated_tof_model(config: ArtefactsConfig, *, noise: bool = True, noise_scale: float = 1.0,
+                     range_step_m: float = 0.0) -> MeasurementModel:
+    """The :class:`~cellcal.devices.measurement.MeasurementModel` the simulated ToF camera states.
+
+    The model's law is ``sigma_at_1m_m * (d / 1 m)^distance_exponent / sqrt(cos)``.
+
+    * ``amplitude_noise = false``: the camera draws exactly that law (:func:`datasheet_sigma_m`):
+      3.2 mm x ``noise_scale``, exponent 1.5.
+    * ``amplitude_noise = true`` (default): the camera draws :func:`noise_sigma_m` of the
+      return's amplitude, which no power law of the range matches everywhere. The stated law
+      is its least-squares fit in ``log sigma`` for the reference target (reflectivity 0.5)
+      over ``STATED_RANGE_M`` (0.25-2 m) and ``STATED_COS`` (incidence 0-60 deg), on a
+      16 x 6 grid; darker or brighter surfaces are noisier or quieter than it says.
+    * ``noise = false`` or ``noise_scale = 0``: ``sigma_at_1m_m`` is None (not stated), so
+      nothing expects noise of a noise-free frame and nothing is told "zero" of a noisy one.
+
+    ``range_step_m`` is the distance quantisation; ``multipath_m`` stays 0 (the sim's
+    multipath is a bias of the scene, not a per-pixel allowance; ADR 0014 gives its levels).
+
+    Args:
+        config: The world's ``[sim.artefacts]``.
+        noise: The camera's ``noise`` key.
+        noise_scale: The camera's ``noise_scale`` key.
+        range_step_m: The camera's ``quantisation_m``, metres.
+    """
+    settings: dict[str, Any] = {"noise_law": "amplitude" if config.amplitude_noise else "datasheet",
+                                "noise_scale": noise_scale}
+    if not noise or noise_scale <= 0.0:
+        return MeasurementModel(kind="tof", sigma_at_1m_m=None, range_step_m=range_step_m, source="sim",
+                                settings={**settings, "noise": False})
+    if not config.amplitude_noise:
+        return MeasurementModel(kind="tof", sigma_at_1m_m=SIGMA_AT_1M_M * noise_scale,
+                                distance_exponent=SIGMA_DISTANCE_EXPONENT, range_step_m=range_step_m,
+                                source="sim", settings=settings)
+    s1, p = _fit_power_law(config.noise_floor)
+    return MeasurementModel(kind="tof", sigma_at_1m_m=s1 * noise_scale, distance_exponent=p,
+                            range_step_m=range_step_m, source="sim",
+                            settings={**settings, "noise_floor": config.noise_floor,
+                                      "fitted_over_range_m": list(STATED_RANGE_M),
+                                      "fitted_over_cos": list(STATED_COS)})
+
+
+@functools.lru_cache(maxsize=16)
+def _fit_power_law(noise_floor: float) -> tuple[float, float]:
+    """``(sigma_at_1m_m, exponent)`` of the power law nearest :func:`noise_sigma_m` in log space."""
+    # the grid: ranges (log-spaced) x incidence cosines
+    d, c = np.meshgrid(np.geomspace(*STATED_RANGE_M, 16), np.linspace(*STATED_COS, 6))
+    sigma = noise_sigma_m(d, c, 1.0, REFERENCE_REFLECTIVITY, noise_floor)
+    # log sigma + 0.5 log cos = log s1 + p log d: linear least squares in (log s1, p)
+    a = np.column_stack([np.ones(d.size), np.log(d).ravel()])
+    coef, *_ = np.linalg.lstsq(a, (np.log(sigma) + 0.5 * np.log(c)).ravel(), rcond=None)
+    return float(np.exp(coef[0])), float(coef[1])

@@ -15,6 +15,7 @@ from typing import Literal
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import NotConnectedError
+from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.registry import default_registry
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
@@ -146,6 +147,13 @@ class EmulatedO3RCamera(Camera3D):
         frame = self.driver.capture(timeout)
         self._captured = True
         return frame
+
+    def _measurement_model(self) -> MeasurementModel:
+        """ToF: the model of the simulated camera behind the emulator (its noise law, 1 mm steps).
+
+        Frames whose driver states a model of its own keep the driver's (``Camera3D.capture``).
+        """
+        return self.sim.measurement_model
 
     def _intrinsics(self) -> Intrinsics:
         """The intrinsics exactly as the driver decodes them, without triggering a frame.
