@@ -89,7 +89,11 @@ class HandEyeSection:
     along the optical axis at every ``inclinations_deg`` (optical axis vs. plane), the tool
     pitched toward the base and rolled about its axis by every ``rolls_deg``. ``reach``
     (default: the arm's own) limits the orientations. ``given`` parameters are held at the
-    configured ``[mount]`` / ``[reference]`` values instead of estimated.
+    configured ``[mount]`` / ``[reference]`` values instead of estimated; ``given_sigma``
+    gives some of them a 1-sigma (m or rad) that enters the intervals (a prior). When the
+    residuals exceed the stated noise (chi2 test, each tail at ``noise_test_level``) the
+    intervals are scaled by sqrt(chi2/dof), and beyond ``max_interval_scale`` the fit is
+    refused (docs/adr/0030-handeye-noise-model.md).
     """
 
     inclinations_deg: tuple[float, ...] = field(default=(80.0, 65.0),
@@ -103,6 +107,9 @@ class HandEyeSection:
     arm_translation_sigma_m: float = field(default=2.5e-5, metadata={"ge": 0.0, "le": 0.01})
     arm_rotation_sigma_deg: float = field(default=0.0, metadata={"ge": 0.0, "le": 1.0})
     confidence: float = field(default=0.95, metadata={"ge": 0.5, "le": 0.9999})
+    given_sigma: dict[str, float] = field(default_factory=dict)  # parameter name -> 1-sigma, m or rad
+    noise_test_level: float = field(default=0.01, metadata={"ge": 1e-9, "le": 0.5})
+    max_interval_scale: float = field(default=10.0, metadata={"ge": 1.0, "le": 1e6})
     # the ChArUco board of --method charuco|both (the simulator prints it where [sim.charuco] says)
     charuco_squares: tuple[int, int] = field(default=(7, 5), metadata={"ge": 2, "le": 40})
     charuco_square_m: float = field(default=0.04, metadata={"gt": 0.001, "le": 1.0})
@@ -112,6 +119,13 @@ class HandEyeSection:
     def __post_init__(self) -> None:
         if len(set(self.given)) != len(self.given):
             raise ValueError("handeye.given lists a parameter twice")
+        for name, sigma in self.given_sigma.items():
+            key = f"handeye.given_sigma.{name}"
+            if name not in self.given:
+                raise ConfigError(f"not in handeye.given ({', '.join(self.given) or 'empty'}): only a given "
+                                  "parameter takes a sigma", key=key)
+            if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 < sigma <= 1.0:
+                raise ConfigError(f"expected a number > 0 and <= 1 (metres or radians), got {sigma!r}", key=key)
 
 
 @dataclass(frozen=True)

@@ -170,7 +170,8 @@ def charuco_document(config: CellConfig, method: str, plan_kind: str, measured: 
                  f"translation {_fmt([1000 * v for v in cmp['translation_m']], 3)} mm = "
                  f"{_fmt(cmp['in_sigmas'], 1)} combined sigmas; {'agree' if cmp['agree_95'] else 'DISAGREE'} at 95 %")
     return {**handeye_document(plane.mount, mount_covariance(plane), plane.confidence, config.mount.pose(),
-                               header=header, sections=sections), "report_lines": lines}
+                               header=header, sections=sections, z=plane.z, interval_scale=plane.interval_scale),
+            "report_lines": lines}
 
 
 def _fmt(values: Sequence[float], digits: int) -> str:

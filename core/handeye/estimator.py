@@ -2,22 +2,25 @@
 
 Residuals are whitened by each pose's full-frame covariance plus the arm's read-back
 noise (:func:`~cellcal.core.handeye.model.whitening`); ``scipy.optimize.least_squares``
-finds the nine (minus the given) parameters, the inverse of ``JᵀJ`` at the solution is
-their covariance, and intervals on ``translation_m`` / ``rpy_deg`` are propagated from it.
-The observability check runs before the fit: an unobservable plan raises (ADR 0018).
+finds the nine parameters minus the given ones held exact (given ones with a sigma are
+fitted with that prior); the inverse of ``JᵀJ`` at the solution is their covariance,
+scaled by chi2/dof when the residuals exceed the stated noise (:mod:`.noise`), and
+intervals on ``translation_m`` / ``rpy_deg`` are propagated from it. The observability
+check runs before the fit: an unobservable plan raises (ADR 0018, ADR 0030).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.handeye.given import check_given_sigma, given_notes
 from cellcal.core.handeye.model import (
     MOUNT_ROTATION,
     MOUNT_TRANSLATION,
@@ -27,6 +30,7 @@ from cellcal.core.handeye.model import (
     stack_poses,
     whitening,
 )
+from cellcal.core.handeye.noise import MAX_INTERVAL_SCALE, NOISE_TEST_LEVEL, NoiseCheck, check_noise, scaled_covariance
 from cellcal.core.handeye.observability import Observability, analyse
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.pose import Pose
@@ -58,13 +62,18 @@ class HandEyeEstimate:
     Attributes:
         mount: Estimated ``T_flange_camera``.
         plane: Estimated plane in the base frame.
-        parameters: The 9 parameter steps from the configured values (given ones 0).
-        covariance: 9x9 covariance of ``parameters`` (rows/columns of given ones 0).
-        given: Names of the parameters held at their configured values.
+        parameters: The 9 parameter steps from the configured values (given ones held exact 0).
+        covariance: 9x9 covariance of ``parameters`` the intervals use: scaled by chi2/dof when
+            ``noise.verdict`` is ``scaled``, with the given values' priors (rows/columns of
+            given ones held exact 0).
+        given: Names of the given parameters (held exact, or fitted with a prior when in ``given_sigma``).
         residuals: Per pose.
-        chi2: Sum of the poses' chi2; dof: residuals minus free parameters.
+        chi2: Sum of the poses' chi2 plus the priors' terms; dof: residuals minus estimated parameters.
         observability: Rank, condition and unseen directions.
         confidence: Level of the intervals.
+        noise: The chi2 test of the stated noise and the interval scale it implies.
+        given_sigma: 1-sigma of the given values fitted with a prior, m or rad.
+        absolute_covariance: ``covariance`` with the stated noise as it is (never larger than ``covariance``).
     """
 
     mount: Pose
@@ -77,13 +86,25 @@ class HandEyeEstimate:
     dof: int
     observability: Observability
     confidence: float
+    noise: NoiseCheck
+    given_sigma: Mapping[str, float] = field(default_factory=dict)
+    absolute_covariance: FloatArray | None = None
 
     @property
     def z(self) -> float:
-        """Half-width of the intervals in sigmas."""
-        from scipy.stats import norm
+        """Half-width of the intervals in sigmas (Student-t when the scale came from the data)."""
+        return self.noise.interval_z
 
-        return float(norm.ppf(0.5 + self.confidence / 2.0))
+    @property
+    def interval_scale(self) -> float:
+        """Factor the residuals put on the stated noise's 1-sigma (1 unless ``noise.verdict`` is ``scaled``)."""
+        return self.noise.interval_scale
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What the intervals rest on, in words: the noise test's finding and the given values."""
+        note = self.noise.note()
+        return (*([note] if note else []), *given_notes(self.given, self.given_sigma))
 
     @property
     def translation_sigma_m(self) -> FloatArray:
@@ -108,9 +129,12 @@ class HandEyeEstimate:
 
     def to_dict(self) -> dict[str, Any]:
         """The fit's figures (JSON form; the document adds the mount and the plane)."""
+        absolute = self.covariance if self.absolute_covariance is None else self.absolute_covariance
         return {"chi2": self.chi2, "dof": self.dof, "chi2_per_dof": self.chi2 / self.dof if self.dof else None,
-                "p_value": self.p_value, "given": list(self.given), "parameters": list(PARAMETERS),
-                "covariance": self.covariance.tolist()}
+                "p_value": self.p_value, "given": list(self.given), "given_sigma": dict(self.given_sigma),
+                "parameters": list(PARAMETERS), "covariance": self.covariance.tolist(),
+                "covariance_absolute": absolute.tolist(), "interval_scale": self.interval_scale,
+                "interval_z": self.z, "noise_model": self.noise.to_dict(), "notes": list(self.notes)}
 
 
 def rpy_with_sigma_deg(mount: Pose, rotation_covariance: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -213,42 +237,74 @@ def observability(observations: Sequence[PlaneObservation], nominal_mount: Pose,
 
 
 def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose, nominal_plane: Plane, *,
-                   given: Sequence[str] = (), arm_translation_sigma_m: float = 2.5e-5,
-                   arm_rotation_sigma_rad: float = 0.0, confidence: float = 0.95) -> HandEyeEstimate:
+                   given: Sequence[str] = (), given_sigma: Mapping[str, float] | None = None,
+                   arm_translation_sigma_m: float = 2.5e-5, arm_rotation_sigma_rad: float = 0.0,
+                   confidence: float = 0.95, noise_test_level: float = NOISE_TEST_LEVEL,
+                   max_interval_scale: float = MAX_INTERVAL_SCALE) -> HandEyeEstimate:
     """Estimate the mount and the base-frame plane from plane observations.
 
     Args:
         observations: One per pose (:func:`~cellcal.core.handeye.model.observation_from_pose`).
         nominal_mount: The configured ``T_flange_camera`` (start, and value of given mount parameters).
         nominal_plane: The configured base-frame plane (likewise); its normal is turned toward the cameras.
-        given: Parameter names (:data:`PARAMETERS`) held at their configured values.
+        given: Parameter names (:data:`PARAMETERS`) taken from the configured values instead of estimated.
+        given_sigma: 1-sigma of some given values (m for translations and the plane offset, rad for
+            turns and tilts): those are fitted with a Gaussian prior at the configured value; the
+            others are held exact.
         arm_translation_sigma_m: 1-sigma of the arm's position read-back per axis, m.
         arm_rotation_sigma_rad: 1-sigma of its orientation read-back per axis, rad.
         confidence: Level of the intervals.
+        noise_test_level: Level of each tail of the chi2 test of the stated noise.
+        max_interval_scale: Largest factor the residuals may put on the stated noise's 1-sigma.
 
     Raises:
-        CalibrationError: Fewer than 2 observations, or an unknown given name.
+        CalibrationError: Fewer than 2 observations, an unknown given name, or a sigma for a
+            parameter that is not given (or not > 0).
         CalibrationQualityError: Gate ``observability``: the plan leaves a parameter unobservable;
-            the message names it and the poses that would fix it.
+            the message names it and the poses that would fix it. Gate ``noise_model``: the
+            residuals are more than ``max_interval_scale`` times the stated noise.
     """
     from scipy.optimize import least_squares
 
+    sigmas = check_given_sigma(given, given_sigma or {})
     model, problem, normals_flange = _setup(observations, nominal_mount, nominal_plane, given,
                                             arm_translation_sigma_m, arm_rotation_sigma_rad)
     free = problem.free
-    x0 = np.zeros(len(free))
-    seen = analyse(jacobian(problem, x0), free, normals_flange)  # structural: before trusting any fit
+    seen = analyse(jacobian(problem, np.zeros(len(free))), free, normals_flange)  # structural: before any fit
     if not seen.observable:
         raise CalibrationQualityError("observability", seen.rank, seen.n_parameters, seen.message())
-    fit = least_squares(problem, x0, jac=lambda x: jacobian(problem, x), method="lm", xtol=1e-15, ftol=1e-15)
-    jac = jacobian(problem, fit.x)
-    cov_free = np.linalg.inv(jac.T @ jac)  # absolute weights: no rescaling by the residual variance
+    # the fitted parameters: the free ones and the given ones with a prior
+    fitted = [i for i, name in enumerate(PARAMETERS) if i in free or name in sigmas]
+    data = problem if len(fitted) == len(free) else _Problem(model, observations, fitted, arm_translation_sigma_m,
+                                                              arm_rotation_sigma_rad)
+    prior_info = np.array([0.0 if i in free else sigmas[PARAMETERS[i]] ** -2 for i in fitted])  # 1/sigma²
+
+    def residuals(x: FloatArray) -> FloatArray:
+        """Whitened data residuals, then the priors' (value - configured) / sigma."""
+        return np.concatenate([data(x), (x * np.sqrt(prior_info))[prior_info > 0]])
+
+    def residual_jacobian(x: FloatArray) -> FloatArray:
+        return np.vstack([jacobian(data, x), np.diag(np.sqrt(prior_info))[prior_info > 0]])
+
+    fit = least_squares(residuals, np.zeros(len(fitted)), jac=residual_jacobian, method="lm", xtol=1e-15,
+                        ftol=1e-15)
+    jac = jacobian(data, fit.x)
+    info_data, info_prior = jac.T @ jac, np.diag(prior_info)
+    chi2 = float(fit.fun @ fit.fun)
+    dof = len(fit.fun) - len(fitted)  # each prior adds a residual and a parameter: 3N - free
+    worst = _residuals(data, fit.x)
+    k = int(np.argmax([r.chi2 for r in worst]))
+    noise = check_noise(chi2, dof, confidence=confidence, level=noise_test_level,
+                        max_interval_scale=max_interval_scale,
+                        detail=f"largest residual at pose {k + 1} (chi2 {worst[k].chi2:.4g})")
     cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
-    cov[np.ix_(free, free)] = cov_free
-    params = problem.full(fit.x)
-    return HandEyeEstimate(model.mount(params), model.plane(params), params, cov, tuple(given),
-                           _residuals(problem, fit.x), float(fit.fun @ fit.fun), len(fit.fun) - len(free),
-                           analyse(jac, free, normals_flange), confidence)
+    absolute = np.zeros_like(cov)
+    absolute[np.ix_(fitted, fitted)] = scaled_covariance(info_data, info_prior, 1.0)  # the stated noise
+    cov[np.ix_(fitted, fitted)] = scaled_covariance(info_data, info_prior, noise.interval_scale)  # Birge-scaled
+    params = data.full(fit.x)
+    on_free = [fitted.index(i) for i in free]  # the free parameters' columns, for the observability report
+    return HandEyeEstimate(model.mount(params), model.plane(params), params, cov, tuple(given), worst, chi2, dof,
+                           analyse(jac[:, on_free], free, normals_flange), confidence, noise, sigmas, absolute)
 
 
 def _residuals(problem: _Problem, x: FloatArray) -> tuple[PoseResidual, ...]:

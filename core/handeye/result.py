@@ -42,15 +42,18 @@ def interval_z(confidence: float) -> float:
     return float(norm.ppf(0.5 + confidence / 2.0))
 
 
-def mount_section(mount: Pose, covariance: np.ndarray, confidence: float) -> dict[str, Any]:
+def mount_section(mount: Pose, covariance: np.ndarray, confidence: float, *, z: float | None = None,
+                  interval_scale: float = 1.0) -> dict[str, Any]:
     """The ``mount`` entry: value, 1-sigma and intervals as in ``[mount]``; the rotation's sigma per flange axis.
 
     Args:
         mount: ``T_flange_camera``.
-        covariance: 6x6 of (turn about the flange x, y, z, rad; translation, m).
+        covariance: 6x6 of (turn about the flange x, y, z, rad; translation, m), as the intervals use it.
         confidence: Level of the intervals.
+        z: Half-width of the intervals in sigmas (default: the normal quantile of ``confidence``).
+        interval_scale: Factor the residuals put on the stated noise's sigmas (1: the stated noise holds).
     """
-    z = interval_z(confidence)
+    z = interval_z(confidence) if z is None else z
     t = mount.translation
     t_sigma = np.sqrt(np.diag(covariance)[3:6])
     rpy, rpy_sigma = rpy_with_sigma_deg(mount, covariance[:3, :3])
@@ -58,11 +61,12 @@ def mount_section(mount: Pose, covariance: np.ndarray, confidence: float) -> dic
             "translation_sigma_m": t_sigma.tolist(), "rpy_sigma_deg": rpy_sigma.tolist(),
             "translation_ci_m": _interval(t, t_sigma, z), "rpy_ci_deg": _interval(rpy, rpy_sigma, z),
             "rotation_sigma_deg_about_flange_xyz": np.degrees(np.sqrt(np.diag(covariance)[:3])).tolist(),
-            "confidence": confidence, "interval_z": z, "pose": mount.to_dict()}
+            "confidence": confidence, "interval_z": z, "interval_scale": interval_scale, "pose": mount.to_dict()}
 
 
 def plane_sections(estimate: HandEyeEstimate, flanges: Sequence[Pose]) -> dict[str, Any]:
-    """The plane method's entries: the base-frame plane, the fit, observability and per-pose residuals."""
+    """The plane method's entries: the base-frame plane, the fit (with its noise verdict and notes),
+    observability and per-pose residuals."""
     cov = estimate.covariance
     poses = [{"index": i, "reported_flange_pose": f.to_dict(), "residual": {
         "normal_deg": r.normal_deg, "offset_m": r.offset_m, "chi2": r.chi2}}
@@ -73,17 +77,19 @@ def plane_sections(estimate: HandEyeEstimate, flanges: Sequence[Pose]) -> dict[s
 
 
 def handeye_document(mount: Pose, covariance: np.ndarray, confidence: float, configured: Pose, *,
-                     header: Mapping[str, Any], sections: Mapping[str, Any]) -> dict[str, Any]:
+                     header: Mapping[str, Any], sections: Mapping[str, Any], z: float | None = None,
+                     interval_scale: float = 1.0) -> dict[str, Any]:
     """The ``handeye.json`` document.
 
     Args:
         mount: The estimated ``T_flange_camera``; covariance: 6x6 as in :func:`mount_section`.
-        confidence: Level of the intervals.
+        confidence: Level of the intervals; z, interval_scale: as in :func:`mount_section`.
         configured: The configured ``[mount]``.
         header: Provenance (version, time, config source, plan kind, method).
         sections: The method's entries (:func:`plane_sections`, the ChArUco results, the comparison).
     """
-    return {"schema": HANDEYE_SCHEMA, **header, "mount": mount_section(mount, covariance, confidence),
+    mount_entry = mount_section(mount, covariance, confidence, z=z, interval_scale=interval_scale)
+    return {"schema": HANDEYE_SCHEMA, **header, "mount": mount_entry,
             "configured_mount": {"translation_m": configured.translation.tolist(),
                                  "rpy_deg": np.degrees(configured.as_xyz_rpy()[3:]).tolist()},
             "difference_from_configured": mount_difference(mount, configured), **sections}
@@ -109,20 +115,24 @@ def _plane_lines(document: Mapping[str, Any], z: float) -> list[str]:
         return []
     plane, fit, seen = document["plane_base"], document["fit"], document["observability"]
     worst = max(document["poses"], key=lambda p: p["residual"]["chi2"])
+    p_value = "n/a" if fit["p_value"] is None or math.isnan(fit["p_value"]) else f"{fit['p_value']:.2g}"
     return [f"plane (base frame): normal {_triple(plane['normal'], '.6f')}, offset "
             f"{1000 * plane['offset_m']:+.3f} mm ± {1000 * plane['offset_sigma_m'] * z:.3f} mm",
-            f"fit: chi2 {fit['chi2']:.1f} over {fit['dof']} dof (p = {fit['p_value']:.2f}); {seen['rank']}/"
+            f"fit: chi2 {fit['chi2']:.1f} over {fit['dof']} dof (p = {p_value}); {seen['rank']}/"
             f"{seen['n_parameters']} parameters observable, condition {seen['condition']:.3g}",
             f"residuals: largest at pose {worst['index'] + 1}: normal {worst['residual']['normal_deg']:.4f} deg, "
-            f"offset {1000 * worst['residual']['offset_m']:+.3f} mm (chi2 {worst['residual']['chi2']:.1f})"]
+            f"offset {1000 * worst['residual']['offset_m']:+.3f} mm (chi2 {worst['residual']['chi2']:.1f})",
+            *(f"note: {note}" for note in fit.get("notes", []))]
 
 
 def format_report(document: Mapping[str, Any]) -> str:
     """The terminal report: the estimate with intervals, fit, residuals, difference, the ``[mount]`` table."""
     m = document["mount"]
     z = m["interval_z"]
+    scale = m.get("interval_scale", 1.0)
+    scaled = f", scaled by {scale:.2f} for the residuals (see note)" if scale > 1.0 else ""
     lines = [f"mount (camera in the flange frame) by the {document['method']} method, "
-             f"{round(100 * m['confidence'])} % intervals:"]
+             f"{round(100 * m['confidence'])} % intervals{scaled}:"]
     for axis, value, sigma in zip("xyz", m["translation_m"], m["translation_sigma_m"], strict=True):
         lines.append(f"  t{axis}    {1000 * value:+10.3f} mm  ± {1000 * sigma * z:.3f} mm")
     for name, value, sigma in zip(("roll", "pitch", "yaw"), m["rpy_deg"], m["rpy_sigma_deg"], strict=True):

@@ -93,12 +93,13 @@ def estimate_from_document(config: CellConfig, document: Mapping[str, Any]) -> H
     he = config.handeye
     observations = [observation_from_pose(pose) for pose in document["poses"]]
     return estimate_mount(observations, config.mount.pose(), reference_plane(config), given=he.given,
-                          arm_translation_sigma_m=he.arm_translation_sigma_m,
-                          arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence)
+                          given_sigma=he.given_sigma, arm_translation_sigma_m=he.arm_translation_sigma_m,
+                          arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence,
+                          noise_test_level=he.noise_test_level, max_interval_scale=he.max_interval_scale)
 
 
 def mount_covariance(estimate: HandEyeEstimate) -> np.ndarray:
-    """The 6x6 covariance of the mount (turn about the flange axes, rad; translation, m)."""
+    """The 6x6 covariance of the mount (turn about the flange axes, rad; translation, m) the intervals use."""
     return estimate.covariance[:6, :6]
 
 
@@ -116,7 +117,8 @@ def run_handeye(calibrator: Calibrator, out_dir: str | Path, *, plan_kind: str, 
 
     Raises:
         CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`; CalibrationQualityError
-            (gate ``observability``) if the measured poses leave a parameter unobservable.
+            (gate ``observability``) if the measured poses leave a parameter unobservable, (gate
+            ``noise_model``) if their residuals are far beyond the stated noise.
     """
     out = Path(out_dir) / HANDEYE_FILENAME
     journal = journal_path(out)
@@ -130,7 +132,8 @@ def run_handeye(calibrator: Calibrator, out_dir: str | Path, *, plan_kind: str, 
                   "commanded_flange_poses": [p.to_dict() for p in calibrator.poses],
                   **({"resumed_poses": measured["resumed_poses"]} if "resumed_poses" in measured else {})}
         document = handeye_document(estimate.mount, mount_covariance(estimate), estimate.confidence,
-                                    config.mount.pose(), header=header, sections=plane_sections(estimate, flanges))
+                                    config.mount.pose(), header=header, sections=plane_sections(estimate, flanges),
+                                    z=estimate.z, interval_scale=estimate.interval_scale)
         write_json_atomic(out, document)
         remove_journal(journal)
     return document

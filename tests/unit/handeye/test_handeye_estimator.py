@@ -12,7 +12,7 @@ from repo_paths import REPO_ROOT
 
 from cellcal.core.calibration.config import load_config
 from cellcal.core.handeye import PARAMETERS, auto_plan, estimate_mount
-from cellcal.devices.errors import CalibrationError
+from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.pose import Pose
 
 CONFIG = REPO_ROOT / "configs" / "sim_handeye.toml"
@@ -66,13 +66,19 @@ def test_intervals_hold_the_truth_95_percent_of_the_time(flanges: list[Pose]) ->
 
 
 def test_a_given_parameter_stays_at_its_configured_value(flanges: list[Pose]) -> None:
-    est = estimate_mount(plane_views(flanges, np.random.default_rng(5)), NOMINAL_MOUNT, TABLE,
-                         given=("plane_offset", "mount_z"))
+    views = plane_views(flanges, np.random.default_rng(5))
+    est = estimate_mount(views, NOMINAL_MOUNT, TABLE, given=("plane_offset", "mount_z"), max_interval_scale=1e3)
     assert est.plane.offset_m == TABLE.offset_m and est.mount.translation[2] == NOMINAL_MOUNT.translation[2]
     assert est.covariance[8, 8] == 0.0 and est.covariance[5, 5] == 0.0
     assert est.observability.n_parameters == 7 and est.dof == 3 * len(flanges) - 7
-    # the truth differs from the given values, so the fit absorbs it: chi2 far above its dof
-    assert est.chi2 > 10 * est.dof
+    # the truth differs from the given values (1.2 mm, 3 mm), so the fit absorbs it: chi2 far above its dof,
+    # and the intervals are scaled by sqrt(chi2/dof) and say that they rest on the given values
+    assert est.chi2 > 10 * est.dof and est.noise.verdict == "scaled"
+    assert est.interval_scale == pytest.approx(math.sqrt(est.chi2 / est.dof))
+    assert any("plane_offset, mount_z held exact" in note for note in est.notes)
+    # by default residuals 74x the stated noise are refused, naming the gate
+    with pytest.raises(CalibrationQualityError, match=r"'noise_model' failed: 74\.4"):
+        estimate_mount(views, NOMINAL_MOUNT, TABLE, given=("plane_offset", "mount_z"))
 
 
 def test_agrees_with_opencv_calibrate_hand_eye_on_the_same_poses(flanges: list[Pose]) -> None:
