@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import json
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -20,11 +21,13 @@ import numpy as np
 
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CellcalError, DeviceTimeoutError
+from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.types import Frame, Intrinsics
 
 from ._runner import (
     Check,
     ConformanceReport,
+    Violation,
     check_bad_connect_timeouts,
     check_bad_timeouts,
     check_stalled,
@@ -51,6 +54,10 @@ class CameraOptions(CommonOptions):
         reprojection_tolerance_px: Allowed distance, pixels, between a valid pixel and its
             xyz projected through the intrinsics (95th percentile); None skips that check.
         min_valid_fraction: Fraction of valid pixels a frame of the test scene must have.
+        model_unknown_reason: Why the backend states no measurement model (``unknown``): a
+            camera that cannot tell how it measures opts out of that part of
+            ``camera.measurement-model`` by saying why here (users then state the model in
+            ``[camera.model]``); None (default) requires a stated model.
 
     The shared attributes (``connect_timeout_s``, ``short_timeout_s``, ``timing_slack_s``,
     ``check_resources``) are described in :class:`CommonOptions`.
@@ -62,9 +69,14 @@ class CameraOptions(CommonOptions):
     xyz_tolerance_m: float = 1e-4
     reprojection_tolerance_px: float | None = 0.5
     min_valid_fraction: float = 0.01
+    model_unknown_reason: str | None = None
 
     def __post_init__(self) -> None:
         self._require_positive("capture_timeout_s", "xyz_tolerance_m")
+        if self.model_unknown_reason is not None and not (isinstance(self.model_unknown_reason, str)
+                                                          and self.model_unknown_reason.strip()):
+            raise CellcalError("CameraOptions.model_unknown_reason must say why the camera states no model "
+                               f"(a non-empty string), got {self.model_unknown_reason!r}")
         lo, hi = self.distance_range_m
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
             raise CellcalError(f"CameraOptions.distance_range_m must be 0 <= min < max metres, got {(lo, hi)}")
@@ -173,6 +185,41 @@ def _sequence(factory: Factory, o: CameraOptions) -> None:
            f"sequence numbers of consecutive captures must increase (a new frame each time), got {seq}")
 
 
+#: What a vendor is told when the camera states no measurement model.
+HOW_TO_STATE_A_MODEL = (
+    "override Camera3D._measurement_model() to return a MeasurementModel: kind 'tof' with sigma_at_1m_m "
+    "(and distance_exponent), or 'stereo' / 'structured_light' with baseline_m, focal_px and subpixel_bits, "
+    "read from the device where it can tell them (source 'device') or the backend's own figures (source "
+    "'backend'); see docs/extending.md, 'Stating how the camera measures'. A camera that cannot tell opts out "
+    "with CameraOptions(model_unknown_reason='why')")
+
+
+def _measurement_model(factory: Factory, o: CameraOptions) -> None:
+    with connected(factory, Camera3D, o.connect_timeout_s) as cam:
+        own = cam._measurement_model()       # the backend's own statement, not a [camera.model] override
+        expect(isinstance(own, MeasurementModel),
+               f"_measurement_model() returned {type(own).__name__}, not a MeasurementModel")
+        if not own.known:
+            expect(o.model_unknown_reason is not None, f"the camera states no measurement model (kind 'unknown'); "
+                                                       f"{HOW_TO_STATE_A_MODEL}")
+        else:
+            expect(own.source != "unstated", f"the {own.kind} model names no source; set source='device' (read "
+                                             "from the device) or 'backend' (the backend's own figures)")
+        try:
+            text = json.dumps(own.to_dict(), allow_nan=False)
+            back = MeasurementModel.from_dict(json.loads(text), where="measurement_model")
+        except (TypeError, ValueError) as exc:   # ConfigError is a ValueError
+            raise Violation(f"the measurement model does not survive a recording (to_dict, JSON, from_dict): "
+                            f"{exc}") from None
+        expect(back == own and back.settings == own.settings,
+               "the measurement model changes through to_dict / from_dict (settings must be plain JSON data)")
+        for i, frame in enumerate(_capture_frames(cam, o, 2)):
+            stated = cam.measurement_model
+            expect(frame.measurement == stated,
+                   f"frame #{i} carries the model {frame.measurement.describe()!r}, the camera states "
+                   f"{stated.describe()!r}; a frame must carry the camera's model")
+
+
 # ---------------------------------------------------------------- timeouts and resources
 def _timeout_validation(factory: Factory, o: CameraOptions) -> None:
     with connected(factory, Camera3D, o.connect_timeout_s) as cam:
@@ -215,6 +262,8 @@ CAMERA_CHECKS: tuple[Check[Camera3D, CameraOptions], ...] = (
                                 "|xyz| == distance", _frame_units),
     Check("camera.frame-geometry", "xyz lies on its pixel's ray in the OpenCV camera frame", _frame_geometry),
     Check("camera.sequence", "consecutive captures give new frames with increasing epoch timestamps", _sequence),
+    Check("camera.measurement-model", "the camera states how it measures (a MeasurementModel with its source) "
+                                      "and every frame carries it", _measurement_model),
     Check("camera.timeout-validation", "a non-positive, NaN, infinite or non-number timeout is a clear CellcalError",
           _timeout_validation),
     Check("camera.timeout-bounded", "capture(timeout) returns a frame or raises DeviceTimeoutError in bounded time",

@@ -19,7 +19,7 @@ from cellcal.devices import ConfigError, DeviceConnectionError, DeviceTimeoutErr
 from cellcal.testing import CameraConformance, CameraOptions, check_camera
 
 from acme_cellcal import wire
-from acme_cellcal.camera import RANGE_M, AcmeZ1Camera
+from acme_cellcal.camera import RANGE_M, Z1_MODEL, AcmeZ1Camera
 from acme_cellcal.emulated import AcmeZ1EmulatedCamera
 from acme_cellcal.fake_device import FakeZ1, FakeZ1Settings
 
@@ -50,7 +50,20 @@ def test_kit_function_api_also_passes_at_low_frame_rate() -> None:
     # at 5 Hz a 0.25 s capture may time out: the kit accepts DeviceTimeoutError there, in bounded time
     with FakeZ1(FakeZ1Settings(frame_rate_hz=5.0)) as device:
         report = check_camera(lambda: camera_at(device), CameraOptions(distance_range_m=RANGE_M), quiet=True)
-    assert report.ok and report.backend == "acme-z1" and len(report.results) == 14
+    assert report.ok and report.backend == "acme-z1" and len(report.results) == 15
+
+
+def test_the_z1_states_its_model_and_the_frames_measure_up_to_it() -> None:
+    # a wall 1 m ahead, face on: every pixel's Z is 1 m + noise, sent in whole millimetres
+    with FakeZ1(FakeZ1Settings(plane_tilt_deg=0.0, plane_distance_m=1.0)) as device, camera_at(device) as cam:
+        frame = cam.capture(2.0)
+        model = cam.measurement_model
+    assert model == Z1_MODEL and model.kind == "tof" and model.source == "backend"
+    assert frame.measurement == model
+    z = frame.xyz[..., 2][frame.valid].astype(np.float64)
+    predicted = float(model.range_sigma_m(1.0))          # 1 mm noise and the 1 mm step's 0.29 mm: 1.041 mm
+    assert predicted == pytest.approx(math.sqrt(0.001 ** 2 + 0.001 ** 2 / 12))
+    assert z.size > 10_000 and np.std(z - 1.0) == pytest.approx(predicted, rel=0.05)
 
 
 def test_the_emulated_backend_passes_the_kit() -> None:

@@ -34,6 +34,7 @@ from cellcal.devices import (
     VendorError,
 )
 from cellcal.devices.errors import ConformanceError
+from cellcal.devices.measurement import MeasurementModel
 from cellcal.testing import ARM_RULES, CAMERA_RULES, ArmOptions, CameraOptions, check_arm, check_camera
 
 _release_leaks = threading.Event()
@@ -82,6 +83,16 @@ class ToyCamera(Camera3D):
         f = 0.004 if self.mutation == "focal-in-metres" else 30.0
         return Intrinsics(32, 24, f, f, 15.5, 11.5)
 
+    def _measurement_model(self) -> MeasurementModel:
+        m = self.mutation
+        if m == "states-no-model":
+            return super()._measurement_model()
+        if m == "returns-a-dict":
+            return {"kind": "tof"}  # type: ignore[return-value]
+        source = "unstated" if m == "model-without-source" else "backend"
+        settings: dict[str, Any] = {"mode": "near"} if m != "settings-not-json" else {"mode": {"near"}}
+        return MeasurementModel(kind="tof", sigma_at_1m_m=0.004, source=source, settings=settings)
+
     def _capture(self, timeout: float) -> Frame:
         m = self.mutation
         if m == "ignores-timeout" and timeout < 1.0:
@@ -106,8 +117,13 @@ class ToyCamera(Camera3D):
         if m != "stale-frames":
             self._seq += 1
         frame_intr = Intrinsics(32, 24, 31.0, 31.0, 15.5, 11.5) if m == "frame-intrinsics-differ" else intr
+        # a frame stamped with another model than the camera states (e.g. a stale one)
+        model = FRAME_MODEL_DIFFERS if m == "frame-model-differs" else MeasurementModel()
         return Frame(distance.astype(np.float32), xyz.astype(np.float32), np.ones(intr.shape, np.float32), valid,
-                     frame_intr, 1.7e9 + 0.05 * self._seq, self._seq)
+                     frame_intr, 1.7e9 + 0.05 * self._seq, self._seq, measurement=model)
+
+
+FRAME_MODEL_DIFFERS = MeasurementModel(kind="tof", sigma_at_1m_m=0.008, source="backend")
 
 
 class BypassingCamera(ToyCamera):
@@ -127,8 +143,8 @@ TOY_CAMERA_OPTIONS = CameraOptions(distance_range_m=(0.1, 5.0), **FAST)
 def test_correct_toy_camera_passes_every_rule() -> None:
     report = check_camera(ToyCamera, TOY_CAMERA_OPTIONS)
     assert report.ok and report.backend == "toy-cam"
-    assert [r.rule for r in report.results] == list(CAMERA_RULES) and len(CAMERA_RULES) == 14
-    assert str(report).startswith("camera backend toy-cam: 14/14 contract checks passed")
+    assert [r.rule for r in report.results] == list(CAMERA_RULES) and len(CAMERA_RULES) == 15
+    assert str(report).startswith("camera backend toy-cam: 15/15 contract checks passed")
 
 
 CAMERA_MUTANTS = {
@@ -143,6 +159,10 @@ CAMERA_MUTANTS = {
     "ignores-timeout": {"camera.timeout-bounded"},
     "builtin-timeout-error": {"camera.timeout-bounded"},
     "leaks-thread": {"camera.releases-resources"},
+    "states-no-model": {"camera.measurement-model"},
+    "model-without-source": {"camera.measurement-model"},
+    "settings-not-json": {"camera.measurement-model"},
+    "frame-model-differs": {"camera.measurement-model"},
 }
 
 
@@ -162,10 +182,36 @@ def test_failure_messages_say_what_was_wrong() -> None:
     assert "raised TimeoutError" in detail("builtin-timeout-error", "camera.timeout-bounded")
 
 
+def test_a_camera_stating_no_model_is_told_how_to_state_one_or_to_opt_out() -> None:
+    def detail(mutation: str, options: CameraOptions = TOY_CAMERA_OPTIONS) -> str:
+        report = check_camera(camera_mutant(mutation), options, only=["camera.measurement-model"],
+                              raise_on_failure=False, quiet=True)
+        return report.failures[0].detail if report.failures else ""
+
+    unknown = detail("states-no-model")
+    assert unknown.startswith("the camera states no measurement model (kind 'unknown'); override "
+                              "Camera3D._measurement_model() to return a MeasurementModel")
+    assert "docs/extending.md" in unknown and "CameraOptions(model_unknown_reason='why')" in unknown
+    opted_out = CameraOptions(model_unknown_reason="the Z1 cannot report its noise; users state [camera.model]",
+                              distance_range_m=(0.1, 5.0))
+    assert detail("states-no-model", opted_out) == ""          # the opt-out, with its reason, passes
+    assert detail("frame-model-differs", opted_out) != ""      # but frames must still carry the camera's model
+    with pytest.raises(CellcalError, match="model_unknown_reason must say why"):
+        CameraOptions(model_unknown_reason=" ")
+    assert "returned dict, not a MeasurementModel" in detail("returns-a-dict")
+    assert "names no source; set source='device'" in detail("model-without-source")
+    assert "does not survive a recording" in detail("settings-not-json")
+    assert detail("frame-model-differs") == ("frame #0 carries the model 'tof: range sigma 8 mm at 1 m, exponent 1.5, "
+                                             "multipath allowance 0 mm (backend)', the camera states 'tof: range "
+                                             "sigma 4 mm at 1 m, exponent 1.5, multipath allowance 0 mm (backend)'; "
+                                             "a frame must carry the camera's model")
+
+
 def test_bypassed_life_cycle_is_caught() -> None:
     report = check_camera(BypassingCamera, TOY_CAMERA_OPTIONS, raise_on_failure=False)
+    # ... and the frames it hands out skip the stamping of the camera's model
     assert {r.rule for r in report.failures} == {"camera.not-connected", "camera.use-after-close",
-                                                 "camera.timeout-validation"}
+                                                 "camera.timeout-validation", "camera.measurement-model"}
     (nc,) = [r for r in report.failures if r.rule == "camera.not-connected"]
     assert nc.detail == "capture() before connect() did not raise NotConnectedError"
 
@@ -174,7 +220,7 @@ def test_conformance_error_lists_every_failed_rule() -> None:
     with pytest.raises(ConformanceError) as err:
         check_camera(camera_mutant("frame-intrinsics-differ"), TOY_CAMERA_OPTIONS)
     lines = str(err.value).splitlines()
-    assert lines[0] == "toy-cam: 2 of 14 camera contract checks failed"
+    assert lines[0] == "toy-cam: 2 of 15 camera contract checks failed"
     assert [line.split(" contract rule ")[1].split()[0] for line in lines[1:]] == ["camera.frame-layout",
                                                                                     "camera.frame-geometry"]
     assert isinstance(err.value, AssertionError) and isinstance(err.value, CellcalError)
@@ -392,4 +438,4 @@ def test_function_api_works_without_pytest() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split("\n")[:2] == ["sim 14 True", "classes need pytest"]
+    assert out.stdout.split("\n")[:2] == ["sim 15 True", "classes need pytest"]

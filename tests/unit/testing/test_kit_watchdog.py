@@ -29,6 +29,7 @@ from cellcal.devices import (
     Pose,
     RobotArm,
 )
+from cellcal.devices.measurement import MeasurementModel
 from cellcal.testing import CAMERA_RULES, ArmOptions, CameraOptions, check_arm, check_camera
 
 pytest_plugins = ["pytester"]
@@ -63,10 +64,14 @@ class LinkCamera(Camera3D):
 
     backend_name = "link-cam"
     behaviour: ClassVar[str] = ""
+    model: ClassVar[MeasurementModel] = MeasurementModel(kind="tof", sigma_at_1m_m=0.004, source="backend")
 
     @dataclass(frozen=True)
     class Config:
         stalled: bool = False
+
+    def _measurement_model(self) -> MeasurementModel:
+        return self.model
 
     def __init__(self, config: Any = None, context: BackendContext | None = None):
         super().__init__()
@@ -119,7 +124,7 @@ def test_a_capture_that_never_returns_fails_one_rule_names_the_hook_and_the_kit_
     report = check_camera(cls, CameraOptions(watchdog_s=0.4, **FAST), raise_on_failure=False)
     took = time.monotonic() - t0
     # the first rule that captures hangs: capture(0.5 s) gets 0.5 + 0.4 s, then the kit moves on
-    assert took < 5.0                                         # not the 14 x 0.9 s of a hang per rule
+    assert took < 5.0                                         # not the 15 x 0.9 s of a hang per rule
     verdicts = {r.rule: ("pass" if r.passed else "skip" if r.skipped else "fail") for r in report.results}
     assert verdicts["camera.factory"] == verdicts["camera.not-connected"] == "pass"
     hung = report.results[2]
@@ -171,10 +176,10 @@ def test_a_malformed_frame_is_reported_once_under_frame_layout() -> None:
     skipped = [r.rule for r in report.results if r.skipped]
     # every rule that captures is skipped, pointing at frame-layout; the others still pass
     assert set(skipped) == {"camera.connect-idempotent", "camera.use-after-close", "camera.frame-units",
-                            "camera.frame-geometry", "camera.sequence", "camera.timeout-validation",
-                            "camera.timeout-bounded", "camera.releases-resources"}
+                            "camera.frame-geometry", "camera.sequence", "camera.measurement-model",
+                            "camera.timeout-validation", "camera.timeout-bounded", "camera.releases-resources"}
     assert all("reported under camera.frame-layout" in r.detail for r in report.results if r.skipped)
-    assert "1/14" not in str(report) and "5/14 contract checks passed, 8 skipped" in str(report)
+    assert "1/15" not in str(report) and "5/15 contract checks passed, 9 skipped" in str(report)
 
 
 PYTEST_MODULE = '''
@@ -207,12 +212,12 @@ def test_under_pytest_a_malformed_frame_fails_one_test_and_skips_the_rest_and_th
     pytester.syspathinsert(str(Path(__file__).parent))
     pytester.makepyfile(test_vendor=PYTEST_MODULE)
     result = pytester.runpytest("-p", "no:cacheprovider", "-rs", "-q")
-    # TestTransposed: frame-layout fails, 8 rules skip, 5 pass; TestIgnoresTimeout: only timeout-bounded fails
-    result.assert_outcomes(passed=5 + 13, failed=2, skipped=8)
+    # TestTransposed: frame-layout fails, 9 rules skip, 5 pass; TestIgnoresTimeout: only timeout-bounded fails
+    result.assert_outcomes(passed=5 + 14, failed=2, skipped=9)
     out = result.stdout.str()
     assert "TestTransposed.test_contract[camera.frame-layout]" in out
     assert "TestIgnoresTimeout.test_contract[camera.timeout-bounded]" in out and "the timeout is not honoured" in out
-    assert out.count("skipped: needs a well-formed frame") == 8
+    assert out.count("skipped: needs a well-formed frame") == 9
 
 
 class LinkArm(RobotArm):

@@ -13,6 +13,9 @@ What a backend does, in the order docs/extending.md walks through it:
 4. Errors and timeouts: every exchange is bounded by one deadline; a device that sends
    nothing is a DeviceTimeoutError, bytes off the protocol a ProtocolError, the
    device's error codes a VendorError.
+5. How it measures: ``_measurement_model()`` states the Z1's ToF model from its data
+   sheet; every frame ``capture()`` returns carries it (docs/extending.md, "Stating how
+   the camera measures").
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from cellcal.devices import (
     ProtocolError,
     VendorError,
 )
+from cellcal.devices.measurement import MeasurementModel
 from numpy.typing import NDArray
 
 from . import wire
@@ -53,6 +57,9 @@ class AcmeZ1Config:
 
 #: The working range of the Z1, metres (radial distance).
 RANGE_M = (0.2, 6.0)
+#: The Z1's data sheet: Z-depth noise 1 mm (1-sigma) over its whole range, sent in whole millimetres.
+Z1_MODEL = MeasurementModel(kind="tof", sigma_at_1m_m=0.001, distance_exponent=0.0, range_step_m=0.001,
+                            source="backend", settings={"depth_unit_m": 0.001})
 
 
 class AcmeZ1Camera(Camera3D):
@@ -111,6 +118,9 @@ class AcmeZ1Camera(Camera3D):
     def _intrinsics(self) -> Intrinsics:
         assert self._intr is not None
         return self._intr
+
+    def _measurement_model(self) -> MeasurementModel:
+        return Z1_MODEL
 
     # ------------------------------------------------------------ capture
     def _capture(self, timeout: float) -> Frame:

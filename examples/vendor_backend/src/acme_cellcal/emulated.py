@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from cellcal.devices import BackendContext, Camera3D, DeviceInfo, Frame, Intrinsics
+from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.scene_view import scene_view
 
-from .camera import AcmeZ1Camera, AcmeZ1Config
+from .camera import Z1_MODEL, AcmeZ1Camera, AcmeZ1Config
 from .fake_device import FakeZ1, FakeZ1Settings
 
 
@@ -72,6 +73,9 @@ class AcmeZ1EmulatedCamera(Camera3D):
     def _intrinsics(self) -> Intrinsics:
         assert self._camera is not None
         return self._camera.intrinsics
+
+    def _measurement_model(self) -> MeasurementModel:
+        return Z1_MODEL                          # what the real Z1 backend states; its frames carry it
 
     def _capture(self, timeout: float) -> Frame:
         assert self._camera is not None
