@@ -2,20 +2,43 @@
 
 Points are in the camera frame (OpenCV: x right, y down, z along the optical axis), metres,
 with the sensor at the origin; the fitted normal points toward the camera (``offset_m > 0``).
-Method and rationale: docs/adr/0007-full-frame-fit.md.
+Method and rationale: docs/adr/0007-full-frame-fit.md; region of interest, expected plane,
+the quantisation floor and the stereo seam: docs/adr/0028-honest-full-frame-fit.md.
+
+The stereo seam. Frames whose ``measurement.triangulating`` is true are fitted in disparity
+space by ``cellcal.core.methods.fullframe.disparity.fit_disparity(p, pixel_index, shape,
+model, settings, expected)`` with
+
+* ``p``: (3, N) float32 camera-frame points (metres) of the valid pixels in the region,
+  pooled over the frames (each pixel of each frame one point);
+* ``pixel_index``: (N,) flat index ``row * W + column`` of each point's pixel within its
+  own frame (the frames share one ``shape``);
+* ``shape``: ``(H, W)``; ``model``: the frames' :class:`MeasurementModel`; ``settings``:
+  the :class:`FullFrameSettings`; ``expected``: the :class:`ExpectedPlane` or None;
+
+returning an object with ``plane`` (:class:`Plane`, camera frame, normal toward the camera),
+``cov`` (3x3 covariance of ``(d_e1, d_e2, d_offset)`` with ``e1, e2 = basis(plane.normal)``
+of ``passes.py``, rad² and m²), ``e1``, ``e2``, ``inliers`` ((N,) bool), ``residual_rms_m``
+(the inliers' RMS orthogonal residual), ``expected_rms_m`` (what the model predicts for
+them), ``floor_rms_m`` (their quantisation floor, orthogonal), ``noise_scale_m`` and
+``notes`` (tuple of short strings for ``interval_notes``). Coverage, flatness, the
+spatial design effect, the quantisation floor of the intervals, the lock-on check and the
+gates are then the range path's.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe.expected import ExpectedPlane, check_region
 from cellcal.core.methods.fullframe.flatness import (
     Flatness,
     PlaneFrame,
@@ -25,21 +48,24 @@ from cellcal.core.methods.fullframe.flatness import (
     region_flatness,
 )
 from cellcal.core.methods.fullframe.gates import gate_table, image_coverage
+from cellcal.core.methods.fullframe.honesty import SAMPLE, design_effect, lock_on, quantisation_floor
 from cellcal.core.methods.fullframe.mixed import EdgeClean, EdgeReport
 from cellcal.core.methods.fullframe.passes import (
     Cutoff,
     FinalPass,
     KeepMask,
     Model,
+    NothingLeftError,
     Scratch,
     basis,
     final_pass,
     step_plane,
 )
-from cellcal.core.methods.fullframe.result import Estimate, FullFrameResult
+from cellcal.core.methods.fullframe.result import Estimate, FullFrameResult, IntervalFactors
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.start import initial_scale, refine, robust_start
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
+from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 from cellcal.devices.types import Frame
 
 FloatArray = NDArray[np.float64]
@@ -61,6 +87,8 @@ REGION_MAP_PX = 320
 SMALL_FRAME_POINTS = 4096
 #: Rings around outlier patches examined for mixed pixels, as a multiple of the floor (+ this many pixels).
 RING_REACH = 16
+#: Exponent of the range in the noise shape the flatness gate weights stereo points with (Z² law).
+STEREO_EXPONENT = 2.0
 
 
 # ---------------------------------------------------------------------- the fit
@@ -83,6 +111,10 @@ class _Fit:
     noise_scale_m: float
     unit_rms_m: float         # inlier RMS residual the noise model predicts per unit of noise (see result)
     multipath: tuple[float, float, FloatArray]   # border bias, its sigma, the plane step it implies
+    resid: F32 | None = None  # per point: whitened residual, 0 off the inliers (None: not kept)
+    expected_rms_m: float = math.nan   # disparity path: what the model predicts for the inliers
+    floor_rms_m: float = math.nan      # disparity path: their quantisation floor
+    notes: tuple[str, ...] = ()
 
 
 def _final(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float, cutoff: Cutoff,
@@ -116,17 +148,18 @@ def _final(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float
     step4 = -h4_inv @ fin.radial[1]                             # plane and radial range bias together
     beta_sigma = s * math.sqrt(max(float(h4_inv[3, 3]), 0.0) * cutoff.cov_factor)
     return _Fit(Plane(n_fin, offset_fin), cov, e1, e2, fin.inliers, rms, s, unit,
-                (-float(step4[3]), beta_sigma, step4[:3] - fin.step))
+                (-float(step4[3]), beta_sigma, step4[:3] - fin.step), fin.z)
 
 
 def _robust_fit(p: F32, dm: F32, model: Model, settings: FullFrameSettings, keep: KeepMask | None = None,
-                edge: EdgeClean | None = None) -> _Fit:
+                edge: EdgeClean | None = None, expected: ExpectedPlane | None = None) -> _Fit:
     """The stages on finite camera-frame points ``p`` (3, N) with ranges ``dm``.
 
     ``keep`` maps the inlier mask (N,) and the residuals of the converged plane to the
     points allowed in the last pass (image-space clean-up, see ``edge_margin_deg``).
+    ``expected`` restricts the robust start to planes within its tolerances.
     """
-    n, offset = robust_start(p, dm, model, settings)
+    n, offset = robust_start(p, dm, model, settings, expected)
     if model.sigma is None:                                    # strided subsample for the passes
         ps, ds = _subsample(settings.refine_points, p, dm)
         sub = model
@@ -175,11 +208,29 @@ def _derived(fit: _Fit) -> tuple[list[float], list[float], FloatArray]:
 
 @dataclass(frozen=True)
 class _Extras:
-    """What the frame path adds: image coverage, flatness and the edge clean-up."""
+    """What the frame path adds: image coverage, flatness, the edge clean-up and the honesty checks."""
 
     coverage: float = math.nan
     flatness: Flatness | None = None
     edge: EdgeReport | None = None
+    honest: _Honest | None = None
+
+
+@dataclass(frozen=True)
+class _Honest:
+    """The sensor's floor and expectation for the inliers, a lock-on, and what widened the intervals."""
+
+    measurement: MeasurementModel = UNKNOWN_MODEL
+    native_space: str = "range"
+    expected_m: float = math.nan
+    floor_m: float = 0.0
+    sigma_stated: bool = False
+    multipath_m: float = 0.0
+    lock_on: str = ""
+    factors: IntervalFactors = field(default_factory=IntervalFactors)
+    notes: tuple[str, ...] = ()
+    expected: ExpectedPlane | None = None
+    region_pixels: int = 0
 
 
 def _assemble(fit: _Fit, settings: FullFrameSettings, model: Model, *, n_points: int, valid_fraction: float,
@@ -194,28 +245,44 @@ def _assemble(fit: _Fit, settings: FullFrameSettings, model: Model, *, n_points:
     cov_n = e @ fit.cov[:2, :2] @ e.T                    # tangent steps -> unit normal (3x3)
     cov_nd = e @ fit.cov[:2, 2]
     edge = extras.edge or EdgeReport()
+    hon = extras.honest or _Honest(expected_m=fit.unit_rms_m * (1.0 if model.sigma is not None else math.nan),
+                                   sigma_stated=model.sigma is not None, region_pixels=n_points)
     n_in = int(np.count_nonzero(fit.inliers))
     inlier_fraction = (n_in + edge.n_dropped) / n_points   # on the plane: inliers and mixed pixels
     sigma_given = model.sigma is not None
     flat = extras.flatness
-    gates = gate_table(settings, valid_fraction, inlier_fraction, fit.residual_rms_m, fit.unit_rms_m,
-                       sigma_given, extras.coverage, math.nan if flat is None else flat.excess_m)
     beta, beta_sigma, dstep = fit.multipath
     shift = jac @ dstep                                  # change of each value with the radial bias fitted
-    return FullFrameResult(
+    exp = hon.expected
+    res = FullFrameResult(
         plane=fit.plane, angle=Estimate.from_sigma(angle, s_a, z, 0.0, math.pi / 2),
         tilt_x=Estimate.from_sigma(tx, s_x, z), tilt_y=Estimate.from_sigma(ty, s_y, z),
         height=Estimate.from_sigma(height, s_h, z), confidence=settings.confidence,
         normal_covariance=cov_n, offset_variance_m2=float(fit.cov[2, 2]), normal_offset_covariance=cov_nd,
         valid_fraction=valid_fraction, inlier_fraction=inlier_fraction, residual_rms_m=fit.residual_rms_m,
         coverage=extras.coverage, noise_scale_m=fit.noise_scale_m, n_points=n_points, n_inliers=n_in,
-        n_frames=n_frames, inlier_mask=inlier_mask, gates=gates,
+        n_frames=n_frames, inlier_mask=inlier_mask, gates={},
         residual_unit_rms_m=fit.unit_rms_m, sigma_given=sigma_given,
         flatness_m=math.nan if flat is None else flat.excess_m, flatness_where="" if flat is None else flat.where,
         multipath=Estimate.from_sigma(beta, beta_sigma, z),
         multipath_shift={"angle_rad": float(shift[0]), "tilt_x_rad": float(shift[1]),
                          "tilt_y_rad": float(shift[2]), "height_m": float(shift[3])},
-        mixed_margin_px=edge.margin_px, n_mixed=edge.n_dropped, settings=settings)
+        mixed_margin_px=edge.margin_px, n_mixed=edge.n_dropped, settings=settings,
+        measurement=hon.measurement, native_space=hon.native_space, residual_expected_m=hon.expected_m,
+        residual_floor_m=hon.floor_m, sigma_stated=hon.sigma_stated, multipath_allowance_m=hon.multipath_m,
+        lock_on=hon.lock_on, expected_departure=None if exp is None else exp.departure(fit.plane),
+        expected_tolerance=None if exp is None else (exp.angle_tolerance_rad, exp.offset_tolerance_m),
+        region_pixels=hon.region_pixels, interval_factors=hon.factors, interval_notes=hon.notes)
+    if extras.honest is None:                            # raw clouds: the expected RMS from the default noise
+        res = dataclasses.replace(res, residual_expected_m=_raw_expected(res, settings))
+    return dataclasses.replace(res, gates=gate_table(settings, res))
+
+
+def _raw_expected(res: FullFrameResult, settings: FullFrameSettings) -> float:
+    """A raw cloud's expected RMS: given sigmas' own, else the noise law at ``expected_noise_m`` (m)."""
+    if res.sigma_given:
+        return res.residual_unit_rms_m
+    return res.residual_unit_rms_m * settings.noise_at_1m_m(UNKNOWN_MODEL)
 
 
 # ---------------------------------------------------------------------- input checks
@@ -236,16 +303,22 @@ def _check_points(p: F32, dm: F32, n_behind: int, n_pixels: int, min_valid: floa
                                "millimetres; the full-frame fit takes metres")
 
 
-def _check_margin(edge: EdgeClean, n_ok: int, n_pixels: int, min_valid: float) -> None:
+def _nothing_left(n_ok: int, left: int, n_pixels: int, min_valid: float, what: str, floor_px: int
+                  ) -> CalibrationQualityError:
+    """Gate ``valid_fraction``: too few pixels left after the edge clean-up (small and large frames alike)."""
+    return CalibrationQualityError(
+        "valid_fraction", left / max(n_pixels, 1), min_valid,
+        f"{n_ok} {what}s, {left} left after the edge clean-up ({floor_px} px around invalid and off-plane "
+        f"patches, edge_margin_deg, and mixed pixels at depth edges); a full-frame fit needs {MIN_POINTS}")
+
+
+def _check_margin(edge: EdgeClean, n_ok: int, n_pixels: int, min_valid: float, what: str) -> None:
     """Few valid pixels: enough of them must lie farther than the edge margin from invalid patches."""
     if n_ok > SMALL_FRAME_POINTS:
         return
     left = edge.margin_keep()
     if left < MIN_POINTS:
-        raise CalibrationQualityError(
-            "valid_fraction", n_ok / n_pixels, min_valid,
-            f"{n_ok} valid pixels, {left} left after the edge margin ({edge.floor_px} px around invalid regions, "
-            f"edge_margin_deg); a full-frame fit needs {MIN_POINTS}")
+        raise _nothing_left(n_ok, left, n_pixels, min_valid, what, edge.floor_px)
 
 
 def _front(p: F32, ok: BoolArray) -> tuple[BoolArray, int]:
@@ -303,7 +376,8 @@ def fit_plane_points(points_m: ArrayLike, sigma_m: ArrayLike | None = None,
     p = np.ascontiguousarray(pts[ok].T)
     d = np.ascontiguousarray(dm[ok])
     _check_points(p, d, n_behind, n_all, cfg.min_valid_fraction, "usable point")
-    model = Model(cfg.weighted, cfg.noise_distance_exponent, None if sig is None else np.ascontiguousarray(sig[ok]))
+    sig_ok = None if sig is None else np.ascontiguousarray(sig[ok])
+    model = Model(cfg.weighted, cfg.noise_exponent(UNKNOWN_MODEL), sig_ok)
     fit = _robust_fit(p, d, model, cfg)
     mask = np.zeros(n_all, dtype=bool)
     mask[ok] = fit.inliers
@@ -340,9 +414,8 @@ def _frame_list(frames: Frame | Sequence[Frame]) -> list[Frame]:
     return seq
 
 
-def _frames_points(frames: Frame | Sequence[Frame]) -> _FramePoints:
-    """Validate frames; pooled valid points in front of the camera, ranges and each frame's flat mask."""
-    seq = _frame_list(frames)
+def _frames_points(seq: list[Frame], region: BoolArray | None = None) -> _FramePoints:
+    """Pooled valid points (in the flat (H*W,) region) in front of the camera, ranges and each frame's flat mask."""
     pts, dms, masks = [], [], []
     behind = 0
     for f in seq:
@@ -350,6 +423,8 @@ def _frames_points(frames: Frame | Sequence[Frame]) -> _FramePoints:
         xyz = f.xyz.reshape(-1, 3)
         with np.errstate(invalid="ignore"):
             m = f.valid.reshape(-1) & (dist > 0)   # NaN compares False
+        if region is not None:
+            m &= region                            # pixels outside the region of interest are ignored
         idx = np.flatnonzero(m)
         p = np.take(xyz.T, idx, axis=1)            # (3, n) structure of arrays
         d = np.take(dist, idx)
@@ -477,38 +552,130 @@ def _pixels_of(sel: NDArray[np.intp], masks: list[BoolArray]) -> NDArray[np.intp
     return np.concatenate([np.flatnonzero(m) for m in masks])[sel]
 
 
-def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings | None = None) -> FullFrameResult:
+def _sample_inliers(inliers: BoolArray) -> NDArray[np.intp]:
+    """Indices of a strided sample of the inliers (about ``SAMPLE``), without a pass over every point's index."""
+    step = max(1, inliers.size // (2 * SAMPLE))
+    idx = np.arange(0, inliers.size, step)
+    return idx[inliers[idx]]
+
+
+def _honesty(fit: _Fit, data: _FramePoints, shape: tuple[int, int], meas: MeasurementModel, cfg: FullFrameSettings,
+             region_pixels: int, expected: ExpectedPlane | None) -> tuple[_Fit, _Honest]:
+    """The sensor's floor and expected RMS for the inliers, a lock-on, and the widened covariance.
+
+    Covariance (d_e1, d_e2, d_offset): times the spatial design effect when significant, then
+    never below the quantisation floor spread over the inliers' extent (``honesty.py``).
+    """
+    n, off = fit.plane.normal, fit.plane.offset_m
+    sel = _sample_inliers(fit.inliers)
+    p_s = _gather(data.p, sel).astype(np.float64)          # (3, n) sampled inliers
+    ortho = n @ p_s + off                                  # their orthogonal residuals, m
+    disparity = meas.triangulating
+    if disparity:
+        floor, expected_m = fit.floor_rms_m, fit.expected_rms_m
+        stated = (meas.disparity_sigma_px or 0.0) > 0
+        resid = np.multiply(n.astype(np.float32) @ data.p + np.float32(off), fit.inliers, dtype=np.float32)
+    else:
+        cos = np.abs(n @ p_s) / np.maximum(data.dm[sel].astype(np.float64), 1e-12)   # |cos| ray-normal
+        q = meas.range_step_m if meas.kind == "tof" else 0.0
+        floor = q / math.sqrt(12.0) * math.sqrt(float(np.mean(cos * cos))) if cos.size else 0.0
+        expected_m = math.hypot(fit.unit_rms_m * cfg.noise_at_1m_m(meas), floor)
+        stated = meas.kind == "tof" and meas.sigma_at_1m_m is not None
+        resid = fit.resid if fit.resid is not None else np.zeros(fit.inliers.size, np.float32)
+    depth_all = data.dm if meas.kind == "tof" else data.p[2]   # what the sensor quantises
+    locked = lock_on(np.take(depth_all, sel), ortho, depth_all)
+    deff, se = design_effect(resid, data.masks, shape)
+    spatial = deff if deff > 1.0 + 3.0 * se else 1.0      # significant correlation only
+    uv = np.stack([fit.e1 @ p_s, fit.e2 @ p_s])            # in-plane coordinates, m
+    cov, held = quantisation_floor(fit.cov * spatial, floor, uv, int(np.count_nonzero(fit.inliers)))
+    ratio = fit.residual_rms_m / expected_m if expected_m > 0 else math.nan
+    notes = list(fit.notes)
+    if stated and ratio > 1.0 and not disparity:
+        notes.append(f"residuals {ratio:.3g} x what the sensor model expects: the intervals follow the observed "
+                     "scatter (sandwich covariance)")
+    if spatial > 1.0:
+        notes.append(f"intervals {math.sqrt(spatial):.3g} x wider for residuals correlated across neighbouring "
+                     f"pixels (design effect {spatial:.3g})")
+    if held:
+        notes.append(f"intervals held at the quantisation floor ({floor * 1000:.3g} mm RMS across the plane)")
+    honest = _Honest(meas, "disparity" if disparity else "range", expected_m, floor, stated,
+                     meas.multipath_m if meas.kind == "tof" else 0.0, locked, IntervalFactors(ratio, spatial, held),
+                     tuple(notes), expected, region_pixels)
+    return dataclasses.replace(fit, cov=cov), honest
+
+
+def _disparity_fit(data: _FramePoints, shape: tuple[int, int], meas: MeasurementModel, cfg: FullFrameSettings,
+                   expected: ExpectedPlane | None) -> _Fit:
+    """The stereo path (the seam in the module docstring): ``fit_disparity`` as a :class:`_Fit`."""
+    from cellcal.core.methods.fullframe.disparity import fit_disparity  # only stereo frames need it
+
+    pixel_index = _pixels_of(np.arange(data.p.shape[1]), data.masks)
+    d = fit_disparity(data.p, pixel_index, shape, meas, cfg, expected)
+    nan3 = (math.nan, math.nan, np.zeros(3))              # no radial range bias in disparity space
+    return _Fit(d.plane, np.asarray(d.cov, dtype=np.float64), np.asarray(d.e1, dtype=np.float64),
+                np.asarray(d.e2, dtype=np.float64), np.asarray(d.inliers, dtype=bool), float(d.residual_rms_m),
+                float(d.noise_scale_m), math.nan, nan3, None, float(d.expected_rms_m), float(d.floor_rms_m),
+                tuple(d.notes))
+
+
+def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings | None = None, *,
+                   region: NDArray[np.bool_] | None = None, expected: ExpectedPlane | None = None
+                   ) -> FullFrameResult:
     """Fit the measuring plane to every valid pixel of one or more frames of a static camera.
 
     Frames are pooled (each pixel of each frame is one observation). The fit does not
-    raise on a failed gate: see ``result.gates`` or call :func:`check_gates`.
+    raise on a failed gate: see ``result.gates`` or call :func:`check_gates`. The frames'
+    measurement model (``frame.measurement``) sets the native space (stereo: disparity,
+    see the module docstring), the noise law and the quantisation floor.
 
     Args:
         frames: One frame or several of the same camera and pose.
         settings: Fit settings and gates (the ``[full_frame]`` table); None: defaults.
+        region: (H, W) bool region of interest: pixels outside it are ignored, and the
+            valid fraction and coverage are taken over it. None: the whole image.
+        expected: The plane the user means (camera frame): only planes within its
+            tolerances start the fit, and a fit outside them fails gate ``expected_plane``.
 
     Returns:
         The plane (camera frame, normal toward the camera) with intervals and gates.
 
     Raises:
-        CalibrationError: Malformed input (not frames, mixed shapes), points behind the
-            camera or in millimetres, or no plane defined.
-        CalibrationQualityError: Fewer than 16 valid pixels (gate ``valid_fraction``).
+        CalibrationError: Malformed input (not frames, mixed shapes, a bad region), points
+            behind the camera or in millimetres, or no plane defined.
+        CalibrationQualityError: Fewer than 16 valid pixels in the region, or fewer left after
+            the edge clean-up (gate ``valid_fraction``); no plane near the expected one
+            (gate ``expected_plane``).
     """
     cfg = settings or _DEFAULTS
-    data = _frames_points(frames)
-    h, w = data.frames[0].shape
-    n_pixels = h * w * len(data.frames)
-    _check_points(data.p, data.dm, data.n_behind, n_pixels, cfg.min_valid_fraction, "valid pixel")
-    intr = data.frames[0].intrinsics
-    floor_px = math.ceil(math.radians(cfg.edge_margin_deg) * max(intr.fx, intr.fy) - 1e-9)   # degrees -> px
+    seq = _frame_list(frames)
+    h, w = seq[0].shape
+    roi = check_region(region, (h, w))
+    roi_flat = None if roi is None else roi.reshape(-1)
+    data = _frames_points(seq, roi_flat)
+    n_pixels = (h * w if roi is None else int(np.count_nonzero(roi))) * len(seq)   # region pixels, all frames
+    what = "valid pixel" if roi is None else "valid pixel in the region"
+    _check_points(data.p, data.dm, data.n_behind, n_pixels, cfg.min_valid_fraction, what)
+    meas = seq[0].measurement
     edge = None
-    if floor_px > 0:
-        edge = EdgeClean(data.masks, (h, w), floor_px, RING_REACH * (floor_px + 1), cfg.mixed_ring_sigma)
-        _check_margin(edge, data.p.shape[1], n_pixels, cfg.min_valid_fraction)
-    model = Model(cfg.weighted, cfg.noise_distance_exponent)
-    fit = _robust_fit(data.p, data.dm, model, cfg, keep=edge, edge=edge)
+    if meas.triangulating:
+        model = Model(cfg.weighted, STEREO_EXPONENT)       # flatness weights: depth noise grows as Z²
+        fit = _disparity_fit(data, (h, w), meas, cfg, expected)
+    else:
+        model = Model(cfg.weighted, cfg.noise_exponent(meas))
+        intr = seq[0].intrinsics
+        floor_px = math.ceil(math.radians(cfg.edge_margin_deg) * max(intr.fx, intr.fy) - 1e-9)   # degrees -> px
+        if floor_px > 0:
+            edge = EdgeClean(data.masks, (h, w), floor_px, RING_REACH * (floor_px + 1), cfg.mixed_ring_sigma,
+                             region=roi_flat)
+            _check_margin(edge, data.p.shape[1], n_pixels, cfg.min_valid_fraction, what)
+        try:
+            fit = _robust_fit(data.p, data.dm, model, cfg, keep=edge, edge=edge, expected=expected)
+        except NothingLeftError as exc:
+            raise _nothing_left(exc.n_points, exc.n_left, n_pixels, cfg.min_valid_fraction, what,
+                                0 if edge is None else edge.floor_px) from None
+    fit, honest = _honesty(fit, data, (h, w), meas, cfg, n_pixels, expected)
     mask = _pixel_inliers(fit.inliers, data.masks, (h, w))
-    extras = _Extras(image_coverage(mask, cfg), _flatness(fit, data, model, cfg), None if edge is None else edge.report)
+    extras = _Extras(image_coverage(mask, cfg, roi), _flatness(fit, data, model, cfg),
+                     None if edge is None else edge.report, honest)
     return _assemble(fit, cfg, model, n_points=data.p.shape[1], valid_fraction=data.p.shape[1] / n_pixels,
                      inlier_mask=mask, n_frames=len(data.frames), extras=extras)

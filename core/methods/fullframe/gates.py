@@ -11,12 +11,13 @@ from cellcal.core.methods.fullframe.result import FullFrameResult
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.devices.errors import CalibrationQualityError
 
-__all__ = ["GATE_NAMES", "check_gates"]
+__all__ = ["GATE_NAMES", "check_gates", "expected_rms_m", "floor_reference_m", "residual_threshold_m"]
 
 #: Gate names in the order they are checked.
-#: Flatness comes early: a second surface (a step, a roof) also halves the inliers and the coverage,
-#: and naming it says why.
-GATE_NAMES = ("valid_fraction", "flatness", "inlier_fraction", "residual_rms_m", "coverage")
+#: A lock-on, a wrong plane and a second surface come early: each also halves the inliers and the
+#: coverage, and naming it says why.
+GATE_NAMES = ("valid_fraction", "residual_floor", "expected_plane", "flatness", "inlier_fraction",
+              "residual_rms_m", "coverage")
 
 #: Gate name -> (what is measured, how it failed, display unit) for the error message.
 _GATE_TEXT = {
@@ -29,49 +30,104 @@ _GATE_TEXT = {
 }
 
 
-def residual_threshold_m(settings: FullFrameSettings, unit_rms_m: float, sigma_given: bool) -> float:
-    """The ``residual_rms_m`` gate's threshold: ``max_noise_ratio`` times the expected RMS, capped.
+def expected_rms_m(result: FullFrameResult, settings: FullFrameSettings) -> float:
+    """The inliers' RMS orthogonal residual the sensor model predicts, metres.
 
-    Args:
-        settings: ``max_noise_ratio``, ``expected_noise_m`` and the optional cap ``max_residual_rms_m``.
-        unit_rms_m: The inliers' RMS orthogonal residual the noise model predicts per metre
-            of noise at 1 m (with given sigmas: the RMS they predict, metres).
-        sigma_given: The fit used per-point sigmas (then ``expected_noise_m`` does not apply).
+    Range path without given sigmas: the noise law's RMS for these pixels at the noise the
+    settings or the camera state (``expected_noise_m``), with the quantisation floor added
+    in quadrature (Sheppard). Otherwise (given sigmas, the disparity path) what the fit found.
     """
-    expected = unit_rms_m * (1.0 if sigma_given else settings.expected_noise_m)
-    threshold = float(settings.max_noise_ratio * expected)
+    if result.native_space != "range" or result.sigma_given:
+        return result.residual_expected_m
+    noise = result.residual_unit_rms_m * settings.noise_at_1m_m(result.measurement)
+    return math.hypot(noise, result.residual_floor_m)
+
+
+def floor_reference_m(result: FullFrameResult, settings: FullFrameSettings) -> float:
+    """The least RMS residual the sensor can deliver: its quantisation floor, or its stated noise if larger, m."""
+    stated = expected_rms_m(result, settings) if result.sigma_stated else 0.0
+    return max(result.residual_floor_m, stated)
+
+
+def residual_threshold_m(result: FullFrameResult, settings: FullFrameSettings) -> float:
+    """The ``residual_rms_m`` gate's threshold, metres.
+
+    ``max_noise_ratio`` times the expected RMS plus the camera's multipath allowance,
+    capped by ``max_residual_rms_m``.
+    """
+    threshold = float(settings.max_noise_ratio * expected_rms_m(result, settings) + result.multipath_allowance_m)
     if settings.max_residual_rms_m is not None:
         threshold = min(threshold, settings.max_residual_rms_m)
     return threshold
 
 
-def gate_table(settings: FullFrameSettings, valid_fraction: float, inlier_fraction: float,
-               residual_rms_m: float, unit_rms_m: float, sigma_given: bool, coverage: float,
-               flatness_m: float) -> dict[str, tuple[float, float, bool]]:
-    """Gate name -> (value, threshold, passed); coverage and flatness are skipped when NaN (no image)."""
-    rms_max = residual_threshold_m(settings, unit_rms_m, sigma_given)
+def _floor_gate(result: FullFrameResult, settings: FullFrameSettings) -> tuple[float, float, bool]:
+    """``residual_floor``: (RMS over the floor reference, ``min_noise_ratio``, passed); a lock-on fails."""
+    ref = floor_reference_m(result, settings)
+    locked = bool(result.lock_on)
+    if ref > 0:
+        value = result.residual_rms_m / ref
+        return value, settings.min_noise_ratio, value >= settings.min_noise_ratio and not locked
+    return (0.0 if locked else math.nan), settings.min_noise_ratio, not locked
+
+
+def gate_table(settings: FullFrameSettings, result: FullFrameResult) -> dict[str, tuple[float, float, bool]]:
+    """Gate name -> (value, threshold, passed) of a result under ``settings``.
+
+    Coverage and flatness are skipped when NaN (no image), ``expected_plane`` without an
+    expected plane.
+    """
+    r = result
+    rms_max = residual_threshold_m(r, settings)
     gates = {
-        "valid_fraction": (valid_fraction, settings.min_valid_fraction,
-                           valid_fraction >= settings.min_valid_fraction),
-        "inlier_fraction": (inlier_fraction, settings.min_inlier_fraction,
-                            inlier_fraction >= settings.min_inlier_fraction),
-        "residual_rms_m": (residual_rms_m, rms_max, residual_rms_m <= rms_max),
+        "valid_fraction": (r.valid_fraction, settings.min_valid_fraction,
+                           r.valid_fraction >= settings.min_valid_fraction),
+        "residual_floor": _floor_gate(r, settings),
+        "inlier_fraction": (r.inlier_fraction, settings.min_inlier_fraction,
+                            r.inlier_fraction >= settings.min_inlier_fraction),
+        "residual_rms_m": (r.residual_rms_m, rms_max, r.residual_rms_m <= rms_max),
     }
-    if math.isfinite(coverage):
-        gates["coverage"] = (coverage, settings.min_coverage, coverage >= settings.min_coverage)
-    if math.isfinite(flatness_m):
-        gates["flatness"] = (flatness_m, settings.flatness_tolerance_m, flatness_m <= settings.flatness_tolerance_m)
+    if r.expected_departure is not None and r.expected_tolerance is not None:
+        (angle, offset), (tol_a, tol_o) = r.expected_departure, r.expected_tolerance
+        gates["expected_plane"] = (angle, tol_a, angle <= tol_a and offset <= tol_o)
+    if math.isfinite(r.coverage):
+        gates["coverage"] = (r.coverage, settings.min_coverage, r.coverage >= settings.min_coverage)
+    if math.isfinite(r.flatness_m):
+        gates["flatness"] = (r.flatness_m, settings.flatness_tolerance_m, r.flatness_m <= settings.flatness_tolerance_m)
     return gates
+
+
+def _floor_message(value: float, threshold: float, result: FullFrameResult, settings: FullFrameSettings) -> str:
+    ref = floor_reference_m(result, settings)
+    rms = f"inlier residual RMS {result.residual_rms_m * 1000:.3g} mm"
+    what = (f"the {ref * 1000:.3g} mm the sensor can deliver for these pixels (quantisation floor "
+            f"{result.residual_floor_m * 1000:.3g} mm)") if ref > 0 else "a sensor that states no floor"
+    if result.lock_on:
+        return f"the fit sat on one quantisation level: {result.lock_on}; {rms} against {what}"
+    return (f"{rms} is {value:.3g} x {what}, {threshold - value:.3g} x below the minimum of {threshold:.3g} x: "
+            "too good to be a measurement of this sensor (a fit on one quantisation level, or the wrong model)")
+
+
+def _expected_message(value: float, threshold: float, result: FullFrameResult) -> str:
+    angle, offset = result.expected_departure or (math.nan, math.nan)
+    tol_a, tol_o = result.expected_tolerance or (math.nan, math.nan)
+    return (f"the fitted plane is {math.degrees(angle):.3g} deg and {offset * 1000:.4g} mm from the expected one; "
+            f"tolerances {math.degrees(tol_a):.3g} deg (by {math.degrees(angle - tol_a):+.3g} deg) and "
+            f"{tol_o * 1000:.4g} mm (by {(offset - tol_o) * 1000:+.4g} mm)")
 
 
 def _message(name: str, value: float, threshold: float, result: FullFrameResult,
              settings: FullFrameSettings) -> str:
+    if name == "residual_floor":
+        return _floor_message(value, threshold, result, settings)
+    if name == "expected_plane":
+        return _expected_message(value, threshold, result)
     what, side, unit = _GATE_TEXT[name]
     k = 1000.0 if unit == "mm" else 100.0
     unit_s = " mm" if unit == "mm" else " %"
     text = (f"{what} {value * k:.3g}{unit_s}, {abs(value - threshold) * k:.3g}{unit_s} {side} of "
             f"{threshold * k:.3g}{unit_s}")
-    expected = result.residual_unit_rms_m * (1.0 if result.sigma_given else settings.expected_noise_m)
+    expected = expected_rms_m(result, settings)
     if name == "residual_rms_m" and expected > 0:
         text += f" ({value / expected:.3g} x the {expected * 1000.0:.3g} mm the noise model expects for these pixels)"
     elif name == "flatness" and result.flatness_where:
@@ -93,9 +149,7 @@ def check_gates(result: FullFrameResult, settings: FullFrameSettings | None = No
             much it was missed.
     """
     cfg = settings or result.settings
-    gates = result.gates if settings is None else gate_table(
-        settings, result.valid_fraction, result.inlier_fraction, result.residual_rms_m,
-        result.residual_unit_rms_m, result.sigma_given, result.coverage, result.flatness_m)
+    gates = result.gates if settings is None else gate_table(settings, result)
     for name in GATE_NAMES:
         if name not in gates:
             continue
@@ -104,12 +158,15 @@ def check_gates(result: FullFrameResult, settings: FullFrameSettings | None = No
             raise CalibrationQualityError(name, value, threshold, _message(name, value, threshold, result, cfg))
 
 
-def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings) -> float:
+def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings,
+                   region: NDArray[np.bool_] | None = None) -> float:
     """Fraction of the ``coverage_grid`` cells with at least ``min_cell_inlier_fraction`` inliers.
 
     Args:
         mask: (H, W) inlier mask of the image.
         settings: Grid and per-cell threshold.
+        region: (H, W) region of interest: a cell's share is taken over its region pixels,
+            and cells holding none are not counted. None: the whole image.
     """
     h, w = mask.shape
     cols, rows = settings.coverage_grid
@@ -118,7 +175,12 @@ def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings) -> floa
     c_edges = (np.arange(cols) * w) // cols
     per_row = np.add.reduceat(mask.view(np.uint8), r_edges, axis=0, dtype=np.int32)
     counts = np.add.reduceat(per_row, c_edges, axis=1)   # inliers per cell
-    r_size = np.diff(np.append(r_edges, h))
-    c_size = np.diff(np.append(c_edges, w))
-    area = np.outer(r_size, c_size)                      # pixels per cell
-    return float(np.mean(counts >= settings.min_cell_inlier_fraction * area))
+    if region is None:
+        r_size = np.diff(np.append(r_edges, h))
+        c_size = np.diff(np.append(c_edges, w))
+        area = np.outer(r_size, c_size)                  # pixels per cell
+    else:                                                # region pixels per cell
+        area = np.add.reduceat(np.add.reduceat(region.view(np.uint8), r_edges, axis=0, dtype=np.int32),
+                               c_edges, axis=1)
+    seen = area > 0
+    return float(np.mean(counts[seen] >= settings.min_cell_inlier_fraction * area[seen]))

@@ -100,10 +100,12 @@ class EdgeClean:
         max_px: Farthest ring examined.
         ring_sigma: Significance of a biased ring, standard errors.
         scale: Robust scale of the normalised residuals (z / scale is standard normal).
+        region: Flat (H*W,) region of interest; pixels outside it are neither invalid nor
+            outliers (its border is not a depth edge). None: the whole image.
     """
 
     def __init__(self, masks: list[BoolArray], shape: tuple[int, int], floor_px: int, max_px: int,
-                 ring_sigma: float, scale: float = 1.0) -> None:
+                 ring_sigma: float, scale: float = 1.0, region: BoolArray | None = None) -> None:
         self.masks = masks
         self.shape = shape
         self.floor_px = floor_px
@@ -111,7 +113,7 @@ class EdgeClean:
         self.ring_sigma = ring_sigma
         self.scale = scale
         self.report = EdgeReport(floor_px=floor_px)
-        self.invalid = [(~m).astype(np.uint8) for m in masks]
+        self.invalid = [(~m if region is None else region & ~m).astype(np.uint8) for m in masks]
 
     def margin_keep(self) -> int:
         """How many points lie farther than ``floor_px`` from the solid patches of invalid pixels."""

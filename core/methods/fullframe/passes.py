@@ -25,6 +25,18 @@ KeepMask = Callable[[BoolArray, F32], BoolArray]
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
 
+class NothingLeftError(CalibrationError):
+    """The edge clean-up left fewer than ``MIN_POINTS`` inliers (the caller names the gate).
+
+    Attributes:
+        n_points: Points of the pass; n_near: near the plane; n_left: left after the clean-up.
+    """
+
+    def __init__(self, n_points: int, n_near: int, n_left: int) -> None:
+        self.n_points, self.n_near, self.n_left = n_points, n_near, n_left
+        super().__init__(_few_inliers(n_points, n_near, n_left, True))
+
+
 def basis(n: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Two unit vectors completing the unit vector ``n`` to a right-handed orthonormal basis."""
     x, y, z = float(n[0]), float(n[1]), float(n[2])
@@ -103,6 +115,7 @@ class FinalPass(Pass):
     model_ortho2_sum: float   # sum over the inliers of the squared orthogonal noise shape
     inliers: BoolArray
     radial: tuple[FloatArray, FloatArray]   # (4x4 J^T W J, J^T W rho) with the radial column
+    z: F32 | None = None      # whitened residuals, 0 off the inliers (the answer pass; a scratch row)
 
 
 class Scratch:
@@ -243,6 +256,8 @@ def final_pass(p: F32, dm: F32, n: FloatArray, e1: FloatArray, e2: FloatArray, o
         inl &= keep(inl, z)                    # image-space clean-up of the inliers
     n_in = int(np.count_nonzero(inl))
     if n_in < MIN_POINTS:
+        if keep is not None and n_near >= MIN_POINTS:
+            raise NothingLeftError(dm.size, n_near, n_in)
         raise CalibrationError(_few_inliers(dm.size, n_near, n_in, keep is not None))
     unweighted_shape = _model_shape(t, inv_c, model, inl) if isig is None and answer else None
     isig = _mask_weights(z, isig, inl, buf)
@@ -278,7 +293,7 @@ def _answer_sums(p: F32, dm: F32, b: F32, rows: tuple[F32, F32, F32, F32], inl: 
     ortho = np.add(b[0], f32(offset), out=b[1])           # orthogonal residual p·n + offset ...
     ortho *= inl                                          # ... of the inliers
     return FinalPass(_solve(h4[:3, :3], g4[:3]), h4[:3, :3].copy(), n_in, float(np.dot(z, z)), meat,
-                     float(np.dot(ortho, ortho)), model_ortho2, inl, (h4, g4))
+                     float(np.dot(ortho, ortho)), model_ortho2, inl, (h4, g4), z)
 
 
 def _model_shape(t: F32, inv_c: F32, model: Model, inl: BoolArray) -> float:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -12,11 +12,12 @@ from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
+from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-__all__ = ["Estimate", "FullFrameResult"]
+__all__ = ["Estimate", "FullFrameResult", "IntervalFactors"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,31 @@ class Estimate:
 
 def _finite_or_none(v: float) -> float | None:
     return v if math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class IntervalFactors:
+    """What widened the intervals beyond the fit's own covariance (1.0 / False: nothing).
+
+    Attributes:
+        observed_scale: The inliers' RMS residual over the RMS the sensor model expects
+            (NaN when it states none). On the range path the sandwich covariance is built from
+            the observed residuals, so it already carries this scale when it exceeds 1.
+        spatial: Variance factor (>= 1) for residuals correlated across neighbouring pixels:
+            the design effect of blocks of pixels (block sums' mean square over the sum of
+            the squares), applied when significant.
+        quantisation: Whether the quantisation floor (``residual_floor_m`` spread over the
+            inliers' extent) widened the covariance.
+    """
+
+    observed_scale: float = math.nan
+    spatial: float = 1.0
+    quantisation: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form."""
+        return {"observed_scale": _finite_or_none(self.observed_scale), "spatial": self.spatial,
+                "quantisation": self.quantisation}
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,6 +127,25 @@ class FullFrameResult:
         mixed_margin_px: Rings of pixels dropped around outlier patches (mixed pixels).
         n_mixed: Inliers dropped near depth edges and invalid patches.
         settings: The settings of the fit.
+        measurement: The camera's measurement model the fit used (the frames').
+        native_space: Where the fit measured residuals: ``"range"`` (along the rays) or
+            ``"disparity"`` (stereo and structured light).
+        residual_expected_m: The inliers' RMS orthogonal residual the sensor model predicts
+            (its noise, or ``expected_noise_m``, and its quantisation), metres.
+        residual_floor_m: The least RMS orthogonal residual the sensor can deliver for these
+            inliers: the quantisation step ``q/sqrt(12)`` projected across the plane, metres
+            (0 when the camera states no step).
+        sigma_stated: The camera (or the caller's sigmas) stated its noise, so that
+            ``residual_expected_m`` is a floor as well (gate ``residual_floor``).
+        multipath_allowance_m: The camera's multipath allowance added to the
+            ``residual_rms_m`` gate's threshold, metres.
+        lock_on: Why the fit sat on one quantisation level ("" when it did not).
+        expected_departure: Angle (rad) and offset difference (m) of the plane from the
+            expected one (None without one).
+        expected_tolerance: The expected plane's tolerances (rad, m) (None without one).
+        region_pixels: Pixels of the region of interest (all frames; the whole image without one).
+        interval_factors: What widened the intervals (:class:`IntervalFactors`).
+        interval_notes: Short sentences saying so, for reports.
     """
 
     plane: Plane
@@ -131,6 +176,18 @@ class FullFrameResult:
     mixed_margin_px: int
     n_mixed: int
     settings: FullFrameSettings
+    measurement: MeasurementModel = UNKNOWN_MODEL
+    native_space: str = "range"
+    residual_expected_m: float = math.nan
+    residual_floor_m: float = 0.0
+    sigma_stated: bool = False
+    multipath_allowance_m: float = 0.0
+    lock_on: str = ""
+    expected_departure: tuple[float, float] | None = None
+    expected_tolerance: tuple[float, float] | None = None
+    region_pixels: int = 0
+    interval_factors: IntervalFactors = field(default_factory=IntervalFactors)
+    interval_notes: tuple[str, ...] = ()
 
     @property
     def angle_rad(self) -> float:
@@ -204,9 +261,9 @@ class FullFrameResult:
 
     @property
     def noise_ratio(self) -> float:
-        """The inliers' RMS residual over the RMS ``expected_noise_m`` predicts for them."""
-        unit = self.residual_unit_rms_m * (1.0 if self.sigma_given else self.settings.expected_noise_m)
-        return self.residual_rms_m / unit if unit > 0 else math.nan
+        """The inliers' RMS residual over the RMS the sensor model (or ``expected_noise_m``) predicts for them."""
+        e = self.residual_expected_m
+        return self.residual_rms_m / e if e > 0 else math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form: degrees and metres for humans."""
@@ -241,4 +298,14 @@ class FullFrameResult:
                                 "tilt_y_deg": math.degrees(shift["tilt_y_rad"]), "height_m": shift["height_m"]},
             "mixed_margin_px": self.mixed_margin_px,
             "n_mixed": self.n_mixed,
+            "measurement": self.measurement.to_dict(),
+            "native_space": self.native_space,
+            "residual_expected_m": num(self.residual_expected_m),
+            "residual_floor_m": self.residual_floor_m,
+            "multipath_allowance_m": self.multipath_allowance_m,
+            "lock_on": self.lock_on,
+            "expected_departure": None if self.expected_departure is None else
+            {"angle_deg": math.degrees(self.expected_departure[0]), "offset_m": self.expected_departure[1]},
+            "interval_factors": self.interval_factors.to_dict(),
+            "interval_notes": list(self.interval_notes),
         }

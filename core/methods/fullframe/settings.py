@@ -15,11 +15,16 @@ from typing import Any
 
 from cellcal.devices.config import check_value
 from cellcal.devices.errors import ConfigError
+from cellcal.devices.measurement import MeasurementModel
 
-__all__ = ["MIN_POINTS", "FullFrameSettings"]
+__all__ = ["DEFAULT_EXPECTED_NOISE_M", "DEFAULT_NOISE_EXPONENT", "MIN_POINTS", "FullFrameSettings"]
 
 #: A fit needs at least this many valid points.
 MIN_POINTS = 16
+#: Range-noise sigma at 1 m, normal incidence (m) when neither the config nor the camera states one.
+DEFAULT_EXPECTED_NOISE_M = 0.0032
+#: Exponent of the range in the noise law when neither the config nor the camera states one.
+DEFAULT_NOISE_EXPONENT = 1.5
 
 
 @dataclass(frozen=True)
@@ -28,7 +33,8 @@ class FullFrameSettings:
 
     Attributes:
         weighted: Weight points by the range-noise model (ADR 0007, "Weighting").
-        noise_distance_exponent: Exponent ``e`` of the range in the noise model.
+        noise_distance_exponent: Exponent ``e`` of the range in the noise model; None: the
+            camera's (a ``tof`` measurement model's ``distance_exponent``), else 1.5.
         inlier_threshold_sigma: Inlier cut-off, in robust standard deviations of the
             (noise-normalised) range residual.
         min_inlier_threshold_m: Lower bound of the cut-off at the median pixel's noise,
@@ -36,9 +42,15 @@ class FullFrameSettings:
         max_inlier_threshold_m: Upper bound of the cut-off at the median pixel, metres.
         confidence: Confidence level of the reported intervals.
         expected_noise_m: The camera's range-noise sigma at 1 m and normal incidence
-            (data sheet), metres: the unit of the residual gate.
+            (data sheet), metres: the unit of the residual gate; None: the camera's (a
+            ``tof`` measurement model's ``sigma_at_1m_m``), else 3.2 mm.
         max_noise_ratio: Gate ``residual_rms_m``: the inliers' RMS residual may be at most
-            this many times what ``expected_noise_m`` predicts for the same pixels.
+            this many times what ``expected_noise_m`` predicts for the same pixels (plus
+            the camera's multipath allowance).
+        min_noise_ratio: Gate ``residual_floor``: the inliers' RMS residual must be at least
+            this many times the least the sensor can deliver for them (its quantisation
+            floor, or its stated noise when it states one); a fit sitting on one
+            quantisation level fails it whatever the ratio.
         max_residual_rms_m: Optional absolute cap of the same gate, metres (None: none).
         min_valid_fraction: Gate: valid pixels / all pixels.
         min_inlier_fraction: Gate: plane pixels (inliers and the mixed pixels dropped near
@@ -74,13 +86,14 @@ class FullFrameSettings:
     """
 
     weighted: bool = True
-    noise_distance_exponent: float = field(default=1.5, metadata={"ge": 0.0, "le": 4.0})
+    noise_distance_exponent: float | None = field(default=None, metadata={"ge": 0.0, "le": 4.0})
     inlier_threshold_sigma: float = field(default=3.0, metadata={"ge": 1.5, "le": 20.0})
     min_inlier_threshold_m: float = field(default=0.0005, metadata={"ge": 0.0, "le": 0.1})
     max_inlier_threshold_m: float = field(default=0.1, metadata={"gt": 0.0, "le": 10.0})
     confidence: float = field(default=0.95, metadata={"gt": 0.0, "lt": 1.0})
-    expected_noise_m: float = field(default=0.0032, metadata={"gt": 0.0, "le": 1.0})
+    expected_noise_m: float | None = field(default=None, metadata={"gt": 0.0, "le": 1.0})
     max_noise_ratio: float = field(default=4.0, metadata={"ge": 1.0, "le": 1000.0})
+    min_noise_ratio: float = field(default=0.25, metadata={"ge": 0.0, "le": 1.0})
     max_residual_rms_m: float | None = field(default=None, metadata={"gt": 0.0})
     min_valid_fraction: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
     min_inlier_fraction: float = field(default=0.5, metadata={"ge": 0.0, "le": 1.0})
@@ -108,6 +121,22 @@ class FullFrameSettings:
         if self.max_inlier_threshold_m < self.min_inlier_threshold_m:
             raise ConfigError(f"max_inlier_threshold_m ({self.max_inlier_threshold_m}) must be "
                               f">= min_inlier_threshold_m ({self.min_inlier_threshold_m})", key="full_frame")
+
+    def noise_at_1m_m(self, model: MeasurementModel) -> float:
+        """Range-noise sigma at 1 m, normal incidence (m): the config's, else a ToF camera's, else 3.2 mm."""
+        if self.expected_noise_m is not None:
+            return self.expected_noise_m
+        if model.kind == "tof" and model.sigma_at_1m_m is not None:
+            return model.sigma_at_1m_m
+        return DEFAULT_EXPECTED_NOISE_M
+
+    def noise_exponent(self, model: MeasurementModel) -> float:
+        """Exponent of the range in the noise law: the config's, else a ToF camera's stated one, else 1.5."""
+        if self.noise_distance_exponent is not None:
+            return self.noise_distance_exponent
+        if model.kind == "tof" and model.sigma_at_1m_m is not None:
+            return model.distance_exponent
+        return DEFAULT_NOISE_EXPONENT
 
 
 @functools.cache

@@ -15,17 +15,23 @@ from statistics import NormalDist  # not scipy.special: its 0.2 s import is off 
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.fullframe.passes import Cutoff, Model, Pass, Scratch, basis, gn_pass, step_plane, truncation
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
-from cellcal.devices.errors import CalibrationError
+from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
 #: Seed of the fixed subsample's jitter (and of the triplets when ``seed`` is None).
 FIXED_SEED = 0x5EED
 #: Points whose second principal variance is below this fraction of the first lie along a line.
 LINE_RATIO = 1e-4
+#: With an expected plane, this many times ``hypotheses`` triplets are drawn (only those within
+#: its tolerances are scored: a plane holding a third of the points gives 1 in 27 triplets).
+EXPECTED_DRAWS = 8
 
 
 @functools.lru_cache(maxsize=16)
@@ -61,25 +67,66 @@ def _triplet_planes(sub: FloatArray, count: int, seed: int | None) -> tuple[Floa
     return nrm, -np.einsum("ij,ij->i", nrm, a[ok])
 
 
-def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings) -> tuple[FloatArray, float]:
+def _within(expected: ExpectedPlane, nrm: FloatArray, off: FloatArray) -> tuple[BoolArray, FloatArray]:
+    """Which planes (unit normals (K, 3), offsets (K,)) lie within the expected plane's tolerances.
+
+    Also returns each one's departure in units of the tolerances (the larger of angle and offset).
+    """
+    n0 = np.asarray(expected.plane.normal, dtype=np.float64)
+    cos = np.minimum(np.abs(nrm @ n0), 1.0)                     # either orientation of a triplet's normal
+    angle = np.arccos(cos)                                      # rad
+    doff = np.abs(np.abs(off) - abs(expected.plane.offset_m))   # camera's distance to each plane vs expected, m
+    ok = (angle <= expected.angle_tolerance_rad) & (doff <= expected.offset_tolerance_m)
+    return ok, np.maximum(angle / expected.angle_tolerance_rad, doff / expected.offset_tolerance_m)
+
+
+def _nearest_refusal(expected: ExpectedPlane, nrm: FloatArray, off: FloatArray, score: FloatArray
+                     ) -> CalibrationQualityError:
+    """``expected_plane`` failed before the fit: no hypothesis within the tolerances; say what was nearest."""
+    k = int(np.argmin(score))
+    near = Plane(nrm[k], float(off[k])).oriented_toward_origin()
+    angle, doff = expected.departure(near)
+    return CalibrationQualityError(
+        "expected_plane", angle, expected.angle_tolerance_rad,
+        f"no plane within {math.degrees(expected.angle_tolerance_rad):.3g} deg and "
+        f"{expected.offset_tolerance_m * 1000:.3g} mm of the expected one among {nrm.shape[0]} candidate planes; "
+        f"the nearest is {math.degrees(angle):.3g} deg and {doff * 1000:.4g} mm from it (tilt x "
+        f"{math.degrees(near.tilt_about_x_rad()):.3g} deg, tilt y {math.degrees(near.tilt_about_y_rad()):.3g} deg, "
+        f"{near.offset_m * 1000:.4g} mm from the camera)")
+
+
+def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings,
+                 expected: ExpectedPlane | None = None) -> tuple[FloatArray, float]:
     """The start plane: the triplet plane with the smallest ``hypothesis_quantile`` of residuals.
 
     Residuals are orthogonal distances over ``range^e`` (weighted), over the given sigmas,
-    or plain (unweighted). Returns the unit normal (toward the camera) and the offset.
+    or plain (unweighted). With ``expected``, only triplet planes within its tolerances
+    compete. Returns the unit normal (toward the camera) and the offset.
+
+    Raises:
+        CalibrationQualityError: ``expected_plane``, when no triplet plane lies within the
+            expected plane's tolerances (the message names the nearest one).
     """
     idx = fixed_subsample(p.shape[1], settings.sample_points)
     sub = p[:, idx].T.astype(np.float64)
     if model.sigma is not None:
         inv_norm = 1.0 / model.sigma[idx].astype(np.float64)
     elif model.weighted:
-        inv_norm = dm[idx].astype(np.float64) ** -settings.noise_distance_exponent
+        inv_norm = dm[idx].astype(np.float64) ** -model.exponent
     else:
         inv_norm = np.ones(idx.size)
     spread = np.linalg.eigvalsh(np.cov(sub.T)) if sub.shape[0] > 3 else np.zeros(3)
     if not spread[1] > LINE_RATIO * spread[2]:
         raise CalibrationError(f"full-frame fit: the {p.shape[1]} valid points lie along a line (one image row "
                                "or column?); no plane is defined")
-    nrm, off = _triplet_planes(sub, settings.hypotheses, settings.seed)
+    if expected is None:
+        nrm, off = _triplet_planes(sub, settings.hypotheses, settings.seed)
+    else:                                                 # only planes near the expected one compete
+        nrm, off = _triplet_planes(sub, EXPECTED_DRAWS * settings.hypotheses, settings.seed)
+        ok, score = _within(expected, nrm, off)
+        if not ok.any():
+            raise _nearest_refusal(expected, nrm, off, score)
+        nrm, off = nrm[ok], off[ok]
     m = idx.size
     h = min(max(int(settings.hypothesis_quantile * m), 3), m)
     res = np.abs(nrm.astype(np.float32) @ sub.T.astype(np.float32) + off.astype(np.float32)[:, None])

@@ -142,4 +142,4 @@ def test_check_gates_with_other_thresholds() -> None:
 def test_gates_are_checked_in_their_order() -> None:
     res = fit_full_frame(make_frame(with_(ToFSetup(), surface="step", surface_param=0.05), 0))
     failed = [name for name in GATE_NAMES if name in res.gates and not res.gates[name][2]]
-    assert failed[0] == "flatness" and set(res.gates) == set(GATE_NAMES)
+    assert failed[0] == "flatness" and set(res.gates) == set(GATE_NAMES) - {"expected_plane"}   # none expected

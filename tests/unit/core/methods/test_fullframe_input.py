@@ -62,12 +62,12 @@ def test_few_valid_pixels_say_what_the_edge_margin_left(frame: Frame) -> None:
     valid.reshape(-1)[np.random.default_rng(0).choice(valid.size, 16, replace=False)] = True
     with pytest.raises(CalibrationQualityError) as info:
         fit_full_frame(_with(frame, valid=valid))
-    assert "16 valid pixels, 0 left after the edge margin" in _one_line(info)
+    assert "16 valid pixels, 0 left after the edge clean-up" in _one_line(info)
     row = np.zeros(frame.shape, bool)
     row[80] = True                                       # one valid row
     with pytest.raises(CalibrationQualityError) as info:
         fit_full_frame(_with(frame, valid=row))
-    assert "224 valid pixels, 0 left after the edge margin" in _one_line(info)
+    assert "224 valid pixels, 0 left after the edge clean-up" in _one_line(info)
     line = frame.xyz[80].astype(np.float64)              # the same row as a raw cloud: a line, not a plane
     with pytest.raises(CalibrationError, match="lie along a line"):
         fit_plane_points(line)
@@ -205,9 +205,12 @@ def test_to_dict_is_json_in_degrees_and_only_adds_keys(frame: Frame) -> None:
                 "residual_rms_m", "coverage", "noise_scale_m", "n_points", "n_inliers", "n_frames", "gates", "passed"}
     new_keys = {"noise_ratio", "flatness_m", "flatness_where", "multipath_border_m", "multipath_border_sigma_m",
                 "multipath_border_ci_m", "multipath_shift", "mixed_margin_px", "n_mixed"}
-    assert set(d) == old_keys | new_keys
+    honest_keys = {"measurement", "native_space", "residual_expected_m", "residual_floor_m", "multipath_allowance_m",
+                   "lock_on", "expected_departure", "interval_factors", "interval_notes"}   # issue 27
+    assert set(d) == old_keys | new_keys | honest_keys
     assert d["method"] == "full_frame" and d["angle_deg"] == pytest.approx(80.0, abs=0.05)
     assert d["tilt_x_ci_deg"][0] < d["tilt_x_deg"] < d["tilt_x_ci_deg"][1]
-    assert set(d["gates"]) == {"valid_fraction", "inlier_fraction", "residual_rms_m", "coverage", "flatness"}
+    assert set(d["gates"]) == {"valid_fraction", "inlier_fraction", "residual_rms_m", "coverage", "flatness",
+                               "residual_floor"}
     assert d["passed"] is True and all(g["passed"] for g in d["gates"].values())
     assert set(d["multipath_shift"]) == {"angle_deg", "tilt_x_deg", "tilt_y_deg", "height_m"}

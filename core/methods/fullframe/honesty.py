@@ -1,0 +1,169 @@
+"""Honest both ways: a fit on one quantisation level, the quantisation floor, correlated residuals.
+
+A residual far below what the sensor can deliver is not a good fit but a fit that sat on
+one depth level of quantised data (integer-disparity stereo: levels 16 mm apart at 0.7 m);
+intervals must never be narrower than quantisation and spatially correlated error allow.
+Points are in the camera frame (OpenCV), metres. Rationale: docs/adr/0028-honest-full-frame-fit.md.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+F32 = NDArray[np.float32]
+
+__all__ = ["design_effect", "lock_on", "quantisation_floor"]
+
+#: Inliers (strided) examined for a lock-on and for the quantisation floor's geometry.
+SAMPLE = 4096
+#: Inlier depths taking at most this many distinct values sit on quantisation levels.
+MAX_LEVELS = 2
+#: Share of inliers with a zero residual (|r| <= ZERO_M) that means the same.
+ZERO_SHARE = 0.5
+#: A residual this small (m) is zero to float precision of a depth in metres.
+ZERO_M = 1e-12
+#: A level holding at least this share of the valid pixels is populated.
+LEVEL_SHARE = 0.005
+#: Quantisation steps are at most this fraction of the depth (integer disparity at ~4 m for an OAK-D).
+MAX_STEP_REL = 0.1
+#: Neighbouring levels of quantised data are evenly spaced within this fraction of the step.
+SPACING_TOL = 0.3
+#: Blocks across the image's longer side for the spatial design effect.
+BLOCKS_ACROSS = 32
+#: The design effect is applied when it exceeds 1 by this many of its standard errors under independence.
+DEFF_SIGNIFICANCE = 3.0
+
+
+def _levels_nearby(levels: NDArray[np.floating[Any]], valid_depth: F32) -> bool:
+    """Whether the valid depths hold evenly spaced, populated levels next to ``levels`` (quantised data).
+
+    A noise-free exact plane seen head-on also has one depth, but no neighbouring levels;
+    box tops over it are levels at arbitrary, not even, spacings.
+    """
+    values, counts = np.unique(valid_depth, return_counts=True)
+    populated = values[(counts >= LEVEL_SHARE * valid_depth.size) & ~np.isin(values, levels)]
+    if populated.size == 0:
+        return False
+    lo, hi = float(levels.min()), float(levels.max())
+    below = np.sort(lo - populated[populated < lo])        # gaps to the levels below, nearest first
+    above = np.sort(populated[populated > hi] - hi)        # ... and above
+    gaps = np.concatenate([below[:1], above[:1]])
+    g = float(gaps.min())
+    if g > MAX_STEP_REL * hi:
+        return False
+
+    def near(x: NDArray[np.floating[Any]], target: float) -> bool:
+        return bool(np.any(np.abs(x - target) <= SPACING_TOL * g))
+
+    both_sides = below.size > 0 and above.size > 0 and near(below[:1], g) and near(above[:1], g)
+    one_side = near(below, 2 * g) if below.size and near(below[:1], g) else False
+    one_side |= near(above, 2 * g) if above.size and near(above[:1], g) else False
+    return bool(both_sides or one_side)
+
+
+def lock_on(depth_in: F32, ortho_in: FloatArray, valid_depth: F32) -> str:
+    """Why the fit sat on one quantisation level, or "" when it did not.
+
+    Args:
+        depth_in: Depths of (a strided sample of) the inliers, metres: Z-depth, or the
+            range for a ToF camera (what the sensor quantises).
+        ortho_in: Their orthogonal residuals to the fitted plane, metres (float64).
+        valid_depth: Depths of every valid pixel in the region, metres.
+
+    Returns:
+        A short reason for messages ("" when the inliers are no lock-on).
+    """
+    levels = np.unique(depth_in)
+    zero = np.abs(ortho_in) <= ZERO_M
+    share = float(np.mean(zero)) if zero.size else 0.0
+    if levels.size > MAX_LEVELS:                          # many depths: a lock-on only if most residuals are 0 ...
+        levels = np.unique(depth_in[zero]) if share > ZERO_SHARE else levels
+        if levels.size > MAX_LEVELS:                      # ... on one or two levels
+            return ""
+        reason = f"{share:.0%} of its inliers have a zero residual"
+    else:
+        where = ", ".join(f"{v * 1000:.5g} mm" for v in levels)
+        reason = f"its inliers' depths take {levels.size} distinct value(s) ({where})"
+    if not _levels_nearby(levels, valid_depth):
+        return ""                                         # one depth but no quantisation around it: an exact plane
+    return reason + " while evenly spaced depth levels next to them hold other valid pixels"
+
+
+def design_effect(resid: F32, masks: list[BoolArray], shape: tuple[int, int]) -> tuple[float, float]:
+    """Variance factor for residuals correlated across neighbouring pixels, and its standard error.
+
+    The image is cut into square blocks; with independent residuals the squared sum over a
+    block has the expectation of the sum of the squares, so ``sum_b (sum r)^2 / sum r^2``
+    is 1, and > 1 when neighbouring residuals share an error (multipath, a warped surface).
+
+    Args:
+        resid: Per pooled point, its (whitened) residual, 0 off the inliers.
+        masks: Per frame, the flat (H*W,) mask of the pixels that became points.
+        shape: ``(H, W)``.
+
+    Returns:
+        ``(factor, se)``: the design effect and its standard error under independence
+        (``sqrt(2 / blocks)``).
+    """
+    h, w = shape
+    b = max(1, round(max(h, w) / BLOCKS_ACROSS))          # block side, px
+    hb, wb = h // b, w // b                               # whole blocks (the last partial ones are left out)
+    if hb == 0 or wb == 0:
+        return 1.0, 0.0
+    num = den = 0.0
+    start = 0
+    img = np.empty(h * w, dtype=np.float32)
+    for m in masks:                                       # per frame: scatter into the image, sum whole blocks
+        k = int(np.count_nonzero(m))
+        img.fill(0.0)
+        img[m] = resid[start:start + k]
+        start += k
+        rows = img.reshape(h, w)[:hb * b].reshape(hb, b, w).sum(axis=1, dtype=np.float64)   # (hb, W) row blocks
+        sums = rows[:, :wb * b].reshape(hb, wb, b).sum(axis=2)                              # (hb, wb) blocks
+        num += float(np.sum(sums * sums))
+        kept = img.reshape(h, w)[:hb * b, :wb * b]
+        den += float(np.einsum("ij,ij->", kept, kept, dtype=np.float64))
+    n_blocks = hb * wb * len(masks)
+    if not den > 0:
+        return 1.0, 0.0
+    return num / den, math.sqrt(2.0 / n_blocks)
+
+
+def quantisation_floor(cov: FloatArray, floor_m: float, uv: FloatArray, n_inliers: int) -> tuple[FloatArray, bool]:
+    """The covariance of (d_e1, d_e2, d_offset) never below what the quantisation floor allows.
+
+    The floor's covariance is that of a least-squares plane with independent orthogonal
+    errors of ``floor_m`` on the inliers, ``floor² (XᵀX)⁻¹`` with ``X = [u, v, 1]`` (their
+    in-plane coordinates along ``e1``, ``e2``): per tilt ``floor / (sqrt(N) L)`` with ``L``
+    the RMS extent. The result is ``cov + (C_floor - cov)₊`` (the positive part), the
+    smallest widening that is at least both.
+
+    Args:
+        cov: 3x3 covariance of the tangent steps and the offset (m², rad²).
+        floor_m: RMS orthogonal quantisation floor per inlier, metres.
+        uv: (2, n) in-plane coordinates of (a strided sample of) the inliers, metres.
+        n_inliers: Number of inliers the sample stands for.
+
+    Returns:
+        The covariance and whether the floor widened it.
+    """
+    if not floor_m > 0 or uv.shape[1] < 3:
+        return cov, False
+    x = np.vstack([uv, np.ones(uv.shape[1])])             # (3, n): u, v, 1
+    xtx = (x @ x.T) * (n_inliers / uv.shape[1])           # scaled to every inlier
+    try:
+        c_floor = floor_m * floor_m * np.linalg.inv(xtx)
+    except np.linalg.LinAlgError:
+        return cov, False
+    vals, vecs = np.linalg.eigh(c_floor - cov)            # the part of the floor the covariance lacks ...
+    plus = vals > 1e-6 * float(np.linalg.eigvalsh(c_floor).max())   # beyond rounding
+    if not plus.any():
+        return cov, False
+    add = (vecs[:, plus] * vals[plus]) @ vecs[:, plus].T  # ... its positive part
+    return cov + add, True
