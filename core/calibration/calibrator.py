@@ -30,6 +30,7 @@ from cellcal.core.calibration.journal import (
     remove_journal,
 )
 from cellcal.core.calibration.outlock import OutputLock
+from cellcal.core.calibration.region import expected_plane, region_document, region_mask
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe import FullFrameResult
@@ -455,14 +456,22 @@ class Calibrator:
         full_frame = None
         result: FullFrameResult | None = None
         if FULL_FRAME in plan.methods:
+            # where the fit looks at this pose: the [region] mask and [reference] seen from the camera
             try:
-                row, result = measure_full_frame(frames, self.config.full_frame, expected=expected)
+                region = region_mask(self.config.region, frames[0].intrinsics, camera_pose, source=self.config.source)
+            except CalibrationError as exc:
+                raise CalibrationError(f"plan pose {index + 1}: {exc}") from None
+            search = expected_plane(self.config.search_reference, expected)
+            try:
+                row, result = measure_full_frame(frames, self.config.full_frame, expected=expected, region=region,
+                                                 expected_plane=search)
             except CalibrationQualityError as exc:
                 extra = str(exc).partition("; ")[2]
                 raise CalibrationQualityError(exc.gate, exc.value, exc.threshold,
                                               f"plan pose {index + 1}" + (f": {extra}" if extra else "")) from None
             measurements.append(row)
-            full_frame = full_frame_document(result, camera_pose, expected)
+            full_frame = full_frame_document(result, camera_pose, expected, expected_plane=search)
+            full_frame["region"] = region_document(self.config.region, region)
         t4 = time.perf_counter()
         record = PoseRecord(index, target, reported, camera_pose, expected, measurements,
                             {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,

@@ -188,9 +188,7 @@ def measure_full_frame(frames: Sequence[Frame], settings: FullFrameSettings | No
     """
     if not frames:
         raise CalibrationError("no frames captured")
-    search: dict[str, Any] = {} if region is None and expected_plane is None else \
-        {"region": region, "expected": expected_plane}   # TRANSITIONAL until the fit takes both
-    res = fit_full_frame(list(frames), settings, **search)
+    res = fit_full_frame(list(frames), settings, region=region, expected=expected_plane)
     if check:
         check_gates(res, settings)
     m = Measurement(FULL_FRAME, None, res.angle_rad, res.angle_sigma_rad, res.tilt_x_rad, res.tilt_y_rad,
