@@ -64,24 +64,27 @@ class Scenario:
 
 
 def camera_views(mount: Pose, target_m: Sequence[float], height_m: float, inclinations_deg: Sequence[float],
-                 rolls_deg: Sequence[float]) -> tuple[Pose, ...]:
-    """Flange poses whose camera looks down at ``target_m`` from ``height_m`` at every inclination x roll.
+                 rolls_deg: Sequence[float], azimuths_deg: Sequence[float] = (0.0,)) -> tuple[Pose, ...]:
+    """Flange poses whose camera looks down at ``target_m`` from ``height_m``, every inclination x roll x azimuth.
 
     The camera starts looking straight down (its x along the base x), is tilted about the base
-    y axis so its optical axis makes the inclination with a horizontal plane, and is rolled
-    about its optical axis; the flange is the camera times the inverse mount.
+    y axis so its optical axis makes the inclination with a horizontal plane, rolled about its
+    optical axis, and turned about the vertical through the target by the azimuth (which leaves
+    the plane as the camera sees it unchanged); the flange is the camera times the inverse mount.
     """
     from scipy.spatial.transform import Rotation
 
     down = Rotation.from_euler("x", math.pi)  # optical axis (camera z) along -z of the base
+    target = np.asarray(target_m, dtype=np.float64)
     flanges = []
     for incl in inclinations_deg:
         tilt = Rotation.from_euler("y", math.radians(90.0 - incl))  # optical axis off the vertical
         for roll in rolls_deg:
-            rot = tilt * down * Rotation.from_euler("z", math.radians(roll))  # roll about the optical axis
-            axis = rot.apply([0.0, 0.0, 1.0])
-            camera = Pose(rot, np.asarray(target_m, dtype=np.float64) - height_m * axis)
-            flanges.append(camera @ mount.inv())
+            for azimuth in azimuths_deg:
+                turn = Rotation.from_euler("z", math.radians(azimuth))  # about the vertical through the target
+                rot = turn * tilt * down * Rotation.from_euler("z", math.radians(roll))  # roll about the optical axis
+                camera = Pose(rot, target - height_m * rot.apply([0.0, 0.0, 1.0]))
+                flanges.append(camera @ mount.inv())
     return tuple(flanges)
 
 
