@@ -159,3 +159,17 @@ def test_a_range_camera_is_refused() -> None:
     with pytest.raises(CalibrationError, match="stereo or structured-light"):
         fit_disparity(p, np.arange(W * H), (H, W), MeasurementModel(kind="tof", sigma_at_1m_m=0.003),
                       FullFrameSettings())
+
+
+def test_disparity_lattice_is_read_off_quantised_depths() -> None:
+    from cellcal.core.methods.fullframe.disparity import disparity_lattice
+
+    rng = np.random.default_rng(8)
+    z_int = _points(_plane(20.0, 10.0, 0.8), 0.3, 0, rng)[2]
+    assert disparity_lattice(z_int) == pytest.approx(F * B, rel=2e-3)             # integer disparity
+    z_sub = _points(_plane(20.0, 10.0, 0.8), 0.3, 2, rng)[2]
+    assert disparity_lattice(z_sub) == pytest.approx(F * B * 4, rel=2e-3)         # quarter-pixel steps
+    z_mm = np.round(z_int.astype(np.float64), 3)                                   # an OAK's millimetre output
+    assert disparity_lattice(z_mm) == pytest.approx(F * B, rel=0.01)
+    assert disparity_lattice(rng.uniform(0.4, 1.2, 50_000)) is None               # continuous depths: none
+    assert disparity_lattice(np.full(100, 0.7)) is None                            # one level tells nothing
