@@ -301,7 +301,8 @@ class SimCamera(SimCameraShell):
         if cfg.noise and cfg.noise_scale > 0:
             if arte.amplitude_noise:
                 sigma = amplitude_sigma_m(np.where(ret.amplitude > 0, ret.amplitude, 1.0), arte.noise_floor,
-                                          cfg.noise_scale)
+                                          cfg.noise_scale, shot_noise_at_1m_m=arte.shot_noise_at_1m_m,
+                                          pixel_noise_m=arte.pixel_noise_m)
             else:  # the data-sheet law of the true distance and incidence (1 m, normal where nothing was hit)
                 sigma = datasheet_sigma_m(np.where(cast.hit, cast.range_m, 1.0),
                                           np.where(cast.hit, cast.cos_incidence, 1.0), cfg.noise_scale)

@@ -11,7 +11,7 @@ from cellcal.devices.pose import Pose
 from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.o3r.backend import EmulatedO3RCamera, EmulatedO3RConfig
 from cellcal.sims.scene import Scene
-from cellcal.sims.tof import STATED_COS, STATED_RANGE_M, ArtefactsConfig, noise_sigma_m
+from cellcal.sims.tof import O3R_MEASURED_NOISE, STATED_COS, STATED_RANGE_M, ArtefactsConfig, noise_sigma_m
 from cellcal.sims.world import SimWorld
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)
@@ -26,16 +26,31 @@ def make(artefacts: ArtefactsConfig | None = None, height_m: float = 0.8, **cfg:
     return SimCamera(SimCameraConfig(**cfg), world=world)  # type: ignore[arg-type]
 
 
-def test_default_camera_states_tof_with_a_law_close_to_the_noise_it_draws() -> None:
-    model = make().measurement_model
+@pytest.mark.parametrize(("noise", "exponent", "bounds"), [
+    ({}, (0.9, 1.3), (0.85, 1.1)),  # the defaults: the amplitude law fitted to the data sheet
+    (O3R_MEASURED_NOISE, (0.2, 0.5), (0.75, 1.3)),  # set against the real O3R frame: nearly flat in range
+])
+def test_camera_states_tof_with_a_law_close_to_the_noise_it_draws(
+        noise: dict[str, float], exponent: tuple[float, float], bounds: tuple[float, float]) -> None:
+    arte = ArtefactsConfig(**noise)
+    model = make(arte).measurement_model
     assert (model.kind, model.source, model.range_step_m) == ("tof", "sim", 0.001)
-    assert model.sigma_at_1m_m is not None and 1.0 < model.distance_exponent < 2.0
+    assert model.sigma_at_1m_m is not None and exponent[0] < model.distance_exponent < exponent[1]
     # the stated power law against the amplitude law it summarises, over the stated ranges and incidences
     d, c = np.meshgrid(np.geomspace(*STATED_RANGE_M, 30), np.linspace(*STATED_COS, 8))
-    sigma_q = np.sqrt(noise_sigma_m(d, c) ** 2 + 0.001**2 / 12.0)
-    ratio = model.range_sigma_m(d, c) / sigma_q
-    assert ratio.min() > 0.75 and ratio.max() < 1.25
+    drawn = noise_sigma_m(d, c, noise_floor=arte.noise_floor, shot_noise_at_1m_m=arte.shot_noise_at_1m_m,
+                          pixel_noise_m=arte.pixel_noise_m)
+    ratio = model.range_sigma_m(d, c) / np.sqrt(drawn**2 + 0.001**2 / 12.0)
+    assert ratio.min() > bounds[0] and ratio.max() < bounds[1]
     assert np.exp(np.mean(np.log(ratio))) == pytest.approx(1.0, abs=0.05)
+    # and the frames show the drawn law: a window on the axis, 40 frames, noise per pixel
+    cam = make(arte, quantisation_m=0.0)
+    window = (slice(80, 92), slice(106, 118))
+    stack = np.array([cam.render(looking_down(0.8)).distance[window] for _ in range(40)], dtype=np.float64)
+    measured = float(np.sqrt(np.mean(stack.std(axis=0, ddof=1) ** 2)))
+    assert measured == pytest.approx(float(noise_sigma_m(0.8, 1.0, noise_floor=arte.noise_floor,
+                                                         shot_noise_at_1m_m=arte.shot_noise_at_1m_m,
+                                                         pixel_noise_m=arte.pixel_noise_m)), rel=0.06)
 
 
 def test_datasheet_law_is_stated_exactly_and_frames_show_it() -> None:
