@@ -200,8 +200,9 @@ class SimCamera(SimCameraShell):
           blend of its (lens-blurred) footprint (:mod:`cellcal.sims.mixed_pixels`);
         * **drift** (``temperature_drift``): a range offset decaying with warm-up time;
         * **noise**: Gaussian range noise of :func:`~cellcal.sims.tof.amplitude_sigma_m` of
-          the return's amplitude (``amplitude_noise``; else the data-sheet law
-          :func:`~cellcal.sims.tof.datasheet_sigma_m`), scaled by ``noise_scale``;
+          the return's amplitude with the ``[sim.artefacts]`` per-pixel and shot-noise terms
+          (``amplitude_noise``; else the data-sheet law :func:`~cellcal.sims.tof.datasheet_sigma_m`),
+          scaled by ``noise_scale``;
         * **quantisation**: the noisy distance is rounded to ``quantisation_m`` (1 mm);
         * **invalid pixels** (distance and XYZ NaN, ``valid`` False): no surface hit or no
           return, angle between ray and surface normal above ``grazing_limit_deg``,
@@ -358,4 +359,5 @@ class SimCamera(SimCameraShell):
         """Model parameters for reports."""
         return {"intrinsics": self._intr.to_dict(), "sigma_at_1m_m": SIGMA_AT_1M_M * self.config.noise_scale,
                 "sigma_distance_exponent": SIGMA_DISTANCE_EXPONENT, "repeatability_sigmas": REPEATABILITY_SIGMAS,
-                "artefacts": dataclasses.asdict(self.world.artefacts)}
+                "artefacts": dataclasses.asdict(self.world.artefacts),
+                "measurement": self._measurement_model().to_dict()}
