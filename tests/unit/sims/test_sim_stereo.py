@@ -223,3 +223,27 @@ def test_same_seed_same_frames_and_a_resumed_camera_continues() -> None:
         got = fresh.capture()
     np.testing.assert_array_equal(got.distance, want.distance)
     assert got.sequence == want.sequence == 2
+
+
+def test_sim_oak_cell_builds_the_stereo_camera_and_sees_the_table_at_the_first_pose() -> None:
+    from importlib import resources
+
+    from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.calibration.config import load_config
+
+    path = resources.files("cellcal.configs").joinpath("sim_oak.toml")
+    with resources.as_file(path) as file:
+        config = load_config(file)
+    camera, _arm = build_devices(config)
+    assert isinstance(camera, SimStereoCamera)
+    model = camera.measurement_model
+    assert (model.kind, model.baseline_m, model.subpixel_bits) == ("stereo", 0.075, 3)
+    assert model.focal_px == pytest.approx(320.0 / np.tan(np.radians(36.0)))
+    # the paper's nearest pose: 0.46 m along the axis at 80 deg to the table
+    pose = Pose(Rotation.from_euler("x", 180.0 + 10.0, degrees=True), np.zeros(3))
+    pose = Pose(pose.rotation, -0.46 * pose.rotation.apply([0.0, 0.0, 1.0]))
+    frame = camera.render(pose)
+    assert frame.shape == (400, 640) and frame.valid.mean() > 0.98
+    assert frame.measurement == model
+    # the step between depth levels at 0.46 m: 0.8 mm (Z²/(f·B)/8)
+    assert float(model.depth_step_m(0.46)) == pytest.approx(0.46**2 / (model.fb_px_m * 8.0))
