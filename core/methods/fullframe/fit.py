@@ -48,7 +48,13 @@ from cellcal.core.methods.fullframe.flatness import (
     region_flatness,
 )
 from cellcal.core.methods.fullframe.gates import gate_table, image_coverage
-from cellcal.core.methods.fullframe.honesty import SAMPLE, design_effect, lock_on, quantisation_floor
+from cellcal.core.methods.fullframe.honesty import (
+    SAMPLE,
+    design_effect,
+    lock_on,
+    quantisation_floor,
+    rounding_allowance_m,
+)
 from cellcal.core.methods.fullframe.mixed import EdgeClean, EdgeReport
 from cellcal.core.methods.fullframe.passes import (
     Cutoff,
@@ -585,7 +591,8 @@ def _honesty(fit: _Fit, data: _FramePoints, shape: tuple[int, int], meas: Measur
     depth_all = data.dm if meas.kind == "tof" else data.p[2]   # what the sensor quantises
     locked = lock_on(np.take(depth_all, sel), ortho, depth_all)
     deff, se = design_effect(resid, data.masks, shape)
-    spatial = deff if deff > 1.0 + 3.0 * se else 1.0      # significant correlation only
+    # significant correlation only; the disparity path has already applied its own (in disparity units)
+    spatial = deff if deff > 1.0 + 3.0 * se and not disparity else 1.0
     uv = np.stack([fit.e1 @ p_s, fit.e2 @ p_s])            # in-plane coordinates, m
     cov, held = quantisation_floor(fit.cov * spatial, floor, uv, int(np.count_nonzero(fit.inliers)))
     ratio = fit.residual_rms_m / expected_m if expected_m > 0 else math.nan
@@ -675,7 +682,13 @@ def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings 
                                 0 if edge is None else edge.floor_px) from None
     fit, honest = _honesty(fit, data, (h, w), meas, cfg, n_pixels, expected)
     mask = _pixel_inliers(fit.inliers, data.masks, (h, w))
-    extras = _Extras(image_coverage(mask, cfg, roi), _flatness(fit, data, model, cfg),
-                     None if edge is None else edge.report, honest)
+    flat = _flatness(fit, data, model, cfg)
+    bend = rounding_allowance_m(honest.floor_m, fit.residual_rms_m)   # undithered rounding bends local planes
+    if bend > 1e-5 and flat.excess_m > 0:
+        left = max(flat.excess_m - bend, 0.0)
+        flat = Flatness(left, flat.where if left > 0 else "")
+        honest = dataclasses.replace(honest, notes=(*honest.notes, f"flatness allows {bend * 1000:.3g} mm for "
+                                                    "the rounding's sawtooth (weakly dithered depth steps)"))
+    extras = _Extras(image_coverage(mask, cfg, roi), flat, None if edge is None else edge.report, honest)
     return _assemble(fit, cfg, model, n_points=data.p.shape[1], valid_fraction=data.p.shape[1] / n_pixels,
                      inlier_mask=mask, n_frames=len(data.frames), extras=extras)

@@ -18,7 +18,7 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["design_effect", "lock_on", "quantisation_floor"]
+__all__ = ["design_effect", "lock_on", "quantisation_floor", "rounding_allowance_m"]
 
 #: Inliers (strided) examined for a lock-on and for the quantisation floor's geometry.
 SAMPLE = 4096
@@ -30,41 +30,24 @@ ZERO_SHARE = 0.5
 ZERO_M = 1e-12
 #: A level holding at least this share of the valid pixels is populated.
 LEVEL_SHARE = 0.005
-#: Quantisation steps are at most this fraction of the depth (integer disparity at ~4 m for an OAK-D).
-MAX_STEP_REL = 0.1
-#: Neighbouring levels of quantised data are evenly spaced within this fraction of the step.
-SPACING_TOL = 0.3
+#: ... and at least this many pixels.
+MIN_LEVEL_PIXELS = 16
 #: Blocks across the image's longer side for the spatial design effect.
 BLOCKS_ACROSS = 32
 #: The design effect is applied when it exceeds 1 by this many of its standard errors under independence.
 DEFF_SIGNIFICANCE = 3.0
 
 
-def _levels_nearby(levels: NDArray[np.floating[Any]], valid_depth: F32) -> bool:
-    """Whether the valid depths hold evenly spaced, populated levels next to ``levels`` (quantised data).
+def _other_levels(levels: NDArray[np.floating[Any]], valid_depth: F32) -> bool:
+    """Whether other valid pixels also share depth values (populated levels beside ``levels``: quantised data).
 
-    A noise-free exact plane seen head-on also has one depth, but no neighbouring levels;
-    box tops over it are levels at arbitrary, not even, spacings.
+    A noise-free exact plane seen head-on has one depth too, but then nothing else in the
+    image is a level; if everything is one level, the plane's tilt is below what the
+    data resolve and zero is the right answer within the quantisation.
     """
     values, counts = np.unique(valid_depth, return_counts=True)
-    populated = values[(counts >= LEVEL_SHARE * valid_depth.size) & ~np.isin(values, levels)]
-    if populated.size == 0:
-        return False
-    lo, hi = float(levels.min()), float(levels.max())
-    below = np.sort(lo - populated[populated < lo])        # gaps to the levels below, nearest first
-    above = np.sort(populated[populated > hi] - hi)        # ... and above
-    gaps = np.concatenate([below[:1], above[:1]])
-    g = float(gaps.min())
-    if g > MAX_STEP_REL * hi:
-        return False
-
-    def near(x: NDArray[np.floating[Any]], target: float) -> bool:
-        return bool(np.any(np.abs(x - target) <= SPACING_TOL * g))
-
-    both_sides = below.size > 0 and above.size > 0 and near(below[:1], g) and near(above[:1], g)
-    one_side = near(below, 2 * g) if below.size and near(below[:1], g) else False
-    one_side |= near(above, 2 * g) if above.size and near(above[:1], g) else False
-    return bool(both_sides or one_side)
+    populated = (counts >= max(LEVEL_SHARE * valid_depth.size, MIN_LEVEL_PIXELS)) & ~np.isin(values, levels)
+    return bool(populated.any())
 
 
 def lock_on(depth_in: F32, ortho_in: FloatArray, valid_depth: F32) -> str:
@@ -90,9 +73,9 @@ def lock_on(depth_in: F32, ortho_in: FloatArray, valid_depth: F32) -> str:
     else:
         where = ", ".join(f"{v * 1000:.5g} mm" for v in levels)
         reason = f"its inliers' depths take {levels.size} distinct value(s) ({where})"
-    if not _levels_nearby(levels, valid_depth):
-        return ""                                         # one depth but no quantisation around it: an exact plane
-    return reason + " while evenly spaced depth levels next to them hold other valid pixels"
+    if not _other_levels(levels, valid_depth):
+        return ""                                         # one depth and no other level: nothing to judge by
+    return reason + ", and other valid pixels sit on depth levels of their own (quantised depth)"
 
 
 def design_effect(resid: F32, masks: list[BoolArray], shape: tuple[int, int]) -> tuple[float, float]:
@@ -167,3 +150,22 @@ def quantisation_floor(cov: FloatArray, floor_m: float, uv: FloatArray, n_inlier
         return cov, False
     add = (vecs[:, plus] * vals[plus]) @ vecs[:, plus].T  # ... its positive part
     return cov + add, True
+
+
+def rounding_allowance_m(floor_m: float, rms_m: float) -> float:
+    """How far rounding alone can bend a local plane, metres: the flatness gate does not count it.
+
+    Rounding to steps ``q`` leaves a sawtooth error; Gaussian noise of sigma ``s`` before the
+    rounding (dither) damps its first harmonic, of amplitude ``q/pi``, by ``exp(-2 pi² s²/q²)``.
+    Noisy ToF (3 mm on 1 mm steps) leaves nothing; integer-disparity stereo (0.1 px on 1 px
+    steps) leaves nearly ``q/pi``, which bends a local plane over a few depth levels.
+
+    Args:
+        floor_m: RMS orthogonal quantisation floor ``q/sqrt(12)`` of the inliers, metres.
+        rms_m: Their RMS orthogonal residual, metres (noise and rounding).
+    """
+    if not floor_m > 0:
+        return 0.0
+    q = math.sqrt(12.0) * floor_m                         # the step across the plane
+    s = math.sqrt(max(rms_m * rms_m - floor_m * floor_m, 0.0))   # the noise before rounding (Sheppard)
+    return q / math.pi * math.exp(-2.0 * math.pi ** 2 * (s / q) ** 2)
