@@ -146,12 +146,14 @@ class EmulatedO3RCamera(Camera3D):
             raise NotConnectedError("o3r-emulated: not connected")
         frame = self.driver.capture(timeout)
         self._captured = True
-        return frame
+        # the driver stamps its own (data-sheet) model; the noise on the wire is the sim's
+        return dataclasses.replace(frame, measurement=self._measurement_model())
 
     def _measurement_model(self) -> MeasurementModel:
-        """ToF: the model of the simulated camera behind the emulator (its noise law, 1 mm steps).
+        """ToF: the model of the simulated camera behind the emulator (the noise law it draws, 1 mm steps).
 
-        Frames whose driver states a model of its own keep the driver's (``Camera3D.capture``).
+        Not the driver's data-sheet model: the emulated camera's noise is the sim's, so its
+        frames carry the sim's model (:meth:`_capture`) and it calibrates as ``sim`` does.
         """
         return self.sim.measurement_model
 

@@ -92,3 +92,6 @@ def test_emulated_o3r_states_the_simulated_cameras_tof_model() -> None:
     model = cam.measurement_model  # stated without a connection
     assert model.kind == "tof" and model == cam.sim.measurement_model
     assert model.sigma_at_1m_m == pytest.approx(0.5 * make().measurement_model.sigma_at_1m_m)
+    # its frames carry the sim's model, not the driver's data-sheet one: the noise on the wire is the sim's
+    with cam:
+        assert cam.capture().measurement == model
