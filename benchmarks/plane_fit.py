@@ -42,7 +42,9 @@ core); at most 25 bytes of extra memory per point; error within 1.2x the Cramer-
 bound on every noisy cloud.
 
 Run: ``python benchmarks/plane_fit.py [--seeds N] [--reps N] [--quick]`` (needs the
-``bench`` extra: ``pip install 'cellcal[bench]'``).
+``bench`` extra: ``pip install 'cellcal[bench]'``). ``--fit-only`` times cellcal's fit alone
+(no peers needed): median CPU time per fit and per valid pixel, the figure issue 27's
+target ("fit time per pixel <= 1.2x today's") is judged on.
 """
 
 from __future__ import annotations
@@ -377,6 +379,26 @@ def run(seeds: int, reps: int, sizes: tuple[tuple[int, int], ...], accuracy_seed
     return all_ok
 
 
+def run_fit_only(seeds: int, reps: int, sizes: tuple[tuple[int, int], ...]) -> None:
+    """cellcal's fit alone: median CPU ms per fit and ns per valid pixel, per size and kind (no peers)."""
+    print(f"cellcal full-frame fit alone, one core; {seeds} cloud(s) per kind x {reps} rep(s) (1280x800: "
+          f"{max(3, reps // 4)}); median CPU time")
+    print(f"{'cloud':<18}{'N':>9} | {'ms':>8} {'ns/px':>7}")
+    for size in sizes:
+        n_reps = max(3, reps // 4) if size[0] * size[1] > 200_000 else reps
+        for kind in KINDS:
+            stats, n_px = Stats(), []
+            for seed in range(seeds):
+                cloud = make_cloud(size, kind, seed)
+                fit_full_frame(cloud.frame)                                       # warm-up
+                start = len(stats.cpu_s)
+                timed(lambda c=cloud: fit_full_frame(c.frame), n_reps, stats)
+                n_px += [cloud.points.shape[0]] * (len(stats.cpu_s) - start)
+            per_px = statistics.median(t / n for t, n in zip(stats.cpu_s, n_px, strict=True))
+            print(f"{size[0]}x{size[1]} {kind:<10}{int(statistics.median(n_px)):>9} | {stats.cpu_ms:>8.2f} "
+                  f"{per_px * 1e9:>7.1f}")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     ap.add_argument("--seeds", type=int, default=5, help="clouds per kind and size (default 5; random: twice)")
@@ -384,8 +406,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--accuracy-seeds", type=int, default=40,
                     help="clouds per noisy kind for cellcal's error over the bound (default 40; 1280x800: a quarter)")
     ap.add_argument("--quick", action="store_true", help="224x172 only, 2 seeds, 5 reps, 8 accuracy seeds")
+    ap.add_argument("--fit-only", action="store_true", help="time cellcal's fit alone (no peers): ms and ns per pixel")
     args = ap.parse_args(argv)
-    if args.quick:
+    if args.fit_only:
+        run_fit_only(args.seeds, args.reps, SIZES[:1] if args.quick else SIZES)
+    elif args.quick:
         run(2, 5, SIZES[:1], 8)
     else:
         run(args.seeds, args.reps, SIZES, args.accuracy_seeds)

@@ -50,6 +50,19 @@ def _other_levels(levels: NDArray[np.floating[Any]], valid_depth: F32) -> bool:
     return bool(populated.any())
 
 
+def _few_levels(depth: F32) -> NDArray[np.floating[Any]] | None:
+    """The distinct values of ``depth`` when there are at most ``MAX_LEVELS`` (two), else None (one pass, no sort)."""
+    if depth.size == 0:
+        return None
+    first = depth[0]
+    rest = depth[depth != first]
+    if rest.size == 0:
+        return np.sort(np.array([first]))
+    if MAX_LEVELS >= 2 and bool(np.all(rest == rest[0])):
+        return np.sort(np.array([first, rest[0]]))
+    return None
+
+
 def lock_on(depth_in: F32, ortho_in: FloatArray, valid_depth: F32) -> str:
     """Why the fit sat on one quantisation level, or "" when it did not.
 
@@ -62,12 +75,12 @@ def lock_on(depth_in: F32, ortho_in: FloatArray, valid_depth: F32) -> str:
     Returns:
         A short reason for messages ("" when the inliers are no lock-on).
     """
-    levels = np.unique(depth_in)
-    zero = np.abs(ortho_in) <= ZERO_M
-    share = float(np.mean(zero)) if zero.size else 0.0
-    if levels.size > MAX_LEVELS:                          # many depths: a lock-on only if most residuals are 0 ...
-        levels = np.unique(depth_in[zero]) if share > ZERO_SHARE else levels
-        if levels.size > MAX_LEVELS:                      # ... on one or two levels
+    levels = _few_levels(depth_in)
+    if levels is None:                                    # many depths: a lock-on only if most residuals are 0 ...
+        zero = np.abs(ortho_in) <= ZERO_M
+        share = float(np.count_nonzero(zero)) / max(zero.size, 1)
+        levels = _few_levels(depth_in[zero]) if share > ZERO_SHARE else None
+        if levels is None:                                # ... on one or two levels
             return ""
         reason = f"{share:.0%} of its inliers have a zero residual"
     else:
