@@ -45,7 +45,8 @@ class SimStereoConfig:
     Defaults: a Luxonis OAK-D at 400P (OV9282 mono pair binned to 640 x 400, 72° HFOV,
     75 mm baseline), 3 subpixel bits, the 0..95 px disparity search of its default
     (non-extended) mode, its depth aligned to the rectified right camera (depthai's
-    default). Speckle at the level seen in real OAK frames (ADR 0029).
+    default). Speckle and disparity noise (0.25 px) at the levels measured on real OAK frames
+    (ADR 0029).
     """
 
     kind: Literal["stereo"] = field(default="stereo", metadata={"doc": "the sim camera's kind: stereo"})
@@ -58,10 +59,10 @@ class SimStereoConfig:
     baseline_m: float = field(default=0.075, metadata={"gt": 0.0, "le": 2.0, "doc": "stereo baseline, m"})
     subpixel_bits: int = field(default=3, metadata={"ge": 0, "le": 8,
                                                     "doc": "fractional bits of the disparity (0 = integer)"})
-    disparity_sigma_px: float = field(default=0.1, metadata={"ge": 0.0, "le": 10.0,
+    disparity_sigma_px: float = field(default=0.25, metadata={"ge": 0.0, "le": 10.0,
                                                              "doc": "1-sigma disparity noise before rounding, px"})
     noise: bool = field(default=True, metadata={"doc": "add disparity noise"})
-    speckle_fraction: float = field(default=0.005, metadata={
+    speckle_fraction: float = field(default=0.008, metadata={
         "ge": 0.0, "le": 0.5, "doc": "fraction of pixels in small blobs of wrong disparity"})
     speckle_size_px: int = field(default=3, metadata={"ge": 1, "le": 16,
                                                       "doc": "largest speckle blob side, px (sides 1..this)"})
