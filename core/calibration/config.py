@@ -148,29 +148,6 @@ class ReferenceSection:
         if not np.linalg.norm(self.plane_normal) > 0:
             raise ValueError("reference.plane_normal must be non-zero")
 
-
-@dataclass(frozen=True)
-class SafetySection:
-    """``[safety]``: the motion envelope every arm command is checked against, and how a move must arrive.
-
-    Ranges are those of a real cell (ADR 0016): a workspace within 10 m of the base, speeds
-    from 0.1 mm/s, an arrival tolerance of at most 100 mm / 10 deg (unset: the arm's own
-    default, 1 mm / 0.1 deg for an industrial arm).
-    """
-
-    workspace_min_m: Vec3 = field(default=(-0.7, -0.7, 0.0), metadata={"ge": -10.0, "le": 10.0})
-    workspace_max_m: Vec3 = field(default=(0.7, 0.7, 1.0), metadata={"ge": -10.0, "le": 10.0})
-    max_speed_m_s: float = field(default=0.25, metadata={"ge": 1e-4, "le": 3.0})
-    max_acceleration_m_s2: float = field(default=2.0, metadata={"ge": 1e-3, "le": 150.0})
-    min_standoff_m: float = field(default=0.15, metadata={"ge": 0, "le": 10.0})
-    arrival_tolerance_m: float | None = field(default=None, metadata={"ge": 1e-6, "le": 0.1})
-    arrival_tolerance_deg: float | None = field(default=None, metadata={"ge": 1e-4, "le": 10.0})
-
-    def __post_init__(self) -> None:
-        for axis, lo, hi in zip("xyz", self.workspace_min_m, self.workspace_max_m, strict=True):
-            if not lo < hi:
-                raise ValueError(f"safety.workspace_min_m must be < workspace_max_m on {axis} ({lo} >= {hi})")
-
     @property
     def search_tolerance_rad(self) -> float:
         """``search_tolerance_deg`` in radians."""
@@ -225,6 +202,29 @@ class RegionSection:
     def whole_image(self) -> bool:
         """Whether no region is set (the fit and its gates see the whole image)."""
         return self.polygon_px is None and self.box_min_m is None
+
+
+@dataclass(frozen=True)
+class SafetySection:
+    """``[safety]``: the motion envelope every arm command is checked against, and how a move must arrive.
+
+    Ranges are those of a real cell (ADR 0016): a workspace within 10 m of the base, speeds
+    from 0.1 mm/s, an arrival tolerance of at most 100 mm / 10 deg (unset: the arm's own
+    default, 1 mm / 0.1 deg for an industrial arm).
+    """
+
+    workspace_min_m: Vec3 = field(default=(-0.7, -0.7, 0.0), metadata={"ge": -10.0, "le": 10.0})
+    workspace_max_m: Vec3 = field(default=(0.7, 0.7, 1.0), metadata={"ge": -10.0, "le": 10.0})
+    max_speed_m_s: float = field(default=0.25, metadata={"ge": 1e-4, "le": 3.0})
+    max_acceleration_m_s2: float = field(default=2.0, metadata={"ge": 1e-3, "le": 150.0})
+    min_standoff_m: float = field(default=0.15, metadata={"ge": 0, "le": 10.0})
+    arrival_tolerance_m: float | None = field(default=None, metadata={"ge": 1e-6, "le": 0.1})
+    arrival_tolerance_deg: float | None = field(default=None, metadata={"ge": 1e-4, "le": 10.0})
+
+    def __post_init__(self) -> None:
+        for axis, lo, hi in zip("xyz", self.workspace_min_m, self.workspace_max_m, strict=True):
+            if not lo < hi:
+                raise ValueError(f"safety.workspace_min_m must be < workspace_max_m on {axis} ({lo} >= {hi})")
 
 
 @dataclass(frozen=True)
