@@ -49,6 +49,7 @@ from cellcal.core.methods.fullframe.flatness import (
 )
 from cellcal.core.methods.fullframe.gates import gate_table, image_coverage
 from cellcal.core.methods.fullframe.honesty import (
+    DEFF_SIGNIFICANCE,
     SAMPLE,
     design_effect,
     lock_on,
@@ -592,7 +593,7 @@ def _honesty(fit: _Fit, data: _FramePoints, shape: tuple[int, int], meas: Measur
     locked = lock_on(np.take(depth_all, sel), ortho, depth_all)
     deff, se = design_effect(resid, data.masks, shape)
     # significant correlation only; the disparity path has already applied its own (in disparity units)
-    spatial = deff if deff > 1.0 + 3.0 * se and not disparity else 1.0
+    spatial = deff if deff > 1.0 + DEFF_SIGNIFICANCE * se and not disparity else 1.0
     uv = np.stack([fit.e1 @ p_s, fit.e2 @ p_s])            # in-plane coordinates, m
     cov, held = quantisation_floor(fit.cov * spatial, floor, uv, int(np.count_nonzero(fit.inliers)))
     ratio = fit.residual_rms_m / expected_m if expected_m > 0 else math.nan
@@ -608,7 +609,7 @@ def _honesty(fit: _Fit, data: _FramePoints, shape: tuple[int, int], meas: Measur
     honest = _Honest(meas, "disparity" if disparity else "range", expected_m, floor, stated,
                      meas.multipath_m if meas.kind == "tof" else 0.0, locked, IntervalFactors(ratio, spatial, held),
                      tuple(notes), expected, region_pixels)
-    return dataclasses.replace(fit, cov=cov), honest
+    return dataclasses.replace(fit, cov=cov, resid=None), honest   # the residuals' scratch goes before flatness
 
 
 def _disparity_fit(data: _FramePoints, shape: tuple[int, int], meas: MeasurementModel, cfg: FullFrameSettings,

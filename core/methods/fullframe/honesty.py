@@ -9,6 +9,7 @@ Points are in the camera frame (OpenCV), metres. Rationale: docs/adr/0028-honest
 from __future__ import annotations
 
 import math
+import threading
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,17 @@ MIN_LEVEL_PIXELS = 16
 BLOCKS_ACROSS = 32
 #: The design effect is applied when it exceeds 1 by this many of its standard errors under independence.
 DEFF_SIGNIFICANCE = 3.0
+
+_BUFFERS = threading.local()
+
+
+def _image_buffer(n: int) -> F32:
+    """A float32 image-sized buffer reused by this thread's fits (a fresh one per fit costs page faults, ADR 0007)."""
+    buf: F32 | None = getattr(_BUFFERS, "image", None)
+    if buf is None or buf.size < n:
+        buf = np.empty(n, dtype=np.float32)
+        _BUFFERS.image = buf
+    return buf[:n]
 
 
 def _other_levels(levels: NDArray[np.floating[Any]], valid_depth: F32) -> bool:
@@ -114,7 +126,7 @@ def design_effect(resid: F32, masks: list[BoolArray], shape: tuple[int, int]) ->
         return 1.0, 0.0
     num = den = 0.0
     start = 0
-    img = np.empty(h * w, dtype=np.float32)
+    img = _image_buffer(h * w)
     for m in masks:                                       # per frame: scatter into the image, sum whole blocks
         k = int(np.count_nonzero(m))
         img.fill(0.0)
