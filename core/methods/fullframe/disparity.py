@@ -224,10 +224,11 @@ def _ols(a: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
 def _solve(ata: FloatArray, atd: FloatArray) -> tuple[FloatArray, FloatArray]:
     """``v = (aᵀa)⁻¹ aᵀd`` and ``(aᵀa)⁻¹`` from the normal equations."""
     try:
-        inv = np.linalg.inv(ata)
+        inv: FloatArray = np.linalg.inv(ata)
     except np.linalg.LinAlgError:
         raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
-    return inv @ atd, inv
+    v: FloatArray = inv @ atd
+    return v, inv
 
 
 class _Normal:
