@@ -224,7 +224,7 @@ def _ols(a: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
 def _solve(ata: FloatArray, atd: FloatArray) -> tuple[FloatArray, FloatArray]:
     """``v = (aᵀa)⁻¹ aᵀd`` and ``(aᵀa)⁻¹`` from the normal equations."""
     try:
-        inv: FloatArray = np.linalg.inv(ata)
+        inv = np.asarray(np.linalg.inv(ata), dtype=np.float64)
     except np.linalg.LinAlgError:
         raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
     v: FloatArray = inv @ atd
