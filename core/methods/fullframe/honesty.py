@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.core.methods.fullframe.disparity import disparity_lattice
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
@@ -100,7 +102,12 @@ def lock_on(depth_in: F32, ortho_in: FloatArray, valid_depth: F32) -> str:
         reason = f"its inliers' depths take {levels.size} distinct value(s) ({where})"
     if not _other_levels(levels, valid_depth):
         return ""                                         # one depth and no other level: nothing to judge by
-    return reason + ", and other valid pixels sit on depth levels of their own (quantised depth)"
+    reason += ", and other valid pixels sit on depth levels of their own (quantised depth)"
+    fb = disparity_lattice(valid_depth)                   # a stereo camera's levels tell its f·B/q
+    if fb is not None:
+        reason += (f"; the depths sit on a disparity lattice of f·B/q = {fb:.4g} px·m: a stereo camera — state "
+                   "its model in [camera.model] (docs/real-sensors.md)")
+    return reason
 
 
 def design_effect(resid: F32, masks: list[BoolArray], shape: tuple[int, int]) -> tuple[float, float]:

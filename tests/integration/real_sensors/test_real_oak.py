@@ -129,5 +129,6 @@ def test_without_a_model_no_frame_is_accepted(path: Path) -> None:
     with pytest.raises(CalibrationQualityError) as info:
         check_gates(result)
     assert info.value.gate in ("residual_floor", "flatness")
-    if info.value.gate == "residual_floor":                    # sat on one level: said so
+    if info.value.gate == "residual_floor":                    # sat on one level: said so, and what to state
         assert "quantisation level" in str(info.value)
+        assert "disparity lattice of f·B/q = " in str(info.value) and "[camera.model]" in str(info.value)
