@@ -220,7 +220,9 @@ def _ci(value: Any, ci: Any, spec: str) -> str:
 
 _GATE_LABEL = {"valid_fraction": ("valid", 100.0, "%", "min"), "inlier_fraction": ("inliers", 100.0, "%", "min"),
                "residual_rms_m": ("rms", 1000.0, "mm", "max"), "coverage": ("coverage", 100.0, "%", "min"),
-               "flatness": ("flatness", 1000.0, "mm", "max")}
+               "flatness": ("flatness", 1000.0, "mm", "max"),
+               "residual_floor": ("rms vs sensor", 1.0, "x", "min"),
+               "expected_plane": ("off expected", 180.0 / math.pi, "deg", "max")}
 
 
 def _gates(gates: Mapping[str, Any]) -> str:
@@ -229,7 +231,8 @@ def _gates(gates: Mapping[str, Any]) -> str:
         label, k, unit, side = _GATE_LABEL.get(name, (name, 1.0, "", "limit"))
         value = "-" if g["value"] is None else f"{g['value'] * k:.3g}"
         mark = "ok" if g["passed"] else "FAILED"
-        parts.append(f"{label} {value} {unit} ({side} {g['threshold'] * k:.3g} {unit}, {mark})")
+        sep = " " if unit else ""
+        parts.append(f"{label} {value}{sep}{unit} ({side} {g['threshold'] * k:.3g}{sep}{unit}, {mark})")
     return "; ".join(parts)
 
 
