@@ -11,6 +11,7 @@ without control characters, bounded lengths.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import functools
 import math
 import operator
@@ -230,6 +231,15 @@ def check_value(value: Any, tp: Any, metadata: Mapping[str, Any], key: str, sour
     return converted
 
 
+def _unknown_key(key: object, known: list[str]) -> str:
+    """``unknown key; did you mean 'x'? (expected one of: ...)``, or without the guess when none is near."""
+    choices = ", ".join(known) or "(none)"
+    near = difflib.get_close_matches(key.lower(), known, n=1) if isinstance(key, str) and len(key) <= 60 else []
+    if near:
+        return f"unknown key; did you mean {near[0]!r}? (expected one of: {choices})"
+    return f"unknown key; expected one of: {choices}"
+
+
 def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str = "",
                   source: str | None = None, ignore: tuple[str, ...] = ()) -> T:
     """Validate a mapping against a config dataclass and build an instance.
@@ -264,9 +274,8 @@ def parse_section(cls: type[T], section: Mapping[str, Any] | None, *, where: str
     known = {f.name: f for f in dataclasses.fields(cls) if f.init}
     for key in section:
         if key not in known and key not in ignore:
-            choices = ", ".join(sorted(known)) or "(none)"
             name = key if isinstance(key, str) and key.isprintable() and len(key) <= 60 else show(key)
-            raise ConfigError(f"unknown key; expected one of: {choices}", source=source, key=_join(where, name))
+            raise ConfigError(_unknown_key(key, sorted(known)), source=source, key=_join(where, name))
     kwargs: dict[str, Any] = {}
     for name, f in known.items():
         full = _join(where, name)

@@ -82,7 +82,9 @@ def test_unknown_backend_names_the_choices() -> None:
 @pytest.mark.parametrize(
     ("section", "message"),
     [
-        ({"exposure": 1.0}, r"key 'camera.exposure': unknown key; expected one of: exposure_s, name, size_px"),
+        ({"exposure": 1.0},
+         r"key 'camera.exposure': unknown key; did you mean 'exposure_s'\? "
+         r"\(expected one of: exposure_s, name, size_px\)"),
         ({"exposure_s": "fast"}, r"key 'camera.exposure_s': expected a number, got str 'fast'"),
         ({"exposure_s": -1.0}, r"key 'camera.exposure_s': must be > 0, got -1.0"),
         ({"exposure_s": True}, r"key 'camera.exposure_s': expected a number, got bool"),

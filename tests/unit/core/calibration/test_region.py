@@ -52,7 +52,8 @@ def parse_region(region: dict[str, Any]) -> RegionSection:
     ({"box_min_m": [0.0, 0.0, math.nan], "box_max_m": [0.1, 0.1, 0.1]},
      "key 'region.box_min_m[2]': expected a finite number"),
     ({"box_min_m": [0.0, 0.0, -11.0], "box_max_m": [0.1, 0.1, 0.1]}, "key 'region.box_min_m': must be >= -10.0"),
-    ({"polygon": [[0, 0], [10, 0], [10, 10]]}, "key 'region.polygon': unknown key; expected one of: box_max_m"),
+    ({"polygon": [[0, 0], [10, 0], [10, 10]]},
+     "key 'region.polygon': unknown key; did you mean 'polygon_px'? (expected one of: box_max_m"),
 ])
 def test_a_bad_region_is_one_line_naming_the_key(region: dict[str, Any], message: str) -> None:
     with pytest.raises(ConfigError) as info:
