@@ -51,6 +51,7 @@ from .codes import (
 )
 from .config import UR_MAX_TOOL_ACCELERATION_M_S2, UR_MAX_TOOL_SPEED_M_S, URConfig
 from .dashboard import DashboardLink
+from .fd_capture import captured_output
 from .rtde_probe import probe_stream
 
 log = logging.getLogger(__name__)
@@ -159,6 +160,10 @@ class URArm(RobotArm):
             raise
 
     def _open_interfaces(self, deadline: float) -> None:
+        # A plain-socket RTDE exchange first: one clear error for a refused port, an unreachable host or a
+        # silent stream, within the deadline (ur_rtde's constructors would hold the GIL for 2.5 s, and
+        # its dashboard client says "Timeout" for a refused port).
+        self._probe(self.config.host, self._remaining(deadline))
         if self.config.use_dashboard:
             self._dash.open(self._remaining(deadline), required=False)
             self._dash.require_remote_control()
@@ -402,7 +407,9 @@ class URArm(RobotArm):
         if remaining <= 0:
             raise DeviceTimeoutError(f"ur {self.config.host}: no time left to {what}")
         try:
-            return self._caller.call(fn, remaining, what, on_late=lambda h: h.disconnect())
+            # ur_rtde's constructors print their own lines from C++: to the debug log, not the terminal
+            with captured_output(f"ur {self.config.host}: {what}"):
+                return self._caller.call(fn, remaining, what, on_late=lambda h: h.disconnect())
         except RuntimeError as exc:  # ur_rtde reports constructor failures as RuntimeError
             text = str(exc)
             hint = " (switch the pendant to Remote Control)" if "remote control" in text.lower() else ""

@@ -10,7 +10,10 @@ import contextlib
 import logging
 from typing import Any
 
-from cellcal.devices.errors import DeviceConnectionError, MissingDependencyError, VendorError
+from cellcal.devices.errors import CellcalError, DeviceConnectionError, MissingDependencyError, VendorError
+
+from .fd_capture import captured_output
+from .rtde_probe import open_port
 
 log = logging.getLogger(__name__)
 
@@ -50,16 +53,26 @@ class DashboardLink:
             raise MissingDependencyError("ur_rtde (dashboard_client)", "ur") from None
         dash = dashboard_client.DashboardClient(self.host, self.port)
         try:
-            dash.connect(max(1, int(timeout * 1000)))
+            with captured_output(f"ur {self.host}: dashboard connect"):  # ur_rtde's own lines: debug log only
+                dash.connect(max(1, int(timeout * 1000)))
             self.identity = {"model": str(dash.getRobotModel()), "serial": str(dash.getSerialNumber()),
                              "polyscope": str(dash.polyscopeVersion())}
         except (RuntimeError, OSError) as exc:
+            reason = self._why_not(timeout, exc)
             if required:
-                raise DeviceConnectionError(f"ur {self.host}: dashboard server port {self.port}: {exc}") from None
-            log.warning("ur %s: dashboard unavailable (%s); identity unknown", self.host, exc)
+                raise DeviceConnectionError(f"ur {self.host}: dashboard server port {self.port}: {reason}") from None
+            log.warning("ur %s: dashboard unavailable (%s); identity unknown", self.host, reason)
             return None
         self.client = dash
         return dash
+
+    def _why_not(self, timeout: float, exc: BaseException) -> str:
+        """Why the dashboard connect failed: ur_rtde says "Timeout" for a refused port too, so ask a plain socket."""
+        try:
+            open_port(self.host, self.port, min(timeout, 1.0), "dashboard").close()
+        except CellcalError as refused:
+            return str(refused).removeprefix(f"ur {self.host}: ")
+        return str(exc)
 
     def call(self, method: str, what: str) -> None:
         """Run one dashboard command (e.g. ``"powerOn"``); a refusal is a :class:`VendorError`."""

@@ -69,6 +69,25 @@ def _conversation(sock: socket.socket, deadline: float) -> float:
             return float(struct.unpack(">d", payload[1:])[0])
 
 
+def open_port(host: str, port: int, timeout: float, name: str) -> socket.socket:
+    """A TCP connection to ``host:port`` within ``timeout`` s; a refused port and no answer told apart.
+
+    Raises:
+        DeviceConnectionError: If the port is refused (nothing listens there) or unreachable.
+        DeviceTimeoutError: If the host does not answer within ``timeout`` (down, or a firewall drops).
+    """
+    try:
+        return socket.create_connection((host, port), timeout=max(0.001, timeout))
+    except ConnectionRefusedError:
+        raise DeviceConnectionError(f"ur {host}: connection refused on the {name} port {port} (nothing listens "
+                                    f"there: is the controller on, and is {host} its address?)") from None
+    except TimeoutError:
+        raise DeviceTimeoutError(f"ur {host}: no answer from the {name} port {port} within {timeout:.3g} s "
+                                 "(controller off or unreachable, or a firewall drops the connection)") from None
+    except OSError as exc:
+        raise DeviceConnectionError(f"ur {host}: {name} port {port}: {exc.strerror or exc}") from None
+
+
 def probe_stream(host: str, timeout: float, port: int = RTDE_PORT) -> float:
     """Connect to RTDE, ask for the timestamp and wait for one data package; returns the timestamp (s).
 
@@ -78,16 +97,18 @@ def probe_stream(host: str, timeout: float, port: int = RTDE_PORT) -> float:
         port: RTDE port.
 
     Raises:
-        DeviceConnectionError: If the port cannot be reached or closes.
-        DeviceTimeoutError: If no data package arrives within ``timeout`` (a silent stream).
+        DeviceConnectionError: If the port is refused, cannot be reached or closes.
+        DeviceTimeoutError: If the connection or the first data package does not come within
+            ``timeout`` (an unreachable host; a silent stream).
         ProtocolError: If a reply does not follow the protocol.
     """
     deadline = time.monotonic() + timeout
+    sock = open_port(host, port, timeout, "RTDE")
     try:
-        with socket.create_connection((host, port), timeout=max(0.001, timeout)) as sock:
+        with sock:
             return _conversation(sock, deadline)
     except TimeoutError:  # socket.timeout is TimeoutError
-        raise DeviceTimeoutError(f"ur {host}: the RTDE port {port} sent no data within {timeout:.3g} s "
-                                 "(stream frozen?)") from None
+        raise DeviceTimeoutError(f"ur {host}: the RTDE port {port} accepted the connection but sent no data "
+                                 f"within {timeout:.3g} s (stream frozen, or not a UR controller?)") from None
     except OSError as exc:
         raise DeviceConnectionError(f"ur {host}: RTDE port {port}: {exc}") from None

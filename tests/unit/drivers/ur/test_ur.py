@@ -296,7 +296,7 @@ def test_stale_receive_stream_is_rebuilt(robot: URArm, ctl: FakeController) -> N
     ctl.pose = [0.31, -0.1, 0.45, math.pi, 0.0, 0.0]    # the arm has moved meanwhile
     robot._sleep(0.2)                                   # longer than stale_after_s
     pose = robot.get_pose()
-    assert robot.receive_rebuilds == 1 and ctl.probes == 1   # the stream was checked before rebuilding
+    assert robot.receive_rebuilds == 1 and ctl.probes == 2   # at connect, and before rebuilding
     assert ctl.receives[-1] is not first and first.disconnect.called
     assert pose.translation[0] == pytest.approx(0.31)
 
@@ -337,6 +337,7 @@ def test_remote_control_off_is_reported(vendor: FakeController, mocker: Any) -> 
     mocker.patch.object(rtde_control, "RTDEControlInterface",
                         side_effect=RuntimeError("ur_rtde: Please enable remote control on the robot!"))
     arm = URArm.from_config({"host": HOST})
+    arm._probe = vendor.probe                            # connect asks the stream first
     with pytest.raises(DeviceConnectionError, match="Remote Control"):
         arm.connect(timeout=2.0)
     assert not arm.connected
@@ -355,6 +356,7 @@ def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeCon
 
     mocker.patch.object(rtde_control, "RTDEControlInterface", side_effect=slow_control)
     arm = URArm.from_config({"host": HOST})
+    arm._probe = vendor.probe                            # connect asks the stream first
     arm._caller.join = lambda timeout: None               # close() must not wait for the worker here
     with pytest.raises(DeviceTimeoutError, match="did not finish within"):
         arm.connect(timeout=0.2)
@@ -424,6 +426,7 @@ def test_control_interface_opens_without_waiting_and_the_driver_starts_the_scrip
 def test_a_script_that_never_runs_is_a_connect_timeout(vendor: FakeController) -> None:
     vendor.robot, vendor.program = 5, False              # IDLE: programs cannot run...
     arm = URArm.from_config({"host": HOST})
+    arm._probe = vendor.probe                            # connect asks the stream first
     clock = FakeClock()
     arm._clock, arm._sleep = clock, clock.sleep
     arm._ready_for_program = lambda receive: True        # ...but the driver is told it can: upload, wait
@@ -435,6 +438,7 @@ def test_a_script_that_never_runs_is_a_connect_timeout(vendor: FakeController) -
 def test_connects_in_protective_stop_and_clear_errors_retries_the_refused_unlock(vendor: FakeController) -> None:
     vendor.safety, vendor.program = 3, False             # a protective stop also stops the program
     arm = URArm.from_config({"host": HOST})
+    arm._probe = vendor.probe                            # connect asks the stream first
     clock = FakeClock()
     arm._clock, arm._sleep = clock, clock.sleep
     arm.connect(timeout=2.0)                             # no script yet: status says why
