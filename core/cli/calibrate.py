@@ -9,14 +9,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import path_arg
-from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_OK
-from cellcal.core.cli.options import add_config_option, add_viz_port_option
+from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
+from cellcal.core.cli.options import add_config_option, add_viz_port_option, check_viz_options
 from cellcal.core.cli.progress import progress_factory
 from cellcal.core.cli.resumable import resume_command, run_resumable
 from cellcal.devices.errors import ConfigError
 
 if TYPE_CHECKING:  # the calibration (numpy, OpenCV) is imported when the command runs, not by `cellcal --help`
     from cellcal.core.calibration.config import CellConfig
+    from cellcal.core.liveview import LiveView
     from cellcal.devices.camera import Camera3D
     from cellcal.devices.safety import SafeArm
 
@@ -130,9 +131,7 @@ def _disagreement(document: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal calibrate``; returns the exit status."""
-    from cellcal.core.calibration.calibrator import Calibrator, run_to_file
-    from cellcal.core.calibration.report import RESULT_FILENAME
-
+    check_viz_options(args)
     if args.check:
         return _check(args)
     if getattr(args, "dry_run", False):
@@ -142,22 +141,30 @@ def run(args: argparse.Namespace) -> int:
         dry_run(load_config(args.config))
         return EXIT_OK
     config, camera, arm = _session(args)
-    out = Path(args.out) / RESULT_FILENAME
-    view = None
-    if getattr(args, "viz_port", None) is not None:  # the live view's imports only when it is asked for
-        from cellcal.core.liveview import open_live_view
+    if getattr(args, "viz_port", None) is None:  # the live view's imports only when it is asked for
+        return _calibrate(args, config, camera, arm, None)
+    from cellcal.core.liveview import linger, live_view_session
 
-        view = open_live_view(args.viz_port)
+    with live_view_session(args.viz_port, wait_s=getattr(args, "viz_wait", None)) as view:
+        status = _calibrate(args, config, camera, arm, view)
+        if view is not None and getattr(args, "viz_linger", None) and status != EXIT_INTERRUPTED:
+            linger(view, args.viz_linger)
+    return status
+
+
+def _calibrate(args: argparse.Namespace, config: CellConfig, camera: Camera3D, arm: SafeArm,
+               view: LiveView | None) -> int:
+    """Run the plan into ``DIR/result.json`` (publishing to ``view``), print the report; the exit status."""
+    from cellcal.core.calibration.calibrator import Calibrator, run_to_file
+    from cellcal.core.calibration.report import RESULT_FILENAME
+
+    out = Path(args.out) / RESULT_FILENAME
     calibrator = Calibrator(config, camera, arm, progress=progress_factory("poses", "pose", args.quiet),
                             observer=None if view is None else view.observe_pose(config.mount.pose()))
-    try:
-        document = run_resumable(lambda: run_to_file(calibrator, out, resume=getattr(args, "resume", False)),
-                                 calibrator, len(calibrator.poses), out, resume_command("calibrate", args))
-        if isinstance(document, int):  # interrupted: the exit status
-            return document
-    finally:
-        if view is not None:
-            view.close()
+    document = run_resumable(lambda: run_to_file(calibrator, out, resume=getattr(args, "resume", False)),
+                             calibrator, len(calibrator.poses), out, resume_command("calibrate", args))
+    if isinstance(document, int):  # interrupted: the exit status
+        return document
     if not args.quiet:
         _print_report(document)
     disagree = _disagreement(document)

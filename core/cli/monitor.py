@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import integer, path_arg, real
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
-from cellcal.core.cli.options import add_viz_port_option, check_input_file
+from cellcal.core.cli.options import add_viz_port_option, check_input_file, check_viz_options
 
 if TYPE_CHECKING:  # the monitor (numpy, the fit) is imported by run(), not by `cellcal --help`
     from cellcal.core.calibration.config import CellConfig
@@ -143,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
     from cellcal.core.calibration.config import load_config
     from cellcal.core.monitor import Monitor, monitored_cameras, write_baselines
 
+    check_viz_options(args)
     if args.baseline:
         check_input_file(args.baseline, MAX_BASELINE_BYTES)
     paths: list[str | None] = list(args.config) if args.config else [None]
@@ -150,25 +151,23 @@ def run(args: argparse.Namespace) -> int:
     configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]
     specs = monitored_cameras(configs, args.baseline)
     printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)
-    from cellcal.core.liveview import MonitorFeed, open_live_view
+    from cellcal.core.liveview import MonitorFeed, linger, live_view_session
 
-    view = open_live_view(getattr(args, "viz_port", None), drift=True)
-    feed = None if view is None else MonitorFeed(view, printer, [label for label, _ in configs])
-    monitor = Monitor(specs, printer) if feed is None else Monitor(specs, feed.on_status, fit=feed.fit)
-    printer.monitor = monitor
-    if not args.quiet:
-        where = ", ".join(f"{label} ({c.camera_section['backend']}, {c.source})" for label, c in configs)
-        print(f"monitoring {where}; Ctrl-C to stop", flush=True)
-    try:
+    with live_view_session(getattr(args, "viz_port", None), drift=True, wait_s=getattr(args, "viz_wait", None)) as view:
+        feed = None if view is None else MonitorFeed(view, printer, [label for label, _ in configs])
+        monitor = Monitor(specs, printer) if feed is None else Monitor(specs, feed.on_status, fit=feed.fit)
+        printer.monitor = monitor
+        if not args.quiet:
+            where = ", ".join(f"{label} ({c.camera_section['backend']}, {c.source})" for label, c in configs)
+            print(f"monitoring {where}; Ctrl-C to stop", flush=True)
         summary = monitor.run(args.duration, args.frames)
-    finally:
-        if view is not None:
-            view.close()
-    for line in format_summary(summary):
-        print(line)
-    if args.save_baseline:
-        print(f"baselines written to {write_baselines(args.save_baseline, summary.cameras)}")
-    sys.stdout.flush()
-    if summary.interrupted:
-        return EXIT_INTERRUPTED
+        for line in format_summary(summary):
+            print(line)
+        if args.save_baseline:
+            print(f"baselines written to {write_baselines(args.save_baseline, summary.cameras)}")
+        sys.stdout.flush()
+        if summary.interrupted:
+            return EXIT_INTERRUPTED
+        if view is not None and getattr(args, "viz_linger", None):
+            linger(view, args.viz_linger)
     return EXIT_FAILURE if summary.drift_detected else EXIT_OK

@@ -6,12 +6,17 @@ import argparse
 import os
 import stat
 
-from cellcal.core.cli.argtypes import integer, path_arg
+from cellcal.core.cli.argtypes import integer, path_arg, real
 from cellcal.devices.errors import ConfigError
 
-__all__ = ["CONFIG_HELP", "add_config_option", "add_viz_port_option", "check_input_file"]
+__all__ = ["CONFIG_HELP", "DEFAULT_VIZ_WAIT_S", "add_config_option", "add_viz_port_option", "check_input_file",
+           "check_viz_options"]
 
 CONFIG_HELP = "cell configuration (TOML); default: packaged sim.toml"
+#: ``--viz-wait`` without a number: the longest wait for a viewer, s.
+DEFAULT_VIZ_WAIT_S = 60.0
+#: Longest ``--viz-wait`` and ``--viz-linger`` accepted, s (one day: every wait is bounded).
+MAX_VIZ_S = 86400.0
 
 
 def add_config_option(parser: argparse.ArgumentParser) -> None:
@@ -20,10 +25,32 @@ def add_config_option(parser: argparse.ArgumentParser) -> None:
 
 
 def add_viz_port_option(parser: argparse.ArgumentParser) -> None:
-    """Add ``--viz-port N``: serve the live view (Foxglove WebSocket) on 127.0.0.1:N (ADR 0020)."""
+    """Add ``--viz-port N``: serve the live view (Foxglove WebSocket) on 127.0.0.1:N (ADR 0020), with
+    ``--viz-wait [S]`` and ``--viz-linger S`` (ADR 0035)."""
     parser.add_argument("--viz-port", metavar="N", type=integer(ge=1, le=65535),
                         help="serve a live 3D view on ws://127.0.0.1:N for Foxglove (point cloud, fitted plane, "
                         "frames); needs the 'viz' extra")
+    parser.add_argument("--viz-wait", metavar="S", nargs="?", const=DEFAULT_VIZ_WAIT_S,
+                        type=real(gt=0, le=MAX_VIZ_S),
+                        help="with --viz-port: before the run, wait until a viewer subscribes, at most S seconds "
+                        f"(default {DEFAULT_VIZ_WAIT_S:g}); then the run starts anyway")
+    parser.add_argument("--viz-linger", metavar="S", type=real(ge=0, le=MAX_VIZ_S),
+                        help="with --viz-port: keep serving S seconds after the run ends, sending the last scene "
+                        "to viewers that connect then; Ctrl-C ends it with exit status 130 (the results are "
+                        "already written)")
+
+
+def check_viz_options(args: argparse.Namespace) -> None:
+    """Refuse ``--viz-wait`` or ``--viz-linger`` without ``--viz-port``.
+
+    Raises:
+        ConfigError: Naming the option (exit status 2).
+    """
+    if getattr(args, "viz_port", None) is not None:
+        return
+    for option in ("viz_wait", "viz_linger"):
+        if getattr(args, option, None) is not None:
+            raise ConfigError(f"--{option.replace('_', '-')} needs --viz-port")
 
 
 def check_input_file(path: str, max_bytes: int) -> None:

@@ -1,8 +1,9 @@
 """Live view of calibrations and monitors in Foxglove, and the scenes they draw (ADR 0020)."""
 
 from cellcal.core.liveview.feed import MonitorFeed
+from cellcal.core.liveview.presence import linger, live_view_session, wait_for_viewer
 from cellcal.core.liveview.scenes import calibration_scenes, monitor_scene, pose_plane
 from cellcal.core.liveview.server import HOST, LiveView, import_foxglove, open_live_view
 
-__all__ = ["HOST", "LiveView", "MonitorFeed", "calibration_scenes", "import_foxglove", "monitor_scene",
-           "open_live_view", "pose_plane"]
+__all__ = ["HOST", "LiveView", "MonitorFeed", "calibration_scenes", "import_foxglove", "linger",
+           "live_view_session", "monitor_scene", "open_live_view", "pose_plane", "wait_for_viewer"]

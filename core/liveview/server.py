@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 import socket
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
+from cellcal.core.liveview.sdklog import route_sdk_logging
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.recording.codec import dumps, seconds_to_ns
 from cellcal.devices.recording.foxglove import scene_messages
@@ -46,6 +48,22 @@ def import_foxglove() -> Any:
     return foxglove
 
 
+class _Subscriptions:
+    """The SDK's server listener: counts the subscriptions clients have made (called from the SDK's thread)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.count = 0
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        """A client subscribed (the SDK has registered it: the channel has a sink)."""
+        with self._lock:
+            self.count += 1
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        """A client unsubscribed or left (the SDK calls this too; nothing to do)."""
+
+
 class LiveView:
     """Serves the Foxglove WebSocket protocol on ``127.0.0.1:port`` and publishes scenes.
 
@@ -53,7 +71,8 @@ class LiveView:
     inliers green, outliers red), ``/cellcal/plane`` (``foxglove.SceneUpdate``: the fitted
     plane and its normal), ``/tf`` (``foxglove.FrameTransforms``: base, flange, camera) and,
     with ``drift=True``, ``/cellcal/drift`` (``cellcal.Drift``). A message reaches the clients
-    subscribed at the time it is published.
+    subscribed at the time it is published; the last scene of each camera is kept, so
+    :meth:`republish` can show it to a client that subscribes later (ADR 0035).
 
     Args:
         port: TCP port (0: any free port; see :attr:`port`).
@@ -65,13 +84,17 @@ class LiveView:
 
     def __init__(self, port: int, *, drift: bool = False) -> None:
         foxglove = import_foxglove()
+        route_sdk_logging()
         self._context = foxglove.Context()
         topics = {**SCENE_CHANNELS, **(DRIFT_CHANNELS if drift else {})}
+        self._subscriptions = _Subscriptions()
+        self._last: dict[str, Scene] = {}
         self._channels = {topic: foxglove.Channel(topic, schema=foxglove.Schema(
             name=name, encoding="jsonschema", data=json.dumps(SCENE_SCHEMAS[name]).encode("utf-8")),
             message_encoding="json", context=self._context) for topic, name in topics.items()}
         try:
-            self._server = foxglove.start_server(name=SERVER_NAME, host=HOST, port=port, context=self._context)
+            self._server = foxglove.start_server(name=SERVER_NAME, host=HOST, port=port, context=self._context,
+                                                 server_listener=self._subscriptions)
         except Exception as exc:  # the SDK raises its own error type for a port in use or not allowed
             self._close_channels()
             raise ConfigError(f"--viz-port {port}: cannot listen on {HOST}:{port}: {exc}") from None
@@ -85,11 +108,30 @@ class LiveView:
         """The WebSocket URL to open in Foxglove."""
         return f"ws://{HOST}:{self.port}"
 
+    @property
+    def subscriptions(self) -> int:
+        """How many subscriptions clients have made so far (a count that only grows)."""
+        return self._subscriptions.count
+
+    def has_subscribers(self) -> bool:
+        """Whether a client is subscribed to any channel now."""
+        return any(channel.has_sinks() for channel in self._channels.values())
+
+    def republish(self) -> None:
+        """Publish again the last scene of each camera (for clients that subscribed after it was published)."""
+        for scene in list(self._last.values()):
+            self._send(scene)
+
     def publish(self, scene: Scene) -> None:
-        """Publish one scene on every channel it has data for (log time: the frame's time).
+        """Publish one scene on every channel it has data for (log time: the frame's time), and keep it
+        as its camera's last scene.
 
         Nothing is encoded while no client subscribes to any channel.
         """
+        self._last[scene.camera_frame_id] = scene
+        self._send(scene)
+
+    def _send(self, scene: Scene) -> None:
         if not any(channel.has_sinks() for channel in self._channels.values()):
             return
         log_time = seconds_to_ns(scene.timestamp) or None

@@ -1,0 +1,229 @@
+"""``--viz-wait`` and ``--viz-linger`` (ADR 0035): a viewer that joins late still sees the plane.
+
+Each test runs ``cellcal`` as a user does (a subprocess) and connects a real Foxglove
+WebSocket client (tests/support/foxglove_client.py) once the command says it is
+waiting or lingering; Ctrl-C is a real SIGINT.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip("foxglove")
+pytest.importorskip("websockets")
+from foxglove_client import FoxgloveClient
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from cellcal.core.calibration.config import load_config, plan_flange_poses
+from cellcal.core.cli import main
+from cellcal.core.liveview import LiveView
+
+SCENE_TOPICS = {"/camera/points", "/cellcal/plane", "/tf"}
+#: Longest wait for a line the command prints, s (a bound, not a timing assertion).
+LINE_TIMEOUT_S = 120.0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _cellcal(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "cellcal.core.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _read_until(proc: subprocess.Popen[str], text: str) -> list[str]:
+    """The stderr lines up to and including the first one containing ``text``."""
+    assert proc.stderr is not None
+    lines: list[str] = []
+    deadline = time.monotonic() + LINE_TIMEOUT_S
+    while time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        if text in line:
+            return lines
+    raise AssertionError(f"no line with {text!r} on stderr: {lines}")
+
+
+def _finish(proc: subprocess.Popen[str], interrupt: bool = False) -> tuple[str, str]:
+    try:
+        if interrupt:
+            proc.send_signal(signal.SIGINT)
+        return proc.communicate(timeout=LINE_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _on_plane(update: dict[str, Any], plane: dict[str, Any]) -> bool:
+    """Whether the plane message's patch lies on ``plane`` (result.json's ``plane_cam``)."""
+    (entity,) = update["entities"]
+    c = entity["cubes"][0]["pose"]["position"]
+    return abs(np.array(plane["normal"]) @ [c["x"], c["y"], c["z"]] + plane["offset_m"]) < 1e-9
+
+
+def _refused(url: str, subprotocols: list[str]) -> bool:
+    """Whether the server refuses a WebSocket handshake offering only ``subprotocols`` with HTTP 400."""
+    try:
+        with connect(url, subprotocols=subprotocols, open_timeout=10):  # type: ignore[arg-type]
+            return False
+    except InvalidStatus as exc:
+        return exc.response.status_code == 400
+
+
+def test_with_viz_wait_a_viewer_joining_a_second_after_start_sees_every_pose_and_a_refused_client_stays_silent(
+        tmp_path: Path) -> None:
+    n_poses = len(plan_flange_poses(load_config(None)))
+    port = _free_port()
+    proc = _cellcal("calibrate", "--viz-port", str(port), "--viz-wait", "60", "--out", str(tmp_path), "--quiet")
+    try:
+        head = _read_until(proc, "waiting up to 60 s for a viewer")
+        time.sleep(1.0)  # the viewer joins a second after the start
+        url = f"ws://127.0.0.1:{port}"
+        # a client offering only the protocol's original name is refused by foxglove-sdk (ADR 0035) ...
+        assert _refused(url, ["foxglove.websocket.v1"])
+        with FoxgloveClient(url) as client:
+            client.wait_for_channels(SCENE_TOPICS)
+            client.subscribe_all()
+            seen = client.collect(SCENE_TOPICS, count=n_poses, timeout_s=LINE_TIMEOUT_S)
+        out, err = _finish(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    document = json.loads((tmp_path / "result.json").read_text())
+    planes = [pose["full_frame"]["plane_cam"] for pose in document["poses"]]
+    assert len(planes) == n_poses
+    assert all(_on_plane(update, plane) for (_, update), plane in zip(seen.messages["/cellcal/plane"], planes,
+                                                                        strict=True))
+    # ... and the refusal is no line of the run's output: only the live view's own lines are on stderr
+    lines = (''.join(head) + err).splitlines()
+    assert lines == [f"live view: ws://127.0.0.1:{port} (in Foxglove: Open connection, Foxglove WebSocket, this URL)",
+                     "live view: waiting up to 60 s for a viewer to subscribe (Ctrl-C to stop)",
+                     "live view: a viewer subscribed; starting"], lines
+    assert out.splitlines() == [f"result written to {tmp_path / 'result.json'}"]
+    assert _port_free(port)
+
+
+def test_during_viz_linger_a_viewer_joining_after_the_run_sees_the_last_plane_and_ctrl_c_is_130(
+        tmp_path: Path) -> None:
+    port = _free_port()
+    proc = _cellcal("calibrate", "--viz-port", str(port), "--viz-linger", "600", "--out", str(tmp_path), "--quiet")
+    try:
+        _read_until(proc, "serving the last scene for 600 s more (Ctrl-C to stop)")
+        document = json.loads((tmp_path / "result.json").read_text())  # written before the linger
+        with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
+            client.wait_for_channels(SCENE_TOPICS)
+            client.subscribe_all()
+            seen = client.collect(SCENE_TOPICS, timeout_s=LINE_TIMEOUT_S)
+        out, err = _finish(proc, interrupt=True)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert err.splitlines() == ["cellcal: interrupted"]
+    assert out.splitlines() == [f"result written to {tmp_path / 'result.json'}"]
+    _, update = seen.messages["/cellcal/plane"][-1]
+    assert _on_plane(update, document["poses"][-1]["full_frame"]["plane_cam"])
+    assert json.loads((tmp_path / "result.json").read_text()) == document and _port_free(port)
+
+
+@pytest.mark.parametrize("command", [["calibrate", "--quiet"], ["monitor", "--frames", "5", "--quiet"]])
+def test_ctrl_c_while_waiting_for_a_viewer_is_130_and_starts_nothing(command: list[str], tmp_path: Path) -> None:
+    port = _free_port()
+    proc = _cellcal(*command, "--out" if command[0] == "calibrate" else "--save-baseline",
+                    str(tmp_path / "out"), "--viz-port", str(port), "--viz-wait")
+    try:
+        _read_until(proc, "waiting up to 60 s for a viewer to subscribe (Ctrl-C to stop)")
+        out, err = _finish(proc, interrupt=True)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert err.splitlines() == ["cellcal: interrupted"] and out == ""
+    assert not (tmp_path / "out").exists() and _port_free(port)
+
+
+def test_monitor_lingers_with_its_last_frame_after_a_scripted_run(tmp_path: Path) -> None:
+    port = _free_port()
+    proc = _cellcal("monitor", "--frames", "3", "--quiet", "--viz-port", str(port), "--viz-linger", "600")
+    try:
+        _read_until(proc, "serving the last scene for 600 s more")
+        with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
+            client.wait_for_channels({*SCENE_TOPICS, "/cellcal/drift"})
+            client.subscribe_all()
+            seen = client.collect({"/cellcal/drift", "/cellcal/plane"}, timeout_s=LINE_TIMEOUT_S)
+        out, err = _finish(proc, interrupt=True)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "monitor finished" in out and err.splitlines() == ["cellcal: interrupted"]
+    _, drift = seen.messages["/cellcal/drift"][-1]
+    assert drift["label"] == "sim" and drift["phase"] == "baseline"
+
+
+def test_a_linger_that_runs_out_keeps_the_runs_exit_status(tmp_path: Path) -> None:
+    port = _free_port()
+    assert main(["calibrate", "--viz-port", str(port), "--viz-linger", "0.1", "--out", str(tmp_path),
+                 "--quiet"]) == 0
+    assert (tmp_path / "result.json").is_file() and _port_free(port)
+
+
+def test_the_sdk_speaks_foxglove_sdk_v1_and_logs_a_refused_handshake_without_printing_it(
+        caplog: pytest.LogCaptureFixture, capfd: pytest.CaptureFixture[str]) -> None:
+    """What Foxglove offers (``foxglove.sdk.v1``) is accepted; ``foxglove.websocket.v1`` alone cannot be (ADR 0035)."""
+    caplog.set_level(logging.INFO, logger="cellcal.liveview")
+    with LiveView(0) as view:
+        with connect(view.url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as ws:  # type: ignore[list-item]
+            assert ws.subprotocol == "foxglove.sdk.v1"
+            assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+        assert _refused(view.url, ["foxglove.websocket.v1"])
+        deadline = time.monotonic() + LINE_TIMEOUT_S  # the SDK logs from its own thread
+        while not (ours := [r for r in caplog.records
+                            if r.name == "cellcal.liveview" and "handshake failed" in r.getMessage()]):
+            assert time.monotonic() < deadline, caplog.records
+            time.sleep(0.01)
+    (record,) = ours
+    assert record.levelno == logging.INFO
+    assert "foxglove.sdk.v1" in record.getMessage()
+    assert capfd.readouterr() == ("", "")
+
+
+@pytest.mark.parametrize("option", [["--viz-wait"], ["--viz-linger", "5"]])
+def test_wait_or_linger_without_a_port_is_one_line_and_exit_2(option: list[str], tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", *option, "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err.strip() == f"cellcal: error: {option[0]} needs --viz-port"
+    assert not (tmp_path / "out").exists()
