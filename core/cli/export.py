@@ -1,7 +1,9 @@
 """``cellcal export --ros2 FILE``: the camera mount of a result (or hand-eye file) as ROS 2 text.
 
 Prints a ``static_transform_publisher`` launch snippet and a URDF joint for
-``T_flange_camera`` (ADR 0020). Exit status 2 for a file that is not one of those.
+``T_flange_camera`` (ADR 0020). A result whose mount is the configured one (no
+``[mount] from_handeye``) says so on stderr and in both texts. Exit status 2 for a file
+that is not one of those.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ import argparse
 import json
 import math
 import re
+import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -60,18 +63,39 @@ def _vector(mount: Mapping[str, Any], key: str, size: int, source: str) -> list[
     return [float(v) for v in numbers]
 
 
-def read_mount(path: str) -> Pose:
-    """``T_flange_camera`` from a result.json (``mount``: translation_m, quaternion_xyzw) or a
-    hand-eye file (``mount``: translation_m, rpy_deg, as in a configuration's ``[mount]`` table).
+def _printable(text: str, limit: int = 200) -> str:
+    """``text`` as one printable line (control characters as ``?``), at most ``limit`` characters."""
+    line = "".join(c if c.isprintable() else "?" for c in text)
+    return line if len(line) <= limit else line[:limit - 3] + "..."
 
-    Raises:
-        ConfigError: Naming the file and what is wrong with it.
+
+def configured_mount_note(document: Mapping[str, Any]) -> str | None:
+    """Why the mount of a result document is not an estimate, or None when it is one (or cannot be told).
+
+    A ``cellcal calibrate`` result carries its configuration: a ``[mount]`` with ``from_handeye``
+    holds the hand-eye estimate, any other ``[mount]`` is the configured value, exported as it
+    was typed. A ``cellcal handeye`` file is an estimate.
     """
-    import numpy as np
-    from scipy.spatial.transform import Rotation
+    from cellcal.core.calibration.config import HANDEYE_SCHEMA_PREFIX
+    from cellcal.core.calibration.report import RESULT_SCHEMA
 
-    from cellcal.devices.pose import Pose
+    schema = str(document.get("schema", ""))
+    if schema.startswith(HANDEYE_SCHEMA_PREFIX):
+        return None
+    config = document.get("config")
+    if not schema.startswith(RESULT_SCHEMA.split("/")[0] + "/") and not isinstance(config, Mapping):
+        return None  # a bare mount table: its origin is not recorded
+    table = config.get("mount") if isinstance(config, Mapping) else None
+    if isinstance(table, Mapping) and isinstance(table.get("from_handeye"), str):
+        return None
+    source = document.get("config_source")
+    where = f" of {_printable(source)}" if isinstance(source, str) and source else ""
+    return (f"this mount is the configured [mount]{where}, exported unchanged: nothing estimated it "
+            "(estimate it with 'cellcal handeye', set [mount] from_handeye to its handeye.json, calibrate again)")
 
+
+def read_document(path: str) -> dict[str, Any]:
+    """The JSON object of ``path`` (ConfigError naming the file otherwise)."""
     check_input_file(path, MAX_INPUT_BYTES)
     try:
         with open(path, encoding="utf-8") as fh:
@@ -80,9 +104,33 @@ def read_mount(path: str) -> Pose:
         raise ConfigError("file not found", source=path) from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ConfigError(f"not a readable JSON file: {exc}", source=path) from None
-    mount = document.get("mount") if isinstance(document, dict) else None
-    if not isinstance(mount, dict):
+    if not isinstance(document, dict) or not isinstance(document.get("mount"), dict):
         raise ConfigError("no 'mount' object: expected a cellcal result.json or a hand-eye file", source=path)
+    return document
+
+
+def read_mount(path: str) -> Pose:
+    """``T_flange_camera`` from a result.json (``mount``: translation_m, quaternion_xyzw) or a
+    hand-eye file (``mount``: translation_m, rpy_deg, as in a configuration's ``[mount]`` table).
+
+    Raises:
+        ConfigError: Naming the file and what is wrong with it.
+    """
+    return mount_pose(read_document(path), path)
+
+
+def mount_pose(document: Mapping[str, Any], path: str) -> Pose:
+    """``T_flange_camera`` of a document :func:`read_document` returned (``path`` for messages).
+
+    Raises:
+        ConfigError: Naming the file and what is wrong with its ``mount``.
+    """
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from cellcal.devices.pose import Pose
+
+    mount = document["mount"]
     translation = _vector(mount, "translation_m", 3, path)
     if "quaternion_xyzw" in mount:
         q = np.asarray(_vector(mount, "quaternion_xyzw", 4, path))
@@ -101,8 +149,12 @@ def run(args: argparse.Namespace) -> int:
     """Run ``cellcal export``; returns the exit status."""
     from cellcal.devices.recording.ros2.static import launch_snippet, urdf_joint
 
-    pose = read_mount(args.ros2)
-    print(launch_snippet(pose, args.parent, args.child))
+    document = read_document(args.ros2)
+    pose = mount_pose(document, args.ros2)
+    note = configured_mount_note(document)
+    if note is not None:
+        print(f"cellcal export: note: {note}", file=sys.stderr)
+    print(launch_snippet(pose, args.parent, args.child, note=note))
     print(f"<!-- URDF fixed joint: {args.parent} -> {args.child} -->")
-    print(urdf_joint(pose, args.parent, args.child), end="")
+    print(urdf_joint(pose, args.parent, args.child, note=note), end="")
     return EXIT_OK

@@ -14,11 +14,22 @@ def _num(value: float) -> str:
     return repr(float(value))
 
 
-def launch_snippet(pose: Pose, parent: str, child: str, *, node_name: str = "cellcal_mount") -> str:
+def _one_line(note: str) -> str:
+    """``note`` as one line that is safe in a Python comment and in an XML comment."""
+    text = "".join(c if c.isprintable() else "?" for c in note)
+    while "--" in text:
+        text = text.replace("--", "- -")
+    return text
+
+
+def launch_snippet(pose: Pose, parent: str, child: str, *, node_name: str = "cellcal_mount",
+                   note: str | None = None) -> str:
     """A ROS 2 Python launch file publishing ``T_parent_child`` with tf2's ``static_transform_publisher``.
 
     Uses the named arguments of ROS 2 Humble and later (``--x ... --qw``, ``--frame-id``,
     ``--child-frame-id``): translation in metres, rotation as the quaternion x, y, z, w.
+    ``note`` (e.g. that the transform was configured, not estimated) becomes a ``# NOTE:``
+    comment line after the first.
     """
     x, y, z = (_num(v) for v in pose.translation)
     qx, qy, qz, qw = (_num(v) for v in pose.rotation.as_quat())
@@ -28,7 +39,8 @@ def launch_snippet(pose: Pose, parent: str, child: str, *, node_name: str = "cel
     return (f"# {parent} -> {child}: publish with 'ros2 launch' (or 'ros2 run tf2_ros static_transform_publisher"
             f" --x {x} --y {y} --z {z} --qx {qx} --qy {qy} --qz {qz} --qw {qw}"
             f" --frame-id {parent} --child-frame-id {child}')\n"
-            "from launch import LaunchDescription\n"
+            + (f"# NOTE: {_one_line(note)}\n" if note else "")
+            + "from launch import LaunchDescription\n"
             "from launch_ros.actions import Node\n\n\n"
             "def generate_launch_description():\n"
             "    return LaunchDescription([\n"
@@ -37,16 +49,18 @@ def launch_snippet(pose: Pose, parent: str, child: str, *, node_name: str = "cel
             "    ])\n")
 
 
-def urdf_joint(pose: Pose, parent: str, child: str, *, name: str | None = None) -> str:
+def urdf_joint(pose: Pose, parent: str, child: str, *, name: str | None = None, note: str | None = None) -> str:
     """A fixed URDF joint placing ``child`` at ``T_parent_child``: ``xyz`` in metres, ``rpy`` in radians.
 
     URDF's ``rpy`` is fixed-axis roll, pitch, yaw — :meth:`Pose.as_xyz_rpy`'s convention.
+    ``note`` becomes an XML comment ``<!-- NOTE: ... -->`` before the joint.
     """
     xyz_rpy = pose.as_xyz_rpy()
     xyz = " ".join(_num(v) for v in xyz_rpy[:3])
     rpy = " ".join(_num(v) for v in xyz_rpy[3:])
     joint = name or f"{parent}_to_{child}"
-    return (f"<joint name={quoteattr(joint)} type=\"fixed\">\n"
+    return ((f"<!-- NOTE: {_one_line(note)} -->\n" if note else "")
+            + f"<joint name={quoteattr(joint)} type=\"fixed\">\n"
             f"  <parent link={quoteattr(parent)}/>\n"
             f"  <child link={quoteattr(child)}/>\n"
             f"  <origin xyz=\"{xyz}\" rpy=\"{rpy}\"/>\n"
