@@ -21,6 +21,7 @@ from toml_files import write_toml
 from cellcal.core.calibration.journal import journal_path, read_journal
 from cellcal.core.calibration.outlock import LOCK_NAME
 from cellcal.core.calibration.report import RESULT_SCHEMA
+from cellcal.core.cli.progress import PLAIN_LINE
 from cellcal.devices.recording import read_recording
 
 N_POSES = 3
@@ -31,9 +32,10 @@ def _names(directory: Path) -> list[str]:
 
 
 def _one_line(err: str) -> str:
-    """The one line a failing command prints (after the progress bar's carriage returns)."""
+    """The one line a failing command prints (after the progress lines: stderr is a pipe here)."""
     assert "Traceback" not in err, err
-    lines = [line for line in err.replace("\r", "\n").splitlines() if line.strip() and "|" not in line]
+    lines = [line for line in err.replace("\r", "\n").splitlines()
+             if line.strip() and "|" not in line and not PLAIN_LINE.fullmatch(line)]
     assert len(lines) == 1, err
     return lines[0]
 
