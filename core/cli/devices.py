@@ -1,18 +1,26 @@
-"""``cellcal devices``: list registered backends (and, with --scan, reachable devices)."""
+"""``cellcal devices``: list registered backends (and, with --scan, reachable devices).
+
+A network backend (one with ``scan_hosts``: o3r, xarm, ur) probes ``--hosts``, ``--subnet``
+or its ``--factory`` addresses on its vendor's ports (``--ports NAME=PORT`` overrides);
+ADR 0036.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import signal
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import real
+from cellcal.core.cli.scan_targets import parse_hosts, parse_ports, parse_subnet
 from cellcal.core.cli.text import one_line
-from cellcal.devices.errors import CellcalError
+from cellcal.devices.errors import CellcalError, ConfigError
 
 if TYPE_CHECKING:
     from cellcal.devices.registry import Kind, Registry
@@ -22,7 +30,16 @@ def register(sub: Any) -> None:
     """Add the ``devices`` subcommand."""
     p = sub.add_parser("devices", help="list camera and arm backends and where they come from")
     p.add_argument("--scan", action="store_true", help="also look for reachable devices of each backend")
-    p.add_argument("--timeout", type=real(gt=0), default=2.0, metavar="S", help="seconds per backend scan")
+    p.add_argument("--timeout", type=real(gt=0, le=60), default=2.0, metavar="S", help="seconds per backend scan")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--hosts", type=parse_hosts, metavar="H,H...",
+                       help="network backends probe these IP addresses (with --scan)")
+    where.add_argument("--subnet", type=parse_subnet, metavar="CIDR",
+                       help="network backends probe this subnet, at most a /22 (with --scan)")
+    where.add_argument("--factory", action="store_true",
+                       help="network backends probe their vendor's factory addresses (with --scan)")
+    p.add_argument("--ports", type=parse_ports, metavar="NAME=PORT,...",
+                   help="non-standard ports by service: o3r-rpc, o3r-pcic, xarm, ur-dashboard, ur-rtde")
     p.set_defaults(func=run)
 
 
@@ -32,6 +49,12 @@ def run(args: argparse.Namespace) -> int:
 
     registry = default_registry()
     entries = registry.entries()
+    if not args.scan and (args.hosts or args.subnet or args.factory or args.ports):
+        raise ConfigError("--hosts, --subnet, --factory and --ports say where --scan looks: add --scan")
+    hosts: list[str] | None = args.hosts or args.subnet
+    target = NetworkTarget(hosts=hosts, ports=dict(args.ports or {})) if (hosts or args.factory) else None
+    if target is not None:
+        _check_services(registry, target.ports)
     width = max((len(e.name) for e in entries), default=4)
     for kind in ("camera", "arm"):
         print(f"{kind}s:")
@@ -43,14 +66,40 @@ def run(args: argparse.Namespace) -> int:
     print("scan:")
     # one child process per backend, a few at a time; the report keeps the listing's order
     with ThreadPoolExecutor(max_workers=_SCAN_WORKERS) as pool:
-        reports = pool.map(lambda e: _scan_entry(registry, e.kind, e.name, args.timeout), entries)
+        reports = pool.map(lambda e: _scan_entry(registry, e.kind, e.name, args.timeout, target), entries)
         for e, lines in zip(entries, reports, strict=True):
             for line in lines:
                 print(f"  {e.kind} {e.name}: {line}", flush=True)
     return 0
 
 
-def _scan_entry(registry: Registry, kind: Kind, name: str, timeout: float) -> list[str]:
+@dataclass(frozen=True)
+class NetworkTarget:
+    """Where network backends look.
+
+    Attributes:
+        hosts: IP addresses, or None for each backend's factory addresses.
+        ports: Port overrides by service name.
+    """
+
+    hosts: list[str] | None
+    ports: dict[str, int]
+
+
+def _check_services(registry: Registry, ports: dict[str, int]) -> None:
+    """Refuse a ``--ports`` service name that no network backend has (one line, exit 2)."""
+    known: set[str] = set()
+    for e in registry.entries():
+        with contextlib.suppress(CellcalError):
+            known |= set(getattr(registry.get(e.kind, e.name), "scan_ports", {}))
+    unknown = sorted(set(ports) - known)
+    if unknown:
+        raise ConfigError(f"--ports: unknown service {', '.join(map(repr, unknown))} "
+                          f"(known: {', '.join(sorted(known)) or 'none'})")
+
+
+def _scan_entry(registry: Registry, kind: Kind, name: str, timeout: float,
+                target: NetworkTarget | None = None) -> list[str]:
     """Report lines for one backend: no child process for a backend that has no discovery."""
     from cellcal.devices.base import Device
 
@@ -58,22 +107,40 @@ def _scan_entry(registry: Registry, kind: Kind, name: str, timeout: float) -> li
         cls = registry.get(kind, name)
     except CellcalError as exc:
         return [f"unavailable: {one_line(str(exc))}"]
+    if callable(getattr(cls, "scan_hosts", None)):
+        if target is None:
+            return [_where_hint(getattr(cls, "factory_hosts", ()))]
+        return scan_lines(kind, name, timeout, target)
     if getattr(cls.discover, "__func__", None) is getattr(Device.discover, "__func__", None):
         return [NO_DISCOVERY]
     return scan_lines(kind, name, timeout)
+
+
+def _where_hint(factory: tuple[str, ...]) -> str:
+    """What a network backend says to a scan that did not say where to look."""
+    if not factory:
+        at = "none: give its address"
+    elif len(factory) == 1:
+        at = factory[0]
+    else:
+        at = f"{factory[0]} ... {factory[-1]}, {len(factory)} addresses"
+    return f"network backend: say where to look: --hosts H,... | --subnet CIDR | --factory (factory address: {at})"
 
 
 #: What the scan says of a backend that cannot look for devices.
 NO_DISCOVERY = "no discovery (this backend cannot look for devices; configure its address)"
 
 
-def scan_lines(kind: str, name: str, timeout: float) -> list[str]:
+def scan_lines(kind: str, name: str, timeout: float, target: NetworkTarget | None = None) -> list[str]:
     """What one backend's discovery found, as report lines (run in a child process).
 
     The child's stderr (SDK chatter) is kept out of the report; a child that dies (a
     native abort in an SDK) or overruns ``timeout`` plus its start-up allowance is one line.
+    With ``target`` the child runs the backend's network scan (``scan_hosts``) there.
     """
     cmd = [sys.executable, "-m", "cellcal.core.cli.scan_child", kind, name, repr(timeout)]
+    if target is not None:
+        cmd.append(json.dumps({"hosts": target.hosts, "ports": target.ports}))
     try:
         done = subprocess.run(cmd, capture_output=True, text=True, errors="backslashreplace",
                               timeout=timeout + _CHILD_STARTUP_S, check=False)
@@ -89,13 +156,17 @@ def scan_lines(kind: str, name: str, timeout: float) -> list[str]:
     found = reply.get("found")
     if found is None:
         return [NO_DISCOVERY]
-    if not found:
-        return ["no devices found"]
+    notes = [one_line(str(n)) for n in reply.get("notes", [])]
+    if not found:  # an open port that did not identify says so itself, in one line
+        summary = reply.get("summary")
+        return notes or [f"no devices found ({one_line(str(summary))})" if summary else "no devices found"]
     lines = []
     for d in found:
         extra = ", ".join(f"{k}={v}" for k, v in dict(d.get("extra", {})).items())
-        lines.append(one_line(f"{d.get('vendor', '')} {d.get('model', '')} {d.get('serial', '')} {extra}".rstrip()))
-    return lines
+        firmware = f"firmware {d['firmware']}, " if d.get("firmware") else ""
+        lines.append(one_line(f"{d.get('vendor', '')} {d.get('model', '')} {d.get('serial', '')} "
+                              f"{firmware}{extra}".rstrip()))
+    return [*lines, *notes]
 
 
 def _unavailable(registry: Registry, kind: Kind, name: str) -> str | None:

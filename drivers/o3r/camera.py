@@ -7,15 +7,18 @@ from TOF_INFO's inverse model 1, which is OpenCV's projection (see :mod:`.tofinf
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
+from cellcal.devices.discovery import HostScan
 from cellcal.devices.errors import ConfigError, DeviceConnectionError, ProtocolError
 from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
+from . import discover
 from .client import PcicStream
 from .decode import FrameDecoder
 from .tofinfo import TofInfo
@@ -115,6 +118,18 @@ class O3RCamera(Camera3D):
 
     backend_name = "o3r"
     Config = O3RConfig
+
+    # ------------------------------------------------------------ network discovery
+    #: Standard ports by service name (``cellcal devices --scan --ports NAME=PORT``).
+    scan_ports: ClassVar[Mapping[str, int]] = discover.PORTS
+    #: Where a scan without ``--hosts`` / ``--subnet`` looks (``--factory``).
+    factory_hosts: ClassVar[tuple[str, ...]] = discover.FACTORY_HOSTS
+
+    @classmethod
+    def scan_hosts(cls, hosts: Sequence[str] | None, timeout: float,
+                   ports: Mapping[str, int] | None = None) -> HostScan:
+        """O3R VPUs among ``hosts`` (None: :attr:`factory_hosts`) within ``timeout`` seconds (:mod:`.discover`)."""
+        return discover.scan_hosts(hosts, timeout, ports)
 
     def __init__(self, config: O3RConfig | None = None, context: BackendContext | None = None) -> None:
         super().__init__()

@@ -15,7 +15,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar, NoReturn
 
 import numpy as np
@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
+from cellcal.devices.discovery import HostScan
 from cellcal.devices.errors import (
     CellcalError,
     DeviceConnectionError,
@@ -37,7 +38,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 from cellcal.drivers._blocking import BoundedCaller
 
-from . import availability
+from . import availability, discover
 from .codes import (
     FLAG_NO_WAIT,
     ROBOT_MODE_RUNNING,
@@ -115,6 +116,18 @@ class URArm(RobotArm):
 
     backend_name: ClassVar[str] = "ur"
     Config: ClassVar[type[URConfig]] = URConfig
+
+    # ------------------------------------------------------------ network discovery
+    #: Standard ports by service name (``cellcal devices --scan --ports NAME=PORT``).
+    scan_ports: ClassVar[Mapping[str, int]] = discover.PORTS
+    #: Where a scan without ``--hosts`` / ``--subnet`` looks (``--factory``): nowhere, UR ships with DHCP.
+    factory_hosts: ClassVar[tuple[str, ...]] = discover.FACTORY_HOSTS
+
+    @classmethod
+    def scan_hosts(cls, hosts: Sequence[str] | None, timeout: float,
+                   ports: Mapping[str, int] | None = None) -> HostScan:
+        """UR controllers among ``hosts`` within ``timeout`` seconds (:mod:`.discover`; no ur_rtde)."""
+        return discover.scan_hosts(hosts, timeout, ports)
 
     def __init__(self, config: URConfig, context: BackendContext | None = None):
         super().__init__()

@@ -13,8 +13,9 @@ import logging
 import math
 import struct
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +23,7 @@ from numpy.typing import NDArray
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.arrival import format_pose
 from cellcal.devices.base import BackendContext
+from cellcal.devices.discovery import HostScan
 from cellcal.devices.errors import (
     CellcalError,
     ConfigError,
@@ -36,7 +38,7 @@ from cellcal.devices.geometry.vendor_poses import pose_from_xarm, pose_to_xarm
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 
-from . import codes
+from . import codes, discover
 from .protocol import Reply
 from .registers import (
     ALL_AXES,
@@ -144,6 +146,18 @@ class XArmArm(RobotArm):
             if self.default_acceleration_m_s2 > self.max_acceleration_m_s2:
                 raise ConfigError(f"default_acceleration_m_s2 {self.default_acceleration_m_s2} exceeds "
                                   f"max_acceleration_m_s2 {self.max_acceleration_m_s2}")
+
+    # ------------------------------------------------------------ network discovery
+    #: Standard ports by service name (``cellcal devices --scan --ports NAME=PORT``).
+    scan_ports: ClassVar[Mapping[str, int]] = discover.PORTS
+    #: Where a scan without ``--hosts`` / ``--subnet`` looks (``--factory``).
+    factory_hosts: ClassVar[tuple[str, ...]] = discover.FACTORY_HOSTS
+
+    @classmethod
+    def scan_hosts(cls, hosts: Sequence[str] | None, timeout: float,
+                   ports: Mapping[str, int] | None = None) -> HostScan:
+        """xArm controllers among ``hosts`` (None: :attr:`factory_hosts`) within ``timeout`` s (:mod:`.discover`)."""
+        return discover.scan_hosts(hosts, timeout, ports)
 
     def __init__(self, config: XArmArm.Config | None = None, context: BackendContext | None = None):
         super().__init__()
