@@ -34,9 +34,10 @@ class _Armed:
     name: str
     device: str  # "camera" | "arm"
     event: str  # "connect" | "capture" | "move"
-    first: int  # the event number (as the simulator counts) the fault fires on first
+    armed_at: int  # events of this kind seen when the fault was armed
+    first: int  # the event number (as this object counts) the fault fires on first
     count: int  # how many consecutive events it affects
-    action: Callable[[int], None]
+    action: Callable[[int], None]  # called with the event's number counted from arming
     fired: int = 0
 
 
@@ -79,6 +80,9 @@ class CellFaults:
         self._lock = threading.Lock()
         self._armed: list[_Armed] = []
         self._true_mount: Pose | None = None
+        #: Events seen by this object's hooks, per (device, event): a faulted call that raises is
+        #: not counted by the simulator itself, so faults count on their own.
+        self._seen: dict[tuple[str, str], int] = {}
         self.fired: dict[str, int] = {}
 
     # ------------------------------------------------------------------ camera
@@ -190,21 +194,14 @@ class CellFaults:
                                "another process; use the emulator's own faults")
         return arm
 
-    def _counter(self, device: str, event: str) -> int:
-        """The simulator's count of ``event`` so far (what its hook's ``n`` is compared with)."""
-        if device == "camera":
-            cam = self._cell.sim_camera
-            return int(cam.connects if event == "connect" else cam.sequence)
-        arm = self._sim_arm(event)
-        return int(arm.connects if event == "connect" else arm.moves_started)
-
     def _arm(self, name: str, device: str, event: str, k: int, count: int, action: Callable[[int], None]) -> None:
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise CellcalError(f"{name}: the {event} number must be an integer >= 1, got {k!r}")
         if isinstance(count, bool) or not isinstance(count, int) or count < 1:
             raise CellcalError(f"{name}: count must be an integer >= 1, got {count!r}")
         with self._lock:
-            self._armed.append(_Armed(name, device, event, self._counter(device, event) + k, count, action))
+            seen = self._seen.get((device, event), 0)
+            self._armed.append(_Armed(name, device, event, seen, seen + k, count, action))
             self.fired.setdefault(name, 0)
         if device == "camera":
             self._cell.sim_camera.fault_hook = self._camera_hook
@@ -220,8 +217,9 @@ class CellFaults:
     def _arm_hook(self, event: str, n: int) -> None:
         self._fire("arm", event, n)
 
-    def _fire(self, device: str, event: str, n: int) -> None:
+    def _fire(self, device: str, event: str, _sim_n: int) -> None:
         with self._lock:
+            n = self._seen[(device, event)] = self._seen.get((device, event), 0) + 1
             due = [a for a in self._armed
                    if a.device == device and a.event == event and a.first <= n < a.first + a.count]
             for a in due:
@@ -229,4 +227,4 @@ class CellFaults:
                 self.fired[a.name] += 1
             self._armed = [a for a in self._armed if not (a in due and n >= a.first + a.count - 1)]
         for a in due:
-            a.action(n)
+            a.action(n - a.armed_at)
