@@ -15,8 +15,10 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-from .types import DeviceInfo
+if TYPE_CHECKING:                  # types.py pulls numpy: `cellcal --help` and the scan's parser must not
+    from .types import DeviceInfo
 
 __all__ = ["MAX_HOSTS", "HostScan", "Identify", "device_text", "open_connection", "read_exact", "read_line",
            "scan", "sweep"]
@@ -162,6 +164,8 @@ def scan(hosts: Sequence[str], ports: Mapping[str, int], timeout: float, identif
             if states[(host, port)] == "open":
                 open_hosts.setdefault(host, {})[service] = port
     if open_hosts:
+        from .types import DeviceInfo  # numpy only once something answered
+
         with ThreadPoolExecutor(max_workers=max(1, min(workers, len(open_hosts)))) as pool:
             results = list(pool.map(lambda h: _identify_safely(identify, h, open_hosts[h], deadline), open_hosts))
         for result in results:
