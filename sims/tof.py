@@ -27,14 +27,18 @@ FloatArray = NDArray[np.float64]
 SIGMA_AT_1M_M = 0.0032
 #: Exponent of the distance in the data-sheet noise law (``amplitude_noise = false``).
 SIGMA_DISTANCE_EXPONENT = 1.5
-#: The amplitude law set against a real O3R frame (:func:`amplitude_sigma_m`): the range-independent per-pixel
-#: noise, m; the shot-noise term of the reference return at 1 m, m; the ambient + dark floor, relative.
-#: ``ArtefactsConfig(**O3R_MEASURED_NOISE)`` draws it; the defaults are still the data-sheet fit below.
-O3R_MEASURED_NOISE = {"pixel_noise_m": 0.0027, "shot_noise_at_1m_m": 0.00224, "noise_floor": 0.9}
-#: The defaults: the amplitude law fitted to ifm's quoted repeatability alone (ADR 0014), no per-pixel term.
-PIXEL_NOISE_M = 0.0
-SHOT_NOISE_AT_1M_M = SIGMA_AT_1M_M
-NOISE_FLOOR = 0.25
+#: The defaults: the amplitude law set against a real O3R frame (:func:`amplitude_sigma_m`, ADR 0014): the
+#: range-independent per-pixel noise, m; the shot-noise term of the reference return at 1 m, m; the ambient +
+#: dark floor, relative to the reference return at 1 m.
+PIXEL_NOISE_M = 0.0027
+SHOT_NOISE_AT_1M_M = 0.00224
+NOISE_FLOOR = 0.9
+#: The same three as ``[sim.artefacts]`` keys: ``ArtefactsConfig(**O3R_MEASURED_NOISE)`` is the default.
+O3R_MEASURED_NOISE = {"pixel_noise_m": PIXEL_NOISE_M, "shot_noise_at_1m_m": SHOT_NOISE_AT_1M_M,
+                      "noise_floor": NOISE_FLOOR}
+#: The earlier defaults, the amplitude law fitted to ifm's quoted repeatability alone (no per-pixel term):
+#: ``ArtefactsConfig(**DATASHEET_FIT_NOISE)`` draws it (1.0 mm on the real frame's face, 3 x too quiet).
+DATASHEET_FIT_NOISE = {"pixel_noise_m": 0.0, "shot_noise_at_1m_m": SIGMA_AT_1M_M, "noise_floor": 0.25}
 #: Reflectivity of the reference target: amplitude 1 (relative) at 1 m, normal incidence.
 REFERENCE_REFLECTIVITY = DEFAULT_REFLECTIVITY
 #: Speed of light, m/s.
@@ -68,7 +72,7 @@ class ArtefactsConfig:
     shot_noise_at_1m_m: float = field(default=SHOT_NOISE_AT_1M_M, metadata={
         "ge": 0.0, "le": 0.1, "doc": "amplitude-law noise of the reference return at 1 m, m"})
     pixel_noise_m: float = field(default=PIXEL_NOISE_M, metadata={
-        "ge": 0.0, "le": 0.1, "doc": "range-independent per-pixel noise added in quadrature, m (real O3R: 2.7 mm)"})
+        "ge": 0.0, "le": 0.1, "doc": "range-independent per-pixel noise in quadrature, m (measured on a real O3R)"})
     min_amplitude: float = field(default=0.05, metadata={
         "ge": 0.0, "le": 10.0, "doc": "relative amplitude below which a pixel is invalid (low amplitude)"})
     saturation_amplitude: float = field(default=100.0, metadata={
@@ -132,15 +136,15 @@ def amplitude_sigma_m(amplitude: ArrayLike, noise_floor: float = NOISE_FLOOR, no
     3.4-3.7 mm at normalised amplitudes 0.2-1.3; only weak returns are noisier (4.8-6.2 mm
     below amplitude 0.2, 5.3 mm at 1-2 m). The camera's own noise image (chunk 105) says
     0.3-1.2 mm there, 2.4-10 x less (it falls with range: each pixel's exposure is chosen
-    for its return). The defaults (``F = 0``, ``S = 3.2 mm``, ``n = 0.25``, fitted to ifm's
-    quoted repeatability alone) give 1.0 mm on that face and grow ~d with range: 3 x too quiet
-    at 0.3 m, right at 0.7 m. :data:`O3R_MEASURED_NOISE` (``F = 2.7 mm``, ``S = 2.24 mm``,
-    ``n = 0.9``) gives 2.75 mm on the face (the sim's frame measured as the real one: 2.68 mm
-    against 2.96 mm), 3.3 mm at 0.7 m, and still meets the quoted repeatability read as 2 sigma
-    for the grey target (5.7 mm at 0.5 m, 6.98 mm at 0.99 m: < 7 mm under 1 m; 10.1 / 15.0 mm
-    at 1.5 / 2 m: ~15 mm; 51.3 mm at 4 m: 51 mm). It is not yet the default: that moves the
-    figures of tests that assume the old law. One frame cannot tell temporal noise from a fixed
-    per-pixel pattern: the sim draws all of it anew each frame.
+    for its return). The defaults, :data:`O3R_MEASURED_NOISE` (``F = 2.7 mm``, ``S = 2.24 mm``,
+    ``n = 0.9``), give 2.77 mm on the face (the sim's frame measured as the real one: 2.68 mm
+    against 2.96 mm), 3.0 mm head-on at 0.7 m (3.3 mm at 50 deg), and still meet the quoted
+    repeatability read as 2 sigma for the grey target (5.7 mm at 0.5 m, 6.97 mm at 0.99 m: < 7 mm
+    under 1 m; 10.1 / 15.0 mm at 1.5 / 2 m: ~15 mm; 51.3 mm at 4 m: 51 mm). The earlier defaults,
+    :data:`DATASHEET_FIT_NOISE` (``F = 0``, ``S = 3.2 mm``, ``n = 0.25``, fitted to the quoted
+    repeatability alone), give 1.0 mm on that face and grow ~d with range: 3 x too quiet at
+    0.3 m. One frame cannot tell temporal noise from a fixed per-pixel pattern: the sim draws
+    all of it anew each frame.
 
     Args:
         amplitude: Relative amplitude (1 = reference target at 1 m, normal), > 0.
@@ -223,11 +227,11 @@ def stated_tof_model(config: ArtefactsConfig, *, noise: bool = True, noise_scale
       return's amplitude, which no power law of the range matches everywhere. The stated law
       is its least-squares fit in ``log sigma`` for the reference target (reflectivity 0.5)
       over ``STATED_RANGE_M`` (0.25-1.2 m, the cell's working range) and ``STATED_COS``
-      (incidence 0-60 deg), on a 16 x 6 grid: for the defaults 3.3 mm at 1 m, exponent 1.11,
-      within -11 %/+5 % of the drawn sigma there; for :data:`O3R_MEASURED_NOISE` 3.3 mm,
-      exponent 0.31, within -22 %/+24 % (the model's ``1/sqrt(cos)`` is steeper than the sim's,
-      and than the real O3R's, incidence dependence); darker or brighter surfaces are noisier
-      or quieter than it says.
+      (incidence 0-60 deg), on a 16 x 6 grid: for the defaults (:data:`O3R_MEASURED_NOISE`)
+      3.3 mm at 1 m, exponent 0.31, within -22 %/+24 % of the drawn sigma there (the model's
+      ``1/sqrt(cos)`` is steeper than the sim's, and than the real O3R's, incidence
+      dependence); for :data:`DATASHEET_FIT_NOISE` 3.3 mm, exponent 1.11, within -11 %/+5 %;
+      darker or brighter surfaces are noisier or quieter than it says.
     * ``noise = false`` or ``noise_scale = 0``: ``sigma_at_1m_m`` is None (not stated), so
       nothing expects noise of a noise-free frame and nothing is told "zero" of a noisy one.
 

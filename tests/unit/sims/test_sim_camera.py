@@ -79,8 +79,9 @@ def test_quantisation_keeps_points_within_half_a_millimetre() -> None:
 
 
 @pytest.mark.parametrize(("height_m", "amplitude_noise", "sigma_mm"), [
-    (0.5, True, 1.4751),  # 3.2 mm * sqrt((4 + 0.25) / 1.25) / 4: shot-noise limited
-    (1.5, True, 5.3666),  # 3.2 mm * sqrt((0.444 + 0.25) / 1.25) / 0.444
+    # the default amplitude law, set against the real O3R frame (per-pixel F = 2.7 mm, S = 2.24 mm, floor n = 0.9):
+    (0.5, True, 2.8458),  # hypot(2.7, 2.24 * sqrt((4 + 0.9) / 1.9) / 4 = 0.90) mm: the per-pixel term dominates
+    (1.5, True, 5.0264),  # hypot(2.7, 2.24 * sqrt((0.444 + 0.9) / 1.9) / 0.444 = 4.24) mm
     (0.5, False, 3.2 * 0.5**1.5),  # the data-sheet law
     (1.5, False, 3.2 * 1.5**1.5),
 ])

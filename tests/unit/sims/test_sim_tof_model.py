@@ -11,7 +11,13 @@ from cellcal.devices.pose import Pose
 from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.o3r.backend import EmulatedO3RCamera, EmulatedO3RConfig
 from cellcal.sims.scene import Scene
-from cellcal.sims.tof import O3R_MEASURED_NOISE, STATED_COS, STATED_RANGE_M, ArtefactsConfig, noise_sigma_m
+from cellcal.sims.tof import (
+    DATASHEET_FIT_NOISE,
+    STATED_COS,
+    STATED_RANGE_M,
+    ArtefactsConfig,
+    noise_sigma_m,
+)
 from cellcal.sims.world import SimWorld
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)
@@ -27,8 +33,8 @@ def make(artefacts: ArtefactsConfig | None = None, height_m: float = 0.8, **cfg:
 
 
 @pytest.mark.parametrize(("noise", "exponent", "bounds"), [
-    ({}, (0.9, 1.3), (0.85, 1.1)),  # the defaults: the amplitude law fitted to the data sheet
-    (O3R_MEASURED_NOISE, (0.2, 0.5), (0.75, 1.3)),  # set against the real O3R frame: nearly flat in range
+    ({}, (0.2, 0.5), (0.75, 1.3)),  # the defaults, set against the real O3R frame: nearly flat in range
+    (DATASHEET_FIT_NOISE, (0.9, 1.3), (0.85, 1.1)),  # the earlier defaults: the amplitude law fitted to the data sheet
 ])
 def test_camera_states_tof_with_a_law_close_to_the_noise_it_draws(
         noise: dict[str, float], exponent: tuple[float, float], bounds: tuple[float, float]) -> None:

@@ -15,7 +15,7 @@ from cellcal.devices.pose import Pose
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.scene import Scene
-from cellcal.sims.tof import O3R_MEASURED_NOISE, ArtefactsConfig
+from cellcal.sims.tof import DATASHEET_FIT_NOISE, O3R_MEASURED_NOISE, ArtefactsConfig
 from cellcal.sims.world import SimWorld
 from tests.support.repo_paths import REPO_ROOT
 
@@ -76,8 +76,10 @@ def test_sim_face_scatter_matches_the_real_face() -> None:
     face = np.zeros_like(valid)
     face[FACE] = True
     real = scatter_m(distance, face & valid)
-    sim = sim_face(ArtefactsConfig(**O3R_MEASURED_NOISE))
+    # the sim's default noise is the set measured here
+    assert ArtefactsConfig() == ArtefactsConfig(**O3R_MEASURED_NOISE)
+    sim = sim_face(ArtefactsConfig())
     assert sim == pytest.approx(real, rel=0.12)
-    # the data-sheet fit (no per-pixel term, 3.2 mm shot noise at 1 m, floor 0.25) is ~3x too quiet there
-    old = sim_face(ArtefactsConfig(pixel_noise_m=0.0, shot_noise_at_1m_m=0.0032, noise_floor=0.25))
+    # the earlier default, fitted to the data sheet alone (no per-pixel term, 3.2 mm at 1 m, floor 0.25): ~3x too quiet
+    old = sim_face(ArtefactsConfig(**DATASHEET_FIT_NOISE))
     assert real / old > 2.5

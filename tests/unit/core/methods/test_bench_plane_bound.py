@@ -44,7 +44,11 @@ def test_full_frame_fit_sits_at_the_bound(bench: ModuleType) -> None:
     bound, mean_err = statistics.fmean(bounds), statistics.fmean(errors)
     # the pose and noise model are the same for every seed: so is the bound
     assert max(bounds) - min(bounds) < 0.02 * bound
-    assert 0.003 < bound < 0.004            # deg: ~3.5 mdeg for 38.5k pixels at 0.6 m
+    # deg: 5.55 mdeg for 38.5k pixels at 0.6 m. It follows the sim's default range noise, set against a real
+    # O3R (2.9 mm at 0.6 m head-on, nearly flat over the view); the earlier default (1.8 mm there, growing
+    # ~d and with incidence) gave 3.99 mdeg: 1.39x, less than the 1.62x on the axis because that law was
+    # quietest on the near, head-on pixels
+    assert 0.005 < bound < 0.006
     # 40 draws of |error|: the mean is within ~+-15 % of its expectation
     assert 0.85 * bound < mean_err < 1.3 * bound, (mean_err, bound)
 

@@ -42,9 +42,10 @@ DEG = math.pi / 180.0
 MM = 1e-3
 FPS = 20.0  # the sim camera's frame rate: its timestamps step by 1/FPS per capture
 #: Frame-to-frame noise of the full-frame fit on the default sim cell (camera 0.44 m above the
-#: table), measured over 2000 frames: tilt 0.0030 / 0.0021 deg (x / y), height 5.4 um, 1 sigma.
-SIM_TILT_SIGMA = 0.003 * DEG
-SIM_HEIGHT_SIGMA = 5.4e-6
+#: table, the sim's default noise measured on a real O3R), measured over 2000 frames of
+#: ``plane_sample``: tilt 0.0074 / 0.0050 deg (x / y), height 13.7 um, 1 sigma.
+SIM_TILT_SIGMA = 0.0074 * DEG
+SIM_HEIGHT_SIGMA = 13.7e-6
 
 
 # ---------------------------------------------------------------------- helpers
@@ -259,8 +260,11 @@ def test_sim_noise_does_not_flag_over_200_real_frames() -> None:
     cam = summary.cameras[0]
     assert cam.frames == 200 and cam.errors == 0 and cam.events == [] and not summary.drift_detected
     assert cam.tilt_threshold_rad is not None and cam.height_threshold_m is not None
-    # the worst frame stays more than 10x below the thresholds
-    assert cam.max_tilt_deviation_rad < cam.tilt_threshold_rad / 10
+    # far below the thresholds: the worst of 200 frames is what the fit's frame-to-frame noise gives
+    # (measured 0.0248 deg of tilt, 3.4 sigma, 8x below 0.2 deg; 0.038 mm of height, 53x below 2 mm).
+    # 5x leaves room for a 5.4 sigma tilt, which 200 frames of plain noise do not reach
+    assert cam.max_tilt_deviation_rad < cam.tilt_threshold_rad / 5
+    assert cam.max_tilt_deviation_rad < 5.4 * SIM_TILT_SIGMA
     assert cam.max_height_deviation_m < cam.height_threshold_m / 10
 
 
@@ -409,7 +413,11 @@ def test_cli_baseline_round_trip_and_drift_exit_status(fast_config: Path, tmp_pa
     assert main(["monitor", "--config", str(fast_config), "--frames", "15", "--quiet",
                  "--baseline", str(saved)]) == 1
     out = capsys.readouterr().out
-    assert "[fast] t=+0.20 s DRIFT STARTED (height): tilt" in out and "height 3.00 mm (threshold 2.00 mm)" in out
+    assert "[fast] t=+0.20 s DRIFT STARTED (height): tilt" in out and "(threshold 2.00 mm)" in out
+    # the 3 mm step, seen through the noise: a 5-frame median against the 10-frame baseline scatters by less
+    # than one frame's height noise (SIM_HEIGHT_SIGMA, 13.7 um); 2.99 mm is printed, 0.02 mm allows ~1.5 of it
+    shown = re.search(r"height (\d+\.\d\d) mm \(threshold", out)
+    assert shown is not None and float(shown.group(1)) == pytest.approx(3.0, abs=0.02)
     assert "now DRIFTING" in out
 
 
