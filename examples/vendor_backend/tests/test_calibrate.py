@@ -44,10 +44,17 @@ def test_a_camera_that_ignores_the_arm_fails_a_strict_run(tmp_path: Path, capsys
     static = tmp_path / "static.toml"
     static.write_text(CELL.read_text().replace("noise_m = 0.001", "noise_m = 0.001\nfollow_arm = false\n"
                                                                   "plane_distance_m = 0.5"))
-    code, doc = _calibrate(tmp_path, static)
+    # the fit looks for the plane where [reference] and [mount] put it: a camera that ignores the arm
+    # shows it elsewhere, and the first pose stops the run naming the gate
+    assert main(["calibrate", "--config", str(static), "--out", str(tmp_path / "first"), "--quiet"]) == 1
+    assert "expected_plane" in capsys.readouterr().err
+    # without that search, the cross-pose check catches it: a warning, and --strict fails the run
+    blind = tmp_path / "blind.toml"
+    blind.write_text(static.read_text().replace("[reference]", "[reference]\nsearch = false", 1))
+    code, doc = _calibrate(tmp_path, blind)
     assert code == 0                                                  # not strict: the result, and a warning
     assert doc["summary"]["plane_consistency"]["verdict"] in ("inconsistent", "failed")  # type: ignore[index]
     assert "cross-pose verdict" in capsys.readouterr().out
-    code, _ = _calibrate(tmp_path, static, "--strict")
+    code, _ = _calibrate(tmp_path, blind, "--strict")
     assert code == 1
     assert "--strict" in capsys.readouterr().err
