@@ -73,8 +73,8 @@ class CellFaults:
     Faults that raise need the plain ``sim`` backend (its hook runs on the caller's thread); the
     others work behind the emulated backends too. Behind ``o3r-emulated`` a capture event is a
     frame the emulator renders (a free-running head renders more frames than are captured; the
-    default ``trigger = "software"`` renders one per capture). :meth:`clear` disarms everything and undoes a
-    blank frame still in effect; :attr:`fired` says how often each fault has fired.
+    default ``trigger = "software"`` renders one per capture). :meth:`clear` disarms everything
+    and undoes a blank frame still in effect; :attr:`fired` says how often each fault has fired.
     """
 
     def __init__(self, cell: SimCell) -> None:
