@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterator
 
@@ -93,11 +94,16 @@ def test_camera_stall_holds_the_capture_and_the_calibrator_abandons_it(cell: Sim
         assert time.monotonic() - start >= 0.3
     stall_s = CAPTURE_TIMEOUT_S + GUARD_GRACE_S + 1.0
     cell.faults.camera_stall(stall_s, capture=1)
+    threads = set(threading.enumerate())
     start = time.monotonic()
     with pytest.raises(BackendOverrunError, match="camera backend 'sim'"):
         cell.calibrator().run()
     assert time.monotonic() - start < stall_s + 0.5  # ended by the guard, not by the stall
     assert cell.sim_arm is not None and cell.sim_arm.stops >= 1  # the arm was told to stop
+    # the abandoned capture ends when its stall does: leave no thread behind for later tests
+    for thread in set(threading.enumerate()) - threads:
+        thread.join(stall_s + 2.0)
+        assert not thread.is_alive()
 
 
 def test_arm_stall_times_out_at_the_motion_timeout_and_the_arm_stands(cell: SimCell) -> None:
