@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.core.calibration.config import CellConfig, plan_flange_poses
+from cellcal.core.calibration.config import CellConfig
 from cellcal.core.calibration.journal import (
     JournalEntry,
     JournalWriter,
@@ -30,6 +30,7 @@ from cellcal.core.calibration.journal import (
     remove_journal,
 )
 from cellcal.core.calibration.outlock import OutputLock
+from cellcal.core.calibration.reach import check_reach, reachable_plan_poses
 from cellcal.core.calibration.region import expected_plane, region_document, region_mask
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
 from cellcal.core.geometry.planes import Plane
@@ -55,7 +56,7 @@ from cellcal.devices.errors import (
 )
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import Registry, default_registry
-from cellcal.devices.safety import SafeArm
+from cellcal.devices.safety import SafeArm, format_pose
 from cellcal.devices.types import Frame, Intrinsics
 from cellcal.devices.version import cellcal_version
 
@@ -232,7 +233,7 @@ class Calibrator:
         self.arm = arm
         self.progress = progress
         self.observer = observer
-        self.poses: Sequence[Pose] = plan_flange_poses(config)
+        self.poses: Sequence[Pose] = reachable_plan_poses(config)  # generated views moved within the arm's reach
         #: Every backend call runs under one of these: a backend that ignores its timeout ends the run.
         self.guards = {"camera": DeadlineGuard(f"camera backend '{camera.backend_name}'", GUARD_GRACE_S),
                        "arm": DeadlineGuard(f"arm backend '{arm.backend_name}'", GUARD_GRACE_S)}
@@ -246,6 +247,7 @@ class Calibrator:
             SafetyError: Naming the first offending pose.
         """
         plan = self.config.plan
+        check_reach(self.config, self.poses)  # names the pose an arm of this class cannot take
         self.arm.limits.check_plan(start, self.poses, plan.speed_m_s, plan.acceleration_m_s2)
 
     def run(self, *, journal: str | Path | None = None, resume: bool = False) -> dict[str, Any]:
@@ -430,10 +432,14 @@ class Calibrator:
     def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
         plan = self.config.plan
         t0 = time.perf_counter()
-        self.guards["arm"].call(lambda: self.arm.move_linear(target, speed=plan.speed_m_s,
-                                                             acceleration=plan.acceleration_m_s2,
-                                                             timeout=plan.move_timeout_s),
-                                plan.move_timeout_s, f"move_linear(timeout={plan.move_timeout_s:g} s)")
+        try:
+            self.guards["arm"].call(lambda: self.arm.move_linear(target, speed=plan.speed_m_s,
+                                                                 acceleration=plan.acceleration_m_s2,
+                                                                 timeout=plan.move_timeout_s),
+                                    plan.move_timeout_s, f"move_linear(timeout={plan.move_timeout_s:g} s)")
+        except VendorError as exc:  # e.g. a kinematic refusal: say which pose and where
+            raise VendorError(exc.vendor, exc.code, f"{exc.meaning} at plan pose {index + 1} "
+                              f"({format_pose(target)})") from None
         t1 = time.perf_counter()
         if plan.settle_s > 0:
             time.sleep(plan.settle_s)

@@ -1,8 +1,9 @@
-"""``cellcal calibrate --dry-run``: every move the plan would make, with its safety checks.
+"""``cellcal calibrate --dry-run``: every move the plan would make, with its safety and reach checks.
 
 Nothing is connected, so nothing moves: the first move is checked at its target only,
 every later one along its whole straight path as :class:`~cellcal.devices.safety.SafeArm`
-checks it at run time (ADR 0008).
+checks it at run time (ADR 0008), and every target against the arm's class (``reach``),
+as the run checks it before the first move (ADR 0034).
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cellcal.core.calibration.config import CellConfig, plan_flange_poses
+from cellcal.core.calibration.config import CellConfig
+from cellcal.core.calibration.reach import arm_reach, check_reach, reach_problem, reachable_plan_poses
 from cellcal.core.calibration.region import describe_region
 from cellcal.devices.pose import Pose
 from cellcal.devices.safety import SafetyLimits, format_pose
@@ -45,8 +47,17 @@ class MoveCheck:
 
 
 def check_moves(limits: SafetyLimits, poses: Sequence[Pose], speed_m_s: float, acceleration_m_s2: float,
-                start: Pose | None = None) -> list[MoveCheck]:
-    """Check every move of a plan (all of them, not stopping at the first violation)."""
+                start: Pose | None = None, reach: str = "any") -> list[MoveCheck]:
+    """Check every move of a plan (all of them, not stopping at the first violation).
+
+    Args:
+        limits: The safety envelope.
+        poses: Target flange poses, base frame.
+        speed_m_s: Planned tool speed, m/s.
+        acceleration_m_s2: Planned tool acceleration, m/s^2.
+        start: The arm's pose before the first move (None: unknown, the first move is checked at its target).
+        reach: The arm class every target must suit (``any``, ``xarm5``).
+    """
     out = []
     previous = start
     for i, target in enumerate(poses):
@@ -58,15 +69,17 @@ def check_moves(limits: SafetyLimits, poses: Sequence[Pose], speed_m_s: float, a
             standoff = float(np.min((camera - np.asarray(limits.plane_point_m, float)) @ (n / np.linalg.norm(n))))
         # straight-line flange travel, m (unknown for the first move: no start pose without the arm)
         length = None if previous is None else float(np.linalg.norm(target.translation - previous.translation))
+        why = reach_problem(target, reach)
         out.append(MoveCheck(i, target, length, standoff,
-                             limits.violations(previous, target, speed_m_s, acceleration_m_s2)))
+                             ([] if why is None else [f"out of reach of a '{reach}' arm: {why}"])
+                             + limits.violations(previous, target, speed_m_s, acceleration_m_s2)))
         previous = target
     return out
 
 
 def describe(check: MoveCheck, n_moves: int, limits: SafetyLimits, speed_m_s: float,
-             acceleration_m_s2: float) -> str:
-    """One line: pose index, target (m, deg), path length and the checks passed."""
+             acceleration_m_s2: float, reach: str = "any") -> str:
+    """One line: pose index, target (m, deg), path length and the checks passed (``reach``: the arm class)."""
     path = "n/a (from the arm's current pose, checked when the run starts)" if check.path_length_m is None \
         else f"{check.path_length_m:.4f} m"
     head = f"move {check.index + 1}/{n_moves}: {format_pose(check.target)}; path {path}"
@@ -79,6 +92,7 @@ def describe(check: MoveCheck, n_moves: int, limits: SafetyLimits, speed_m_s: fl
         checks.append("standoff not checked (no [reference] plane)")
     checks.append(f"speed ok ({speed_m_s:.4g} <= {limits.max_speed_m_s:.4g} m/s)")
     checks.append(f"acceleration ok ({acceleration_m_s2:.4g} <= {limits.max_acceleration_m_s2:.4g} m/s^2)")
+    checks.append("reach not limited ('any' arm)" if reach == "any" else f"reach ok ('{reach}' arm)")
     return f"{head}; checks: " + ", ".join(checks)
 
 
@@ -95,6 +109,9 @@ def describe_search(config: CellConfig) -> str:
 def dry_run(config: CellConfig, emit: Callable[[str], None] = print) -> list[MoveCheck]:
     """Print every move of the plan with its checks; touch no device.
 
+    The poses are those the run makes: generated views the arm class cannot take are
+    moved within its reach (:mod:`cellcal.core.calibration.reach`), explicit ones are not.
+
     Returns:
         The checks of every move (all passed).
 
@@ -103,14 +120,16 @@ def dry_run(config: CellConfig, emit: Callable[[str], None] = print) -> list[Mov
     """
     plan = config.plan
     limits = config.safety_limits()
-    poses = plan_flange_poses(config)
+    reach = arm_reach(config)
+    poses = reachable_plan_poses(config)
     emit(f"dry run of {config.source} (cell '{config.cell.name}'): {len(poses)} moves at "
          f"{plan.speed_m_s:g} m/s, {plan.acceleration_m_s2:g} m/s^2; {describe_search(config)}; "
          "no device is connected, nothing moves")
-    checks = check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2)
+    checks = check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2, reach=reach)
     for check in checks:
-        emit(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2))
-        if not check.ok:  # the safety layer words the rejection, exactly as a real run would
+        emit(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2, reach))
+        if not check.ok:  # the reach and safety checks word the rejection, exactly as a real run would
+            check_reach(config, poses[:check.index + 1])
             limits.check_plan(None, poses[:check.index + 1], plan.speed_m_s, plan.acceleration_m_s2)
             raise AssertionError("check_moves and SafetyLimits.check_plan disagree")  # same rules: unreachable
     emit(f"dry run OK: all {len(poses)} moves inside the safety envelope")

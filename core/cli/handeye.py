@@ -45,13 +45,15 @@ def register(sub: Any) -> None:
 def _dry_run(config: Any, poses: list[Any], seen: Any) -> int:
     """Print every move with its checks and the observability of the plan."""
     from cellcal.core.calibration.dryrun import check_moves, describe
+    from cellcal.core.calibration.reach import arm_reach
 
     plan = config.plan
     limits = config.safety_limits()
-    print(f"dry run of cellcal handeye on {config.source}: {len(poses)} moves; no device is connected, "
-          "nothing moves")
-    for check in check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2):
-        print(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2))
+    reach = arm_reach(config)
+    print(f"dry run of cellcal handeye on {config.source}: {len(poses)} moves; arm class '{reach}'; "
+          "no device is connected, nothing moves")
+    for check in check_moves(limits, poses, plan.speed_m_s, plan.acceleration_m_s2, reach=reach):
+        print(describe(check, len(poses), limits, plan.speed_m_s, plan.acceleration_m_s2, reach))
     if seen is not None:
         print(f"observability: {seen.message()}")
     print(f"dry run OK: all {len(poses)} moves inside the safety envelope and reachable")

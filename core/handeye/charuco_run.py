@@ -72,9 +72,10 @@ class BoardWatcher(ForwardingCamera):
 
 
 def board_spec(config: CellConfig) -> BoardSpec:
-    """The board of ``[handeye] charuco_*``."""
-    he = config.handeye
-    return BoardSpec(he.charuco_squares, he.charuco_square_m, he.charuco_marker_ratio, he.charuco_dictionary)
+    """The board of ``[handeye] charuco_*`` (a differing ``[sim.charuco]`` refused: :mod:`.board_config`)."""
+    from cellcal.core.handeye.board_config import board_spec as checked_spec
+
+    return checked_spec(config)
 
 
 def charuco_estimates(flanges: Sequence[Pose], views: Sequence[BoardView | None]) -> dict[str, Any]:
@@ -152,7 +153,15 @@ def charuco_document(config: CellConfig, method: str, plan_kind: str, measured: 
                      views: Sequence[BoardView | None]) -> dict[str, Any]:
     """The ``handeye.json`` of ``--method charuco`` or ``both``."""
     flanges = [Pose.from_dict(p["reported_flange_pose"]) for p in measured["poses"]]
-    found = charuco_estimates(flanges, views)
+    try:
+        found = charuco_estimates(flanges, views)
+    except CalibrationQualityError as exc:
+        if exc.gate != "charuco_views":
+            raise
+        from cellcal.core.handeye.board_config import missing_board_hint
+
+        raise CalibrationQualityError(exc.gate, exc.value, exc.threshold, f"{str(exc).partition('; ')[2]}; "
+                                      f"{missing_board_hint(config)}") from None
     best = found["methods"][found["best"]]["mount"]
     header = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
               "config_source": config.source, "plan": plan_kind, "method": method}
@@ -187,6 +196,7 @@ def run_charuco(config: CellConfig, poses: Sequence[Pose], out_dir: str | Path, 
             :func:`charuco_estimates`.
     """
     out = Path(out_dir) / HANDEYE_FILENAME
+    board_spec(config)  # a board the camera does not show is refused before anything moves
     with OutputLock.for_directory(out.parent):
         measured, views = measure_with_board(config, poses, progress)
         document = charuco_document(config, method, plan_kind, measured, views)

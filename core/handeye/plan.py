@@ -13,34 +13,18 @@ the arm class before anything moves.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
-from typing import Any
 
 import numpy as np
 
-from cellcal.core.calibration.config import CellConfig, plan_flange_poses
-from cellcal.devices.errors import ConfigError, SafetyError
-from cellcal.devices.geometry.reach import orientation_violation, radial_flange_rotation
+from cellcal.core.calibration.config import CellConfig
+from cellcal.core.calibration.reach import XARM_BACKENDS, arm_reach, check_reach, reachable_plan_poses
+from cellcal.devices.errors import ConfigError
+from cellcal.devices.geometry.reach import radial_flange_rotation
 from cellcal.devices.pose import Pose
-from cellcal.devices.safety import format_pose
 
 #: Iterations of the flange-yaw fixed point, and its tolerance (rad).
 MAX_ITERATIONS = 100
 YAW_TOLERANCE_RAD = 1e-13
-#: Arm backends that are 5-axis xArms unless their section says otherwise.
-XARM_BACKENDS = ("xarm", "xarm-emulated")
-
-
-def arm_reach(config: CellConfig) -> str:
-    """The arm class of the configuration: ``[handeye] reach``, else the arm's own (``[arm] reach`` / axes)."""
-    if config.handeye.reach is not None:
-        return config.handeye.reach
-    arm: Mapping[str, Any] = config.arm_section
-    if isinstance(arm.get("reach"), str):
-        return str(arm["reach"])
-    if arm.get("backend") in XARM_BACKENDS and int(arm.get("axes", 5)) == 5:
-        return "xarm5"
-    return "any"
 
 
 def view_pose(target_m: np.ndarray, height_m: float, inclination_rad: float, roll_rad: float,
@@ -99,26 +83,22 @@ def check_plan(config: CellConfig, poses: list[Pose]) -> None:
     Raises:
         SafetyError: Naming the first offending pose.
     """
-    reach = arm_reach(config)
-    for i, pose in enumerate(poses):
-        why = orientation_violation(pose, reach)
-        if why is not None:
-            raise SafetyError(f"plan pose {i + 1} ({format_pose(pose)}) is out of reach of a '{reach}' arm: {why}")
+    check_reach(config, poses)
     plan = config.plan
     config.safety_limits().check_plan(None, poses, plan.speed_m_s, plan.acceleration_m_s2)
 
 
 def plan_poses(config: CellConfig, kind: str) -> list[Pose]:
-    """The poses of ``--plan auto`` or ``--plan config`` (the ``[plan]`` table as it is), checked.
+    """The poses of ``--plan auto`` or ``--plan config`` (``[plan]`` as ``cellcal calibrate`` runs it), checked.
 
     Raises:
         ConfigError, SafetyError: As :func:`auto_plan` / :func:`check_plan`.
     """
     if kind == "auto":
         return auto_plan(config)
-    poses = plan_flange_poses(config)
+    poses = reachable_plan_poses(config)
     check_plan(config, poses)
     return poses
 
 
-__all__ = ["arm_reach", "auto_plan", "check_plan", "plan_poses", "view_pose"]
+__all__ = ["XARM_BACKENDS", "arm_reach", "auto_plan", "check_plan", "plan_poses", "view_pose"]
