@@ -90,3 +90,14 @@ def test_the_example_vendor_client_tests_pass_outside_the_repository(pytester: p
     installed = sum(importlib.util.find_spec(name) is not None for name in clients)
     result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "-rs")
     result.assert_outcomes(passed=installed, skipped=len(clients) - installed)
+
+
+def test_in_this_repository_every_cellcal_fixture_is_the_plugin_s() -> None:
+    """No conftest of the repository's own tests defines (and so shadows) a cellcal_* fixture."""
+    conftests = sorted(str(p.relative_to(REPO_ROOT)) for p in (REPO_ROOT / "tests").rglob("conftest.py"))
+    assert "tests/conftest.py" in conftests
+    proc = subprocess.run([sys.executable, "-m", "pytest", "--fixtures", "-q", "-p", "no:cacheprovider", *conftests],
+                          capture_output=True, text=True, timeout=300, cwd=REPO_ROOT, check=False)
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("cellcal_") and " -- " in line]
+    assert sorted(line.split(" -- ")[0] for line in lines) == sorted(FIXTURES), proc.stdout[-2000:]
+    assert all(line.split(" -- ")[1].startswith("testing/plugin.py:") for line in lines), lines
