@@ -21,15 +21,21 @@ import numpy as np
 
 from cellcal.core.calibration.config import CellConfig, plan_flange_poses
 from cellcal.devices.errors import SafetyError
-from cellcal.devices.geometry.reach import orientation_violation, radial_flange_rotation
+from cellcal.devices.geometry.reach import orientation_violation, radial_flange_rotation, sideways_tilt_rad
 from cellcal.devices.pose import Pose
 from cellcal.devices.safety import format_pose
 
 if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
-#: Arm backends that are 5-axis xArms unless their section says otherwise.
-XARM_BACKENDS = ("xarm", "xarm-emulated")
+#: Arm backends that are 5-axis xArms unless their section says otherwise. (``xarm-emulated`` moves
+#: the simulated arm behind its emulator, which refuses what its own ``reach`` key says: "any" unless set.)
+XARM_BACKENDS = ("xarm",)
+#: A generated view is moved within reach only when its tool axis is tilted sideways by at most this
+#: (rad): the small tilts of a mount a little off the flange axes. A larger one is a plan the arm
+#: cannot follow (the paper's inclination about the wrong axis), refused by name, never silently
+#: replaced by a view of another inclination.
+MAX_MOVE_RAD = math.radians(2.0)
 #: Iterations of the base-yaw root search, and its tolerance (rad).
 MAX_ITERATIONS = 100
 YAW_TOLERANCE_RAD = 1e-9
@@ -121,14 +127,19 @@ def nearest_pitch_roll(rotation: Rotation, yaw_rad: float) -> tuple[float, float
 
 
 def within_reach(config: CellConfig, poses: Sequence[Pose]) -> list[Pose]:
-    """``poses`` with each one the arm class cannot take replaced by the nearest one it can (see module)."""
+    """``poses`` with each one the arm class cannot take, by a small sideways tilt, replaced by the nearest one it can.
+
+    A pose tilted sideways by more than :data:`MAX_MOVE_RAD` is left as asked, for
+    :func:`check_reach` to refuse by name.
+    """
     reach = arm_reach(config)
     if config.reference is None:
         return list(poses)
     mount = config.mount.pose()
     point = np.asarray(config.reference.plane_point_m, float)
     normal = np.asarray(config.reference.plane_normal, float)
-    return [p if reach_problem(p, reach) is None else nearest_radial_pose(p, mount, point, normal) for p in poses]
+    return [nearest_radial_pose(p, mount, point, normal)
+            if reach_problem(p, reach) is not None and sideways_tilt_rad(p) <= MAX_MOVE_RAD else p for p in poses]
 
 
 def reachable_plan_poses(config: CellConfig) -> list[Pose]:
@@ -137,5 +148,5 @@ def reachable_plan_poses(config: CellConfig) -> list[Pose]:
     return poses if config.plan.poses else within_reach(config, poses)
 
 
-__all__ = ["XARM_BACKENDS", "arm_reach", "check_reach", "nearest_radial_pose", "reach_problem",
+__all__ = ["MAX_MOVE_RAD", "XARM_BACKENDS", "arm_reach", "check_reach", "nearest_radial_pose", "reach_problem",
            "reachable_plan_poses", "within_reach"]

@@ -288,6 +288,9 @@ def test_check_names_the_tcp_address_not_the_serial_line(tmp_path: Path, capsys:
     text = (REPO_ROOT / "configs" / "xarm_tcp_emulated.toml").read_text()
     arm = text[text.index("[arm]"):text.index("\n[", text.index("[arm]") + 1)]
     cell = text.replace(arm, '[arm]\nbackend = "xarm"\nhost = "192.168.1.185"\naxes = 5\n')
+    # a real xArm 5 cannot tilt its tool sideways: the paper's inclination about the flange's y axis is refused
+    # by --check (named), so this cell looks straight down
+    cell = cell.replace("inclination_deg = 80.0", "inclination_deg = 90.0")
     (tmp_path / "cell.toml").write_text(cell)
     assert main(["calibrate", "--config", str(tmp_path / "cell.toml"), "--check"]) == 0
     line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("arm:"))

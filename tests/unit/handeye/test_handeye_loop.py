@@ -108,3 +108,22 @@ def test_too_few_board_views_say_what_to_check(tmp_path: Path) -> None:
     no_board.write_text(text[:start] + text[text.index("\n[sim.mount]\n"):])
     assert "[sim.charuco]" in missing_board_hint(load_config(no_board))
     assert "7x5 squares of 40 mm" in missing_board_hint(load_config(CONFIG))
+
+
+
+def test_a_large_sideways_tilt_is_refused_by_name_not_replaced() -> None:
+    """The paper plan tilts 10 deg about the flange's y axis: 9.4 deg sideways for a 5-axis xArm. Moving it
+    would turn an 80 deg view into a 90 deg one, so it is left as asked and refused before anything moves."""
+    from cellcal.core.calibration.config import parse_config
+    from cellcal.core.calibration.reach import MAX_MOVE_RAD, check_reach, within_reach
+
+    doc = tomllib.loads((REPO_ROOT / "configs" / "sim.toml").read_text())
+    doc["arm"]["reach"] = "xarm5"
+    config = parse_config(doc, "sim.toml")
+    asked = plan_flange_poses(config)
+    assert all(sideways_tilt_rad(p) > MAX_MOVE_RAD for p in asked)
+    assert math.degrees(sideways_tilt_rad(asked[0])) > 9.0
+    kept = within_reach(config, asked)
+    assert all(a is k for a, k in zip(asked, kept, strict=True))          # left as asked ...
+    with pytest.raises(SafetyError, match=r"plan pose 1 .* out of reach of a 'xarm5' arm: tool axis tilted 9\.4"):
+        check_reach(config, kept)                                         # ... and refused by name

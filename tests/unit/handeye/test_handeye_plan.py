@@ -69,7 +69,10 @@ def test_the_paper_plan_is_out_of_reach_of_an_xarm5() -> None:
 @pytest.mark.parametrize(("arm", "reach"), [({"backend": "sim"}, "any"),
                                             ({"backend": "sim", "reach": "xarm5"}, "xarm5"),
                                             ({"backend": "xarm", "port": "/dev/null"}, "xarm5"),
-                                            ({"backend": "xarm", "axes": 6}, "any"), ({"backend": "ur"}, "any")])
+                                            ({"backend": "xarm", "axes": 6}, "any"), ({"backend": "ur"}, "any"),
+                                            # the emulator's simulated arm refuses what its own reach key says
+                                            ({"backend": "xarm-emulated"}, "any"),
+                                            ({"backend": "xarm-emulated", "reach": "xarm5"}, "xarm5")])
 def test_the_arm_class_comes_from_the_arm(arm: dict, reach: str) -> None:
     doc = document()
     doc["arm"] = arm
