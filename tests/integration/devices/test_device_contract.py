@@ -89,6 +89,7 @@ def ur_factory(mocker: Any) -> Callable[[], RobotArm]:
         arm = test_ur.URArm.from_config({"backend": "ur", "host": test_ur.HOST, "stale_after_s": 0.05})
         clock = test_ur.FakeClock()
         arm._clock, arm._sleep = clock, clock.sleep
+        arm._probe = ctl.probe          # the connect's plain-socket stream probe: the fake answers, no socket
         return arm
 
     make.moves = ctl.moves  # type: ignore[attr-defined]
