@@ -215,12 +215,6 @@ def rounding_mean_px(d_px: FloatArray, sigma_d_px: float, step_px: float, harmon
     return out
 
 
-def _ols(a: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Least-squares ``v`` of ``a v ≈ d`` and ``(aᵀa)⁻¹``."""
-    ata = a.T @ a
-    return _solve(ata, a.T @ d)
-
-
 def _solve(ata: FloatArray, atd: FloatArray) -> tuple[FloatArray, FloatArray]:
     """``v = (aᵀa)⁻¹ aᵀd`` and ``(aᵀa)⁻¹`` from the normal equations."""
     try:
