@@ -4,6 +4,10 @@ Every trial is seeded from (root seed, condition, index) alone, so where it runs
 change its rows; :func:`run_tasks` returns them in task order. Workers ignore Ctrl-C (the
 terminal sends it to the whole process group): the parent gets it, terminates and joins
 its workers and re-raises, so no worker outlives the run (ADR 0021).
+
+This module knows nothing of what a task is: the caller (:mod:`cellcal.core.study.trials`)
+gives the module-level functions that set a worker up and run one task, so the dependency
+points one way (trials → pool).
 """
 
 from __future__ import annotations
@@ -13,23 +17,16 @@ import multiprocessing
 import os
 import signal
 from collections.abc import Callable, Iterator, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
     from multiprocessing.pool import Pool
 
-    from cellcal.core.study.design import Condition, StudySettings
-    from cellcal.devices.registry import Registry
-    from cellcal.devices.types import Intrinsics
-
 __all__ = ["default_jobs", "run_calls", "run_tasks"]
 
-#: One task: a condition and the trial's index within it.
-Task = tuple["Condition", int]
+#: One task (for the study: a condition and the trial's index within it).
+Task = TypeVar("Task")
 Rows = list[dict[str, Any]]
-
-#: The worker's state, set once per process by :func:`_init_worker`.
-_STATE: dict[str, Any] = {}
 
 
 def default_jobs() -> int:
@@ -39,27 +36,10 @@ def default_jobs() -> int:
     return max(1, os.cpu_count() or 1)
 
 
-def _init_worker(settings: StudySettings, registry: Registry | None, intrinsics: Intrinsics) -> None:
-    """Worker start: ignore Ctrl-C (the parent handles it) and build what every trial needs.
-
-    ``intrinsics`` come from the parent (building the study's camera for them costs a
-    second or so, once per process otherwise).
-    """
+def _init_worker(initializer: Callable[..., None], initargs: tuple[Any, ...]) -> None:
+    """Worker start: ignore Ctrl-C (the parent handles it), then the caller's ``initializer``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from cellcal.core.study.trials import full_frame_fitter
-
-    _STATE.update(settings=settings, registry=registry, intrinsics=intrinsics,
-                  fit=full_frame_fitter(settings.full_frame))
-
-
-def _run_one(task: Task) -> Rows:
-    """One trial in a worker; its rows (the frame stays in the worker)."""
-    from cellcal.core.study.trials import run_trial
-
-    condition, index = task
-    _, rows = run_trial(_STATE["settings"], condition, index, _STATE["intrinsics"], _STATE["fit"],
-                        _STATE["registry"])
-    return rows
+    initializer(*initargs)
 
 
 @contextlib.contextmanager
@@ -115,29 +95,30 @@ def run_calls(calls: Sequence[tuple[Callable[..., Any], tuple[Any, ...]]], jobs:
         return pool.starmap(_call, calls)
 
 
-def run_tasks(tasks: Sequence[Task], jobs: int, settings: StudySettings, registry: Registry | None,
+def run_tasks(tasks: Sequence[Task], jobs: int, run: Callable[[Task], Rows],
               on_done: Callable[[int, Rows], None], local: tuple[int, Callable[[Task], Rows]] | None = None,
-              *, intrinsics: Intrinsics) -> list[Rows]:
+              *, initializer: Callable[..., None], initargs: tuple[Any, ...] = ()) -> list[Rows]:
     """Run ``tasks`` on ``jobs`` worker processes; the rows of each task, in task order.
 
     Args:
-        tasks: The trials to run.
+        tasks: The trials to run (picklable).
         jobs: Worker processes (at least 1).
-        settings: The study's design (sent to each worker once).
-        registry: Device registry for the workers (None: the process-wide one).
+        run: Runs one task in a worker (a module-level function: it is sent by name).
         on_done: Called in the parent with (task index, rows) as tasks finish, in order.
         local: (index, run) of one task the parent runs itself with ``run`` while the
             workers run the others (the study's example trial, whose frame the parent
             keeps); None: the workers run every task.
-        intrinsics: The study camera's intrinsics (:func:`~cellcal.core.study.trials.study_intrinsics`).
+        initializer: Called once in each worker with ``initargs`` (a module-level function),
+            after the worker has been set to ignore Ctrl-C.
+        initargs: Its (picklable) arguments, sent to each worker once.
 
     Raises:
         KeyboardInterrupt: After the workers are terminated and joined.
     """
     out: list[Rows | None] = [None] * len(tasks)
     remote = [task for i, task in enumerate(tasks) if local is None or i != local[0]]
-    with _pool(max(1, min(jobs, len(remote))), _init_worker, (settings, registry, intrinsics)) as pool:
-        results = pool.imap(_run_one, remote)
+    with _pool(max(1, min(jobs, len(remote))), _init_worker, (initializer, initargs)) as pool:
+        results = pool.imap(run, remote)
         if local is not None:
             out[local[0]] = local[1](tasks[local[0]])
         for i in range(len(tasks)):

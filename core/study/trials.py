@@ -251,6 +251,28 @@ def study_intrinsics(settings: StudySettings, registry: Registry | None = None) 
         return camera.intrinsics
 
 
+#: A worker's state for :func:`_run_in_worker`, set once per process by :func:`_init_worker`.
+_WORKER: dict[str, Any] = {}
+
+
+def _init_worker(settings: StudySettings, registry: Registry | None, intrinsics: Intrinsics) -> None:
+    """Worker start (:func:`cellcal.core.study.pool.run_tasks`): build what every trial needs.
+
+    ``intrinsics`` come from the parent (building the study's camera for them costs a
+    second or so, once per process otherwise).
+    """
+    _WORKER.update(settings=settings, registry=registry, intrinsics=intrinsics,
+                   fit=full_frame_fitter(settings.full_frame))
+
+
+def _run_in_worker(task: tuple[Condition, int]) -> list[dict[str, Any]]:
+    """One trial in a worker; its rows (the frame stays in the worker)."""
+    condition, index = task
+    _, rows = run_trial(_WORKER["settings"], condition, index, _WORKER["intrinsics"], _WORKER["fit"],
+                        _WORKER["registry"])
+    return rows
+
+
 def _is_example(settings: StudySettings, condition: Condition, height_m: float, clutter: float) -> bool:
     """Whether the condition's trials may serve as the plane-fit picture's example."""
     return (condition.height_m == height_m and condition.clutter == clutter
@@ -303,7 +325,8 @@ def run_study(settings: StudySettings, *, registry: Registry | None = None,
             from cellcal.core.study.pool import run_tasks
 
             first = (candidates[0], lambda _task: run_here(candidates[0])) if candidates else None
-            per_task = run_tasks(tasks, jobs, settings, registry, done, local=first, intrinsics=intr)
+            per_task = run_tasks(tasks, jobs, _run_in_worker, done, local=first, initializer=_init_worker,
+                                 initargs=(settings, registry, intr))
     finally:
         if bar is not None:
             bar.close()
