@@ -1,12 +1,12 @@
-"""The recording wrappers: forward every call to the wrapped device and log it to a :class:`SessionRecorder`."""
+"""The recording wrappers: forward every call to the wrapped device and log it to a :class:`SessionLog` (a recorder)."""
 
 from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from functools import partial
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,10 +30,21 @@ from .schema import (
     TOPIC_FLANGE_POSE,
 )
 
-if TYPE_CHECKING:
-    from .writer import SessionRecorder
-
 T = TypeVar("T")
+
+
+class SessionLog(Protocol):
+    """What the wrappers log into: :class:`~cellcal.devices.recording.writer.SessionRecorder`
+    is one (the writer builds the wrappers; the wrappers do not know the writer)."""
+
+    def next_event(self) -> int:
+        """Reserve the next session-wide event number (the replay order)."""
+        ...
+
+    def log(self, topic: str, payload: Mapping[str, Any], *, event: int | None = None,
+            publish_time_s: float | None = None) -> None:
+        """Write one JSON message on ``topic``."""
+        ...
 
 
 @contextlib.contextmanager
@@ -57,7 +68,7 @@ class RecordingCamera(ForwardingCamera):
         recorder: Where to log.
     """
 
-    def __init__(self, inner: Camera3D, recorder: SessionRecorder) -> None:
+    def __init__(self, inner: Camera3D, recorder: SessionLog) -> None:
         super().__init__(inner)
         self.recorder = recorder
         self._captures = 0
@@ -100,7 +111,7 @@ class RecordingArm(ForwardingArm):
         recorder: Where to log.
     """
 
-    def __init__(self, inner: RobotArm, recorder: SessionRecorder) -> None:
+    def __init__(self, inner: RobotArm, recorder: SessionLog) -> None:
         super().__init__(inner)
         self.recorder = recorder
         self._calls = 0
