@@ -11,7 +11,6 @@ import json
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -249,12 +248,3 @@ def schema_chunks(schema_json: str) -> tuple[int, ...]:
         elif ident not in KNOWN_UNSERVED_IDS:
             raise ValueError(f"unknown blob id {ident!r}")
     return tuple(out)
-
-
-def __getattr__(name: str) -> Any:
-    """``FrameEncoder`` moved to :mod:`.encoder`; still importable from here."""
-    if name == "FrameEncoder":
-        from .encoder import FrameEncoder
-
-        return FrameEncoder
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -65,7 +65,8 @@ from cellcal.drivers.o3r.xmlrpc_config import parse_json_object
 from cellcal.drivers.o3r.xmlrpc_config import parse_reply as parse_rpc_reply
 from cellcal.drivers.xarm.protocol import FrameSplitter, encode_request, parse_reply
 from cellcal.drivers.xarm.registers import decode_serials, decode_text, unpack_floats
-from cellcal.sims.o3r.wire import FrameEncoder, message, models_from_intrinsics
+from cellcal.sims.o3r.encoder import FrameEncoder
+from cellcal.sims.o3r.wire import message, models_from_intrinsics
 
 Mutator = Callable[[bytes, random.Random], bytes]
 

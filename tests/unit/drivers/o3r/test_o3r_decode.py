@@ -19,7 +19,8 @@ from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.types import Frame, Intrinsics
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.pcic import iter_messages, walk_chunks
-from cellcal.sims.o3r.wire import FrameEncoder, message, models_from_intrinsics
+from cellcal.sims.o3r.encoder import FrameEncoder
+from cellcal.sims.o3r.wire import message, models_from_intrinsics
 
 #: (row, col) -> confidence word: bit 0 set on pixels whose distance is a plausible 0.8 m plane;
 #: other bits alone (as the VPU sets for e.g. low amplitude) must not invalidate a pixel.

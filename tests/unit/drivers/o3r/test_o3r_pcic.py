@@ -20,7 +20,8 @@ from cellcal.drivers.o3r.pcic import (
     walk_chunks,
 )
 from cellcal.drivers.o3r.tofinfo import IntrinsicModel, parse_tof_info, unit_vectors
-from cellcal.sims.o3r.wire import FrameEncoder, message, models_from_intrinsics
+from cellcal.sims.o3r.encoder import FrameEncoder
+from cellcal.sims.o3r.wire import message, models_from_intrinsics
 
 INTR = Intrinsics(width=32, height=24, fx=40.25, fy=41.5, cx=15.5, cy=11.25)
 INTR_DIST = Intrinsics(width=32, height=24, fx=40.25, fy=41.5, cx=15.5, cy=11.25, k1=-0.05, k2=0.01, p1=3e-4,
