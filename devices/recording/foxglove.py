@@ -22,9 +22,12 @@ from .scene import (
     BASE_FRAME_ID,
     CAMERA_FRAME_ID,
     FLANGE_FRAME_ID,
+    NORMAL_ARROW_FRACTION,
+    NORMAL_ARROW_SHAFT_RATIO,
     NORMAL_RGBA,
     PLANE_RGBA,
     PLANE_THICKNESS_M,
+    POINT_OFFSETS,
     POINT_STRIDE,
     Scene,
     normal_arrow,
@@ -90,8 +93,9 @@ def point_cloud(scene: Scene) -> dict[str, Any]:
     "RGBA (separate fields)" colour mode in Foxglove's 3D panel.
     """
     data, _ = packed_points(scene)
-    fields = [{"name": n, "offset": o, "type": FLOAT32} for n, o in (("x", 0), ("y", 4), ("z", 8))]
-    fields += [{"name": n, "offset": 12 + i, "type": UINT8} for i, n in enumerate(("blue", "green", "red", "alpha"))]
+    fields = [{"name": n, "offset": POINT_OFFSETS[n], "type": FLOAT32} for n in ("x", "y", "z")]
+    fields += [{"name": n, "offset": POINT_OFFSETS["bgra"] + i, "type": UINT8}
+               for i, n in enumerate(("blue", "green", "red", "alpha"))]
     return {"timestamp": stamp(scene.timestamp), "frame_id": scene.camera_frame_id,
             "pose": pose_json(Pose.identity()), "point_stride": POINT_STRIDE, "fields": fields,
             "data": base64.b64encode(data).decode("ascii")}
@@ -106,13 +110,13 @@ def scene_update(scene: Scene) -> dict[str, Any]:
     if not scene.has_plane:
         return {"deletions": [{"timestamp": time_stamp, "type": 1, "id": ""}], "entities": []}
     patch, size_x, size_y = plane_patch(scene)
-    length = 0.25 * max(size_x, size_y)  # the normal drawn a quarter of the patch long
+    length = NORMAL_ARROW_FRACTION * max(size_x, size_y)
     entity = {"timestamp": time_stamp, "frame_id": scene.camera_frame_id, "id": "plane",
               "lifetime": {"sec": 0, "nsec": 0}, "frame_locked": True, "metadata": [],
               "cubes": [{"pose": pose_json(patch), "size": {"x": size_x, "y": size_y, "z": PLANE_THICKNESS_M},
                          "color": _rgba(PLANE_RGBA)}],
               "arrows": [{"pose": pose_json(normal_arrow(scene, patch)), "shaft_length": 0.8 * length,
-                          "shaft_diameter": length / 20, "head_length": 0.2 * length,
+                          "shaft_diameter": length / NORMAL_ARROW_SHAFT_RATIO, "head_length": 0.2 * length,
                           "head_diameter": length / 8, "color": _rgba(NORMAL_RGBA)}]}
     return {"deletions": [], "entities": [entity]}
 

@@ -32,6 +32,12 @@ PLANE_THICKNESS_M = 0.001
 #: One point record: x, y, z (float32, m) then its colour bytes B, G, R, A.
 POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("bgra", "u1", (4,))])
 POINT_STRIDE = POINT_DTYPE.itemsize
+#: Byte offset of each field in a point record: x 0, y 4, z 8, the colour bytes from 12.
+POINT_OFFSETS: dict[str, int] = {name: int(spec[1]) for name, spec in (POINT_DTYPE.fields or {}).items()}
+#: Length of the drawn normal arrow as a fraction of the plane patch's larger side.
+NORMAL_ARROW_FRACTION = 0.25
+#: The normal arrow's length over its shaft's diameter.
+NORMAL_ARROW_SHAFT_RATIO = 20
 
 
 @dataclass(frozen=True)

@@ -19,9 +19,12 @@ from ..codec import seconds_to_ns
 from ..scene import (
     BASE_FRAME_ID,
     FLANGE_FRAME_ID,
+    NORMAL_ARROW_FRACTION,
+    NORMAL_ARROW_SHAFT_RATIO,
     NORMAL_RGBA,
     PLANE_RGBA,
     PLANE_THICKNESS_M,
+    POINT_OFFSETS,
     POINT_STRIDE,
     Scene,
     normal_arrow,
@@ -125,8 +128,9 @@ class Ros2Messages:
         """
         data, n = packed_points(scene)
         field = self.t["sensor_msgs/msg/PointField"]
-        fields = [field(name=name, offset=off, datatype=FLOAT32, count=1)
-                  for name, off in (("x", 0), ("y", 4), ("z", 8), ("rgb", 12))]
+        offsets = (("x", POINT_OFFSETS["x"]), ("y", POINT_OFFSETS["y"]), ("z", POINT_OFFSETS["z"]),
+                   ("rgb", POINT_OFFSETS["bgra"]))
+        fields = [field(name=name, offset=off, datatype=FLOAT32, count=1) for name, off in offsets]
         return self.t["sensor_msgs/msg/PointCloud2"](
             header=self.header(scene.timestamp, scene.camera_frame_id), height=1, width=n, fields=fields,
             is_bigendian=False, point_step=POINT_STRIDE, row_step=POINT_STRIDE * n,
@@ -142,7 +146,7 @@ class Ros2Messages:
         """Two ``visualization_msgs/Marker``: the plane as a thin CUBE over the inliers, its normal as an ARROW."""
         patch, size_x, size_y = plane_patch(scene)
         marker, vec = self.t["visualization_msgs/msg/Marker"], self.t["geometry_msgs/msg/Vector3"]
-        arrow_len = 0.25 * max(size_x, size_y)
+        arrow_len = NORMAL_ARROW_FRACTION * max(size_x, size_y)
         common = {"header": self.header(scene.timestamp, scene.camera_frame_id), "ns": "cellcal/plane",
                   "action": 0, "lifetime": self.t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
                   "frame_locked": False, "points": [], "colors": [], "texture_resource": "",
@@ -155,7 +159,8 @@ class Ros2Messages:
                       scale=vec(x=size_x, y=size_y, z=PLANE_THICKNESS_M), color=self.colour(PLANE_RGBA))
         # ARROW with a pose: scale.x is its length, y and z the shaft's width and height
         arrow = marker(**common, id=NORMAL_MARKER_ID, type=0, pose=self.geometry_pose(normal_arrow(scene, patch)),
-                       scale=vec(x=arrow_len, y=arrow_len / 20, z=arrow_len / 20), color=self.colour(NORMAL_RGBA))
+                       scale=vec(x=arrow_len, y=arrow_len / NORMAL_ARROW_SHAFT_RATIO,
+                                 z=arrow_len / NORMAL_ARROW_SHAFT_RATIO), color=self.colour(NORMAL_RGBA))
         return [cube, arrow]
 
     def scene_transforms(self, scene: Scene) -> list[tuple[str, str, Pose]]:
