@@ -31,27 +31,11 @@ from cellcal.core.calibration.config import load_config
 from cellcal.core.cli import main
 from cellcal.core.liveview import LiveView
 from cellcal.devices.pose import Pose
+from tests.support.ports import free_port, port_free
 
 SCENE_TOPICS = {"/camera/points", "/cellcal/plane", "/tf"}
 SCHEMAS = {"/camera/points": "foxglove.PointCloud", "/cellcal/plane": "foxglove.SceneUpdate",
            "/tf": "foxglove.FrameTransforms", "/cellcal/drift": "cellcal.Drift"}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _port_free(port: int) -> bool:
-    """Whether nothing listens on ``port`` (connections left in TIME_WAIT do not count)."""
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
 
 
 def _pose(p: dict[str, Any]) -> Pose:
@@ -106,21 +90,21 @@ def test_a_calibration_streams_points_plane_and_frames_to_a_websocket_client() -
 
 def test_calibrate_with_viz_port_serves_during_the_run_and_frees_the_port(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    port = _free_port()
+    port = free_port()
     assert main(["calibrate", "--viz-port", str(port), "--out", str(tmp_path), "--quiet"]) == 0
     err = capsys.readouterr().err
     assert f"live view: ws://127.0.0.1:{port}" in err
-    assert (tmp_path / "result.json").is_file() and _port_free(port)
+    assert (tmp_path / "result.json").is_file() and port_free(port)
 
 
 def test_a_closed_live_view_has_released_its_port_when_close_returns() -> None:
     """The SDK stops its server asynchronously; close() waits, so the next run can listen at once."""
-    port = _free_port()
+    port = free_port()
     for _ in range(20):
         view = LiveView(port)
         assert view.port == port
         view.close()
-        assert _port_free(port)
+        assert port_free(port)
 
 
 def _cellcal(*args: str, env: dict[str, str] | None = None, **kw: Any) -> subprocess.Popen[str]:
@@ -129,7 +113,7 @@ def _cellcal(*args: str, env: dict[str, str] | None = None, **kw: Any) -> subpro
 
 
 def test_monitor_with_viz_port_streams_drift_values_and_points() -> None:
-    port = _free_port()
+    port = free_port()
     proc = _cellcal("monitor", "--viz-port", str(port), "--duration", "60", "--quiet")
     try:
         assert proc.stderr is not None
@@ -152,7 +136,7 @@ def test_monitor_with_viz_port_streams_drift_values_and_points() -> None:
     assert 0.3 < drift["height_m"] < 1.0 and all(math.isfinite(drift[k]) for k in ("tilt_x_rad", "tilt_y_rad"))
     _, cloud = seen.messages["/camera/points"][0]
     assert cloud["frame_id"] == "camera" and len(base64.b64decode(cloud["data"])) > 16 * 10_000
-    assert "monitor interrupted" in out and _port_free(port)
+    assert "monitor interrupted" in out and port_free(port)
 
 
 def test_without_foxglove_sdk_viz_port_is_one_line_and_exit_2(tmp_path: Path) -> None:
@@ -161,7 +145,7 @@ def test_without_foxglove_sdk_viz_port_is_one_line_and_exit_2(tmp_path: Path) ->
     (tmp_path / "foxglove" / "__init__.py").write_text("raise ImportError('no foxglove-sdk here')\n")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
     for args in (["calibrate", "--out", str(tmp_path / "out")], ["monitor", "--frames", "1"]):
-        proc = _cellcal(*args, "--viz-port", str(_free_port()), env=env)
+        proc = _cellcal(*args, "--viz-port", str(free_port()), env=env)
         _, err = proc.communicate(timeout=120)
         assert proc.returncode == 2, err
         (line,) = err.strip().splitlines()

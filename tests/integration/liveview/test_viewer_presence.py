@@ -7,13 +7,14 @@ waiting or lingering; Ctrl-C is a real SIGINT.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import signal
-import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,31 +30,24 @@ from websockets.sync.client import connect
 from cellcal.core.calibration.config import load_config, plan_flange_poses
 from cellcal.core.cli import main
 from cellcal.core.liveview import LiveView
+from tests.support.ports import free_port, port_free
 
 SCENE_TOPICS = {"/camera/points", "/cellcal/plane", "/tf"}
 #: Longest wait for a line the command prints, s (a bound, not a timing assertion).
 LINE_TIMEOUT_S = 120.0
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _port_free(port: int) -> bool:
-    with socket.socket() as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return False
-    return True
-
-
-def _cellcal(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "cellcal.core.cli", *args], stdout=subprocess.PIPE,
+@contextlib.contextmanager
+def _cellcal(*args: str) -> Iterator[subprocess.Popen[str]]:
+    """``cellcal ARGS`` as a child process, killed on the way out if it still runs."""
+    proc = subprocess.Popen([sys.executable, "-m", "cellcal.core.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 def _read_until(proc: subprocess.Popen[str], text: str) -> list[str]:
@@ -72,14 +66,9 @@ def _read_until(proc: subprocess.Popen[str], text: str) -> list[str]:
 
 
 def _finish(proc: subprocess.Popen[str], interrupt: bool = False) -> tuple[str, str]:
-    try:
-        if interrupt:
-            proc.send_signal(signal.SIGINT)
-        return proc.communicate(timeout=LINE_TIMEOUT_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    if interrupt:
+        proc.send_signal(signal.SIGINT)
+    return proc.communicate(timeout=LINE_TIMEOUT_S)
 
 
 def _on_plane(update: dict[str, Any], plane: dict[str, Any]) -> bool:
@@ -101,9 +90,8 @@ def _refused(url: str, subprotocols: list[str]) -> bool:
 def test_with_viz_wait_a_viewer_joining_a_second_after_start_sees_every_pose_and_a_refused_client_stays_silent(
         tmp_path: Path) -> None:
     n_poses = len(plan_flange_poses(load_config(None)))
-    port = _free_port()
-    proc = _cellcal("calibrate", "--viz-port", str(port), "--viz-wait", "60", "--out", str(tmp_path), "--quiet")
-    try:
+    port = free_port()
+    with _cellcal("calibrate", "--viz-port", str(port), "--viz-wait", "60", "--out", str(tmp_path), "--quiet") as proc:
         head = _read_until(proc, "waiting up to 60 s for a viewer")
         time.sleep(1.0)  # the viewer joins a second after the start
         url = f"ws://127.0.0.1:{port}"
@@ -114,10 +102,6 @@ def test_with_viz_wait_a_viewer_joining_a_second_after_start_sees_every_pose_and
             client.subscribe_all()
             seen = client.collect(SCENE_TOPICS, count=n_poses, timeout_s=LINE_TIMEOUT_S)
         out, err = _finish(proc)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode == 0, err
     document = json.loads((tmp_path / "result.json").read_text())
     planes = [pose["full_frame"]["plane_cam"] for pose in document["poses"]]
@@ -130,14 +114,14 @@ def test_with_viz_wait_a_viewer_joining_a_second_after_start_sees_every_pose_and
                      "live view: waiting up to 60 s for a viewer to subscribe (Ctrl-C to stop)",
                      "live view: a viewer subscribed; starting"], lines
     assert out.splitlines() == [f"result written to {tmp_path / 'result.json'}"]
-    assert _port_free(port)
+    assert port_free(port)
 
 
 def test_during_viz_linger_a_viewer_joining_after_the_run_sees_the_last_plane_and_ctrl_c_is_130(
         tmp_path: Path) -> None:
-    port = _free_port()
-    proc = _cellcal("calibrate", "--viz-port", str(port), "--viz-linger", "600", "--out", str(tmp_path), "--quiet")
-    try:
+    port = free_port()
+    with _cellcal("calibrate", "--viz-port", str(port), "--viz-linger", "600", "--out", str(tmp_path),
+                  "--quiet") as proc:
         _read_until(proc, "serving the last scene for 600 s more (Ctrl-C to stop)")
         document = json.loads((tmp_path / "result.json").read_text())  # written before the linger
         with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
@@ -145,49 +129,35 @@ def test_during_viz_linger_a_viewer_joining_after_the_run_sees_the_last_plane_an
             client.subscribe_all()
             seen = client.collect(SCENE_TOPICS, timeout_s=LINE_TIMEOUT_S)
         out, err = _finish(proc, interrupt=True)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode == 130, err
     assert err.splitlines() == ["cellcal: interrupted"]
     assert out.splitlines() == [f"result written to {tmp_path / 'result.json'}"]
     _, update = seen.messages["/cellcal/plane"][-1]
     assert _on_plane(update, document["poses"][-1]["full_frame"]["plane_cam"])
-    assert json.loads((tmp_path / "result.json").read_text()) == document and _port_free(port)
+    assert json.loads((tmp_path / "result.json").read_text()) == document and port_free(port)
 
 
 @pytest.mark.parametrize("command", [["calibrate", "--quiet"], ["monitor", "--frames", "5", "--quiet"]])
 def test_ctrl_c_while_waiting_for_a_viewer_is_130_and_starts_nothing(command: list[str], tmp_path: Path) -> None:
-    port = _free_port()
-    proc = _cellcal(*command, "--out" if command[0] == "calibrate" else "--save-baseline",
-                    str(tmp_path / "out"), "--viz-port", str(port), "--viz-wait")
-    try:
+    port = free_port()
+    with _cellcal(*command, "--out" if command[0] == "calibrate" else "--save-baseline",
+                  str(tmp_path / "out"), "--viz-port", str(port), "--viz-wait") as proc:
         _read_until(proc, "waiting up to 60 s for a viewer to subscribe (Ctrl-C to stop)")
         out, err = _finish(proc, interrupt=True)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode == 130, err
     assert err.splitlines() == ["cellcal: interrupted"] and out == ""
-    assert not (tmp_path / "out").exists() and _port_free(port)
+    assert not (tmp_path / "out").exists() and port_free(port)
 
 
 def test_monitor_lingers_with_its_last_frame_after_a_scripted_run(tmp_path: Path) -> None:
-    port = _free_port()
-    proc = _cellcal("monitor", "--frames", "3", "--quiet", "--viz-port", str(port), "--viz-linger", "600")
-    try:
+    port = free_port()
+    with _cellcal("monitor", "--frames", "3", "--quiet", "--viz-port", str(port), "--viz-linger", "600") as proc:
         _read_until(proc, "serving the last scene for 600 s more")
         with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
             client.wait_for_channels({*SCENE_TOPICS, "/cellcal/drift"})
             client.subscribe_all()
             seen = client.collect({"/cellcal/drift", "/cellcal/plane"}, timeout_s=LINE_TIMEOUT_S)
         out, err = _finish(proc, interrupt=True)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode == 130, err
     assert "monitor finished" in out and err.splitlines() == ["cellcal: interrupted"]
     _, drift = seen.messages["/cellcal/drift"][-1]
@@ -195,10 +165,10 @@ def test_monitor_lingers_with_its_last_frame_after_a_scripted_run(tmp_path: Path
 
 
 def test_a_linger_that_runs_out_keeps_the_runs_exit_status(tmp_path: Path) -> None:
-    port = _free_port()
+    port = free_port()
     assert main(["calibrate", "--viz-port", str(port), "--viz-linger", "0.1", "--out", str(tmp_path),
                  "--quiet"]) == 0
-    assert (tmp_path / "result.json").is_file() and _port_free(port)
+    assert (tmp_path / "result.json").is_file() and port_free(port)
 
 
 def test_the_sdk_speaks_foxglove_sdk_v1_and_logs_a_refused_handshake_without_printing_it(
