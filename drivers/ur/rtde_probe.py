@@ -13,6 +13,7 @@ import socket
 import struct
 import time
 
+from cellcal.devices.discovery import read_exact
 from cellcal.devices.errors import DeviceConnectionError, DeviceTimeoutError, ProtocolError
 
 RTDE_PORT = 30004
@@ -23,25 +24,11 @@ PROBE_FREQUENCY_HZ = 125.0
 
 
 def _read_message(sock: socket.socket, deadline: float) -> tuple[int, bytes]:
-    head = _read_exact(sock, _HEADER.size, deadline)
+    head = read_exact(sock, _HEADER.size, deadline)
     size, msg_type = _HEADER.unpack(head)
     if size < _HEADER.size:
         raise ProtocolError(f"rtde probe: message size {size} is smaller than its header")
-    return msg_type, _read_exact(sock, size - _HEADER.size, deadline)
-
-
-def _read_exact(sock: socket.socket, n: int, deadline: float) -> bytes:
-    buf = b""
-    while len(buf) < n:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise TimeoutError
-        sock.settimeout(remaining)
-        chunk = sock.recv(n - len(buf))
-        if not chunk:
-            raise ConnectionError("the controller closed the connection")
-        buf += chunk
-    return buf
+    return msg_type, read_exact(sock, size - _HEADER.size, deadline)
 
 
 def _request(sock: socket.socket, msg_type: int, payload: bytes, deadline: float) -> bytes:
