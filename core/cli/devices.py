@@ -1,8 +1,8 @@
 """``cellcal devices``: list registered backends (and, with --scan, reachable devices).
 
 A network backend (one with ``scan_hosts``: o3r, xarm, ur) probes ``--hosts``, ``--subnet``
-or its ``--factory`` addresses on its vendor's ports (``--ports NAME=PORT`` overrides);
-ADR 0036.
+or, by default, its vendor's factory addresses on its vendor's ports (``--ports NAME=PORT``
+overrides); ADR 0036.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def register(sub: Any) -> None:
     where.add_argument("--subnet", type=parse_subnet, metavar="CIDR",
                        help="network backends probe this subnet, at most a /22 (with --scan)")
     where.add_argument("--factory", action="store_true",
-                       help="network backends probe their vendor's factory addresses (with --scan)")
+                       help="network backends probe their vendor's factory addresses (the default of --scan)")
     p.add_argument("--ports", type=parse_ports, metavar="NAME=PORT,...",
                    help="non-standard ports by service: o3r-rpc, o3r-pcic, xarm, ur-dashboard, ur-rtde")
     p.set_defaults(func=run)
@@ -51,10 +51,9 @@ def run(args: argparse.Namespace) -> int:
     entries = registry.entries()
     if not args.scan and (args.hosts or args.subnet or args.factory or args.ports):
         raise ConfigError("--hosts, --subnet, --factory and --ports say where --scan looks: add --scan")
-    hosts: list[str] | None = args.hosts or args.subnet
-    target = NetworkTarget(hosts=hosts, ports=dict(args.ports or {})) if (hosts or args.factory) else None
-    if target is not None:
-        _check_services(registry, target.ports)
+    # where network backends look: the given addresses, else (also with --factory) their factory addresses
+    target = NetworkTarget(hosts=args.hosts or args.subnet, ports=dict(args.ports or {}))
+    _check_services(registry, target.ports)
     width = max((len(e.name) for e in entries), default=4)
     for kind in ("camera", "arm"):
         print(f"{kind}s:")
@@ -98,8 +97,7 @@ def _check_services(registry: Registry, ports: dict[str, int]) -> None:
                           f"(known: {', '.join(sorted(known)) or 'none'})")
 
 
-def _scan_entry(registry: Registry, kind: Kind, name: str, timeout: float,
-                target: NetworkTarget | None = None) -> list[str]:
+def _scan_entry(registry: Registry, kind: Kind, name: str, timeout: float, target: NetworkTarget) -> list[str]:
     """Report lines for one backend: no child process for a backend that has no discovery."""
     from cellcal.devices.base import Device
 
@@ -108,23 +106,10 @@ def _scan_entry(registry: Registry, kind: Kind, name: str, timeout: float,
     except CellcalError as exc:
         return [f"unavailable: {one_line(str(exc))}"]
     if callable(getattr(cls, "scan_hosts", None)):
-        if target is None:
-            return [_where_hint(getattr(cls, "factory_hosts", ()))]
         return scan_lines(kind, name, timeout, target)
     if getattr(cls.discover, "__func__", None) is getattr(Device.discover, "__func__", None):
         return [NO_DISCOVERY]
     return scan_lines(kind, name, timeout)
-
-
-def _where_hint(factory: tuple[str, ...]) -> str:
-    """What a network backend says to a scan that did not say where to look."""
-    if not factory:
-        at = "none: give its address"
-    elif len(factory) == 1:
-        at = factory[0]
-    else:
-        at = f"{factory[0]} ... {factory[-1]}, {len(factory)} addresses"
-    return f"network backend: say where to look: --hosts H,... | --subnet CIDR | --factory (factory address: {at})"
 
 
 #: What the scan says of a backend that cannot look for devices.

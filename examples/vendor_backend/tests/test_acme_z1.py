@@ -82,7 +82,7 @@ def test_found_through_the_entry_points() -> None:
 
 
 def test_cellcal_devices_lists_it_and_scan_says_no_discovery(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["devices", "--scan", "--timeout", "0.5"]) == 0
+    assert main(["devices", "--scan", "--hosts", "127.0.0.1", "--timeout", "0.5"]) == 0
     out = capsys.readouterr().out
     assert re.search(r"\n  acme-z1 +acme_cellcal\.camera:AcmeZ1Camera  \[cellcal-acme-camera 0\.1\.0\]\n", out)
     assert re.search(r"\n  camera acme-z1: no discovery", out)

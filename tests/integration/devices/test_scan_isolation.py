@@ -59,8 +59,9 @@ def plugin_path(tmp_path: Path) -> Path:
 def _scan(plugin_path: Path, timeout: float) -> tuple[subprocess.CompletedProcess[str], float]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(plugin_path), os.environ.get("PYTHONPATH", "")]))
     start = time.monotonic()
-    done = subprocess.run([sys.executable, "-m", "cellcal.core.cli", "devices", "--scan", "--timeout",
-                           str(timeout)], capture_output=True, text=True, env=env, timeout=300, check=False)
+    done = subprocess.run([sys.executable, "-m", "cellcal.core.cli", "devices", "--scan", "--hosts", "127.0.0.1",
+                           "--timeout", str(timeout)],
+                          capture_output=True, text=True, env=env, timeout=300, check=False)
     return done, time.monotonic() - start
 
 

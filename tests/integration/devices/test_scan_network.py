@@ -87,20 +87,31 @@ def test_scan_finds_the_three_emulators_and_names_them(emulators: dict[str, int]
     assert "Traceback" not in captured.out + captured.err
 
 
-def test_without_hosts_a_network_backend_says_where_it_would_look(capsys: pytest.CaptureFixture[str]) -> None:
-    from cellcal.core.cli.devices import _scan_entry
-    from cellcal.devices.registry import default_registry
+def test_a_plain_scan_looks_at_the_factory_addresses(monkeypatch: pytest.MonkeyPatch,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Without --hosts / --subnet every network backend probes its factory addresses (the child gets hosts None)."""
+    from cellcal.core.cli import devices
+    from cellcal.drivers.o3r import discover as o3r_discover
+    from cellcal.drivers.xarm import discover as xarm_discover
 
-    registry = default_registry()
-    assert _scan_entry(registry, "camera", "o3r", 1.0) == [
-        "network backend: say where to look: --hosts H,... | --subnet CIDR | --factory (factory address: "
-        "192.168.0.69)"]
-    assert _scan_entry(registry, "arm", "xarm", 1.0) == [
-        "network backend: say where to look: --hosts H,... | --subnet CIDR | --factory (factory address: "
-        "192.168.1.1 ... 192.168.1.254, 254 addresses)"]
-    assert _scan_entry(registry, "arm", "ur", 1.0) == [
-        "network backend: say where to look: --hosts H,... | --subnet CIDR | --factory (factory address: "
-        "none: give its address)"]
+    asked: dict[str, object] = {}
+
+    def record(kind: str, name: str, timeout: float, target: object = None) -> list[str]:
+        asked[f"{kind} {name}"] = target  # only what the command asked for; no packet leaves the machine
+        return ["recorded"]
+
+    monkeypatch.setattr(devices, "scan_lines", record)
+    assert main(["devices", "--scan", "--timeout", "0.5", "--ports", "xarm=5020"]) == 0
+    for backend in ("camera o3r", "arm xarm", "arm ur"):
+        assert asked[backend] == devices.NetworkTarget(hosts=None, ports={"xarm": 5020}), backend
+    assert main(["devices", "--scan", "--factory"]) == 0  # the explicit spelling of the default
+    assert asked["arm xarm"] == devices.NetworkTarget(hosts=None, ports={})
+    # and what hosts=None means to each driver: the vendor's factory addresses (UR has none: one note)
+    assert o3r_discover.FACTORY_HOSTS == ("192.168.0.69",)
+    assert tuple(f"192.168.1.{i}" for i in range(1, 255)) == xarm_discover.FACTORY_HOSTS
+    ur = URArm.scan_hosts(None, 0.5)
+    assert ur.found == [] and ur.notes and "no factory address" in ur.notes[0]
+    capsys.readouterr()
 
 
 # ---------------------------------------------------------------- hostile and absent peers
