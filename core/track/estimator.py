@@ -1,0 +1,439 @@
+"""The recursive estimate of the mount and the base-frame plane from the frames of normal work (ADR 0040).
+
+An iterated extended Kalman filter in information form over the nine hand-eye parameters
+(:mod:`cellcal.core.handeye.model`): per accepted frame the Gauss-Newton step of
+``|x - x_prev|²_Λ + |x|²_Π + |r(x)|²`` (``Λ`` the data's information so far, ``Π`` a weak
+isotropic prior at the configured values, ``r`` the frame's whitened residual),
+relinearised about the current estimate, then ``Λ += JᵀJ``. Which directions the work has
+shown is decided from ``Λ`` with the hand-eye threshold (1-sigma below 0.1 rad / 0.1 m,
+:mod:`cellcal.core.handeye.observability`); only those get intervals and the reported
+values keep the configured ones along the others. The stated noise is tested both ways
+on the normalised innovations of a bounded window (:mod:`cellcal.core.handeye.noise`).
+A CUSUM on the same innovations detects a change (:mod:`.detector`); the changed block
+is restarted from the frames after it. Memory is bounded: 9x9 matrices and fixed-size
+windows.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.handeye.model import (
+    MOUNT_ROTATION,
+    MOUNT_TRANSLATION,
+    PARAMETERS,
+    PLANE_OFFSET,
+    PLANE_TILT,
+    PlaneModel,
+    PlaneObservation,
+)
+from cellcal.core.handeye.noise import NoiseCheck, check_noise
+from cellcal.core.handeye.observability import UNOBSERVABLE_SIGMA, analyse
+from cellcal.core.track.detector import KIND_EITHER, KIND_MOUNT, KIND_PLANE, Cusum, Hypothesis, classify
+from cellcal.core.track.linear import Frames, LinearModel
+from cellcal.devices.pose import Pose
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+#: A parameter counts as seen when its share of the unseen subspace is below this.
+SEEN_SHARE = 0.05
+#: A flange-frame plane normal is kept for naming unseen directions when it differs from the last kept by this, rad.
+NORMAL_STEP_RAD = math.radians(1.0)
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """How the tracker weighs frames, tests its noise and detects changes.
+
+    Attributes:
+        arm_translation_sigma_m: 1-sigma of the arm's position read-back per axis, m (as ``[handeye]``).
+        arm_rotation_sigma_rad: 1-sigma of its orientation read-back per axis, rad.
+        confidence: Level of the intervals.
+        prior_sigma: How far (rad and m alike: an isotropic prior, so it moves no direction the
+            frames do not see) the mount and plane may be from the configured ones.
+        detector_reference, detector_clip, detector_threshold: The CUSUM (:class:`.detector.Cusum`).
+        noise_window: Frames of the chi2 test of the stated noise (normalised innovations).
+        noise_test_level: Level of each tail of that test.
+        max_interval_scale: Above this Birge ratio the intervals are withheld (the model is wrong).
+        change_window: Frames after a change kept to tell mount from plane and restart from.
+        min_change_frames: Frames after a change before "neither block alone" is concluded.
+        accept_level, reject_level: A change hypothesis fits at p >= accept_level, is ruled out below reject_level.
+        normals_kept: Flange-frame plane normals kept for naming the unseen directions.
+        iterations: Gauss-Newton iterations per frame (relinearisations).
+    """
+
+    arm_translation_sigma_m: float = 2.5e-5
+    arm_rotation_sigma_rad: float = 0.0
+    confidence: float = 0.95
+    prior_sigma: float = 0.05
+    detector_reference: float = 8.0
+    detector_clip: float = 40.0
+    detector_threshold: float = 120.0
+    noise_window: int = 900
+    noise_test_level: float = 0.01
+    max_interval_scale: float = 10.0
+    change_window: int = 900
+    min_change_frames: int = 10
+    accept_level: float = 1e-3
+    reject_level: float = 1e-6
+    normals_kept: int = 256
+    iterations: int = 2
+
+
+@dataclass(frozen=True)
+class ChangeEvent:
+    """A detected change of the mount or the plane.
+
+    Attributes:
+        detected_at_s: Time of the frame that raised the alarm, s.
+        kind: ``"mount"``, ``"plane"`` or ``"mount or plane"`` (not told apart yet, or both).
+        size: How large: ``rotation_deg``, ``translation_m`` (mount), ``plane_tilt_deg``,
+            ``plane_offset_m`` (plane), once the frames after it have been fitted; at detection
+            ``innovation_chi2``.
+        resolved_at_s: When the restarted estimate saw again every parameter it saw before (None: not yet).
+        started_at_s: Time of the first frame after the estimated change point, s.
+    """
+
+    detected_at_s: float
+    kind: str
+    size: dict[str, float] = field(default_factory=dict)
+    resolved_at_s: float | None = None
+    started_at_s: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form."""
+        return {"detected_at_s": self.detected_at_s, "kind": self.kind, "size": dict(self.size),
+                "resolved_at_s": self.resolved_at_s, "started_at_s": self.started_at_s}
+
+
+@dataclass(frozen=True)
+class TrackStep:
+    """What one frame did.
+
+    Attributes:
+        t_s: Frame time, s.
+        residual: The frame's innovation whitened by its predicted covariance (3,) (normal across, offset).
+        chi2: Its squared norm (3 dof when the model holds).
+        accepted: Whether the frame updated the estimate.
+        event: A change event detected, classified or resolved at this frame (else None).
+        note: Why the frame was not accepted ("" when it was).
+    """
+
+    t_s: float
+    residual: FloatArray
+    chi2: float
+    accepted: bool
+    event: ChangeEvent | None = None
+    note: str = ""
+
+
+@dataclass(frozen=True)
+class TrackState:
+    """The current estimate, what the work has shown and the changes seen.
+
+    Attributes:
+        mount: ``T_flange_camera``; plane: the plane in the base frame (normal toward the camera).
+        mount_translation_sigma_m: (3,) 1-sigma, flange frame, m (NaN where not observable).
+        mount_rpy_sigma_deg: (3,) 1-sigma of ``rpy_deg`` as in ``[mount]`` (NaN where not observable).
+        plane_tilt_sigma_deg: (2,) 1-sigma of the plane's tilts about its two axes across the normal (NaN: unseen).
+        plane_offset_sigma_m: 1-sigma of its offset, m (NaN: unseen).
+        observable: Per parameter of ``PARAMETERS``, whether the work has shown it.
+        unseen: What the work has not shown yet, in words (with what would show it).
+        frames_used: Frames that updated the estimate.
+        events: Changes detected.
+        change_unresolved: Whether a change is not resolved (detected and not re-estimated yet).
+        interval_z: Half-width of the 95 % (``confidence``) intervals in sigmas.
+        interval_scale: Factor the residuals put on the stated noise's sigmas (already in the sigmas).
+        noise: The chi2 test of the stated noise over the window (None before any frame).
+        parameters: The nine parameter steps from the configured values (unseen ones 0).
+        covariance: 9x9 covariance of ``parameters`` as the intervals use it (NaN rows/columns unseen).
+        confidence: Level of the intervals.
+        intervals_withheld: Why no intervals are given ("" when they are).
+    """
+
+    mount: Pose
+    plane: Plane
+    mount_translation_sigma_m: FloatArray
+    mount_rpy_sigma_deg: FloatArray
+    plane_tilt_sigma_deg: FloatArray
+    plane_offset_sigma_m: float
+    observable: dict[str, bool]
+    unseen: list[str]
+    frames_used: int
+    events: list[ChangeEvent]
+    change_unresolved: bool
+    interval_z: float
+    interval_scale: float
+    noise: NoiseCheck | None
+    parameters: FloatArray
+    covariance: FloatArray
+    confidence: float
+    intervals_withheld: str = ""
+
+    @property
+    def mount_rpy_deg(self) -> FloatArray:
+        """The mount's ``rpy_deg`` as in ``[mount]``."""
+        rpy: FloatArray = np.degrees(self.mount.as_xyz_rpy()[3:])
+        return rpy
+
+
+class Tracker:
+    """Recursive estimate of the mount and the plane, with change detection (pure logic, no I/O).
+
+    Args:
+        nominal_mount: The configured ``T_flange_camera``.
+        nominal_plane: The configured plane in the base frame (turned toward the camera at the first frame).
+        settings: Noise, intervals, detector and windows (defaults: :class:`TrackSettings`).
+    """
+
+    def __init__(self, nominal_mount: Pose, nominal_plane: Plane, settings: TrackSettings | None = None) -> None:
+        self.settings = s = settings or TrackSettings()
+        self.nominal_mount = nominal_mount
+        self.nominal_plane = nominal_plane
+        self._lever = float(np.linalg.norm(nominal_mount.translation))  # the mount's lever for the arm's turn noise
+        self._linear: LinearModel | None = None  # built at the first frame (plane orientation)
+        self._weak = s.prior_sigma ** -2  # information of the isotropic prior per parameter
+        self._x = np.zeros(9)  # parameter steps from the configured values
+        self._info = np.zeros((9, 9))  # the data's information (JᵀJ so far)
+        self._anchor = (self._x.copy(), self._info.copy())  # the state while the CUSUM was last at 0
+        self._cusum = Cusum(s.detector_reference, s.detector_clip, s.detector_threshold)
+        self._recent: deque[Frames] = deque(maxlen=s.change_window)  # the latest frames, for a change's restart
+        self._after: deque[Frames] | None = None  # frames after a detected change, until it is classified
+        self._nis: deque[float] = deque(maxlen=s.noise_window)  # normalised innovation chi2 per accepted frame
+        self._nis_sum = 0.0
+        self._normals: deque[FloatArray] = deque(maxlen=s.normals_kept)  # plane normals in the flange frame
+        self._events: list[ChangeEvent] = []
+        self._seen_before: BoolArray | None = None  # parameters seen when the open change was detected
+        self.frames_used = 0
+
+    # ------------------------------------------------------------------ update
+    def update(self, t_s: float, obs: PlaneObservation) -> TrackStep:
+        """Feed one frame's plane observation (``PlaneObservation`` with the flange pose at the frame time)."""
+        s = self.settings
+        if self._linear is None:
+            self._linear = self._start(obs)
+        frame = Frames.of(t_s, obs, s.arm_translation_sigma_m, s.arm_rotation_sigma_rad, self._lever)
+        self._recent.append(frame)
+        r, jac = self._linear.linearise(self._x, frame)
+        r, jac = r[0], jac[0]  # one frame: (3,), (3, 9)
+        cov_pred = np.linalg.inv(self._info + self._weak * np.eye(9))  # the estimate's covariance with the prior
+        innov_cov = np.eye(3) + jac @ cov_pred @ jac.T  # predicted covariance of the whitened residual
+        nu = np.linalg.solve(np.linalg.cholesky(innov_cov), r)  # normalised innovation
+        chi2 = float(nu @ nu)
+        if self._after is not None:
+            return self._while_changed(t_s, frame, nu, chi2)
+        alarm = self._cusum.update(chi2)
+        if alarm:
+            return self._detected(t_s, nu, chi2)
+        if chi2 > s.detector_clip:  # far off the model: held back until the CUSUM decides
+            return TrackStep(t_s, nu, chi2, False, note="residual far beyond the noise model")
+        self._step(frame)
+        self._remember_normal(obs)
+        self._add_nis(chi2)
+        if self._cusum.statistic == 0.0:
+            self._anchor = (self._x.copy(), self._info.copy())
+        event = self._check_resolved(t_s)
+        return TrackStep(t_s, nu, chi2, True, event)
+
+    def _start(self, obs: PlaneObservation) -> LinearModel:
+        """The linear model with the configured plane turned toward the first frame's camera."""
+        camera = obs.flange @ self.nominal_mount
+        if self.nominal_plane.signed_distance(camera.translation[None])[0] < 0:
+            self.nominal_plane = Plane(-self.nominal_plane.normal, -self.nominal_plane.offset_m)
+        return LinearModel(self.nominal_mount, self.nominal_plane)
+
+    def _step(self, frame: Frames) -> None:
+        """The iterated information-form update with one frame."""
+        assert self._linear is not None
+        x_prev, info_prev = self._x, self._info
+        x = x_prev.copy()
+        jac = np.zeros((3, 9))
+        for _ in range(self.settings.iterations):
+            r, jac3 = self._linear.linearise(x, frame)  # relinearised about the current iterate
+            jac = jac3[0]
+            h = info_prev + self._weak * np.eye(9) + jac.T @ jac  # normal matrix
+            g = info_prev @ (x - x_prev) + self._weak * x + jac.T @ r[0]  # gradient / 2
+            x = x - np.linalg.solve(h, g)
+        self._x = x
+        self._info = info_prev + jac.T @ jac
+        self.frames_used += 1
+
+    def _remember_normal(self, obs: PlaneObservation) -> None:
+        """Keep the plane normal in the flange frame when it differs from the last kept one."""
+        u = obs.flange.rotation_matrix.T @ self.nominal_plane.normal
+        if not self._normals or math.acos(min(1.0, float(u @ self._normals[-1]))) > NORMAL_STEP_RAD:
+            self._normals.append(u)
+
+    def _add_nis(self, chi2: float) -> None:
+        """Add a normalised innovation chi2 to the noise test's window."""
+        if len(self._nis) == self._nis.maxlen:
+            self._nis_sum -= self._nis[0]
+        self._nis.append(chi2)
+        self._nis_sum += chi2
+
+    # ------------------------------------------------------------------ changes
+    def _detected(self, t_s: float, nu: FloatArray, chi2: float) -> TrackStep:
+        """Open a change: back to the state before it, collect the frames after it."""
+        n_after = min(self._cusum.run_length, len(self._recent))
+        after = list(self._recent)[len(self._recent) - n_after:]  # frames since the estimated change point
+        self._after = deque(after, maxlen=self.settings.change_window)
+        self._x, self._info = self._anchor[0].copy(), self._anchor[1].copy()  # the state before the change
+        self._seen_before = self._seen_mask(self._info)
+        event = ChangeEvent(t_s, KIND_EITHER, {"innovation_chi2": chi2}, None, float(after[0].t_s[0]))
+        self._events.append(event)
+        self._cusum.reset()
+        self._nis.clear()
+        self._nis_sum = 0.0
+        stepped = self._classify(t_s)
+        return TrackStep(t_s, nu, chi2, stepped is not None, stepped or event, note="change detected")
+
+    def _while_changed(self, t_s: float, frame: Frames, nu: FloatArray, chi2: float) -> TrackStep:
+        """A frame after a detected change that is not classified yet."""
+        assert self._after is not None
+        self._after.append(frame)
+        event = self._classify(t_s)
+        return TrackStep(t_s, nu, chi2, event is not None, event,
+                         note="" if event else "change not told apart yet: frames kept for the re-estimate")
+
+    def _classify(self, t_s: float) -> ChangeEvent | None:
+        """Try to tell the change apart and restart its block; the updated event when done."""
+        assert self._after is not None and self._linear is not None
+        s = self.settings
+        frames = Frames.stack(list(self._after))
+        kind, mount, plane = classify(self._linear, frames, self._x, self._info, self._weak, s.accept_level,
+                                      s.reject_level)
+        full = len(self._after) >= s.change_window
+        if kind == KIND_EITHER and len(self._after) < s.min_change_frames:
+            return None  # neither block alone fits a few frames: wait for more before restarting both
+        if kind is None and not full:
+            return None  # both fit: the poses since the change cannot tell them apart yet
+        chosen = {KIND_MOUNT: mount, KIND_PLANE: plane}.get(kind or "")
+        if chosen is None:  # both blocks new: restart everything from the frames after the change
+            from cellcal.core.track.detector import hypothesis
+
+            chosen = hypothesis(KIND_EITHER, self._linear, frames, self._x, self._info, self._weak)
+            kind = KIND_EITHER
+        return self._restart(t_s, kind, chosen)
+
+    def _restart(self, t_s: float, kind: str, chosen: Hypothesis) -> ChangeEvent:
+        """Take the classified fit of the frames after the change as the new state."""
+        from cellcal.core.track.detector import MOUNT, PLANE
+        from cellcal.core.track.refit import marginal_info
+
+        old_x = self._x
+        kept = {KIND_MOUNT: PLANE, KIND_PLANE: MOUNT}.get(kind, np.array([], dtype=np.intp))
+        held = marginal_info(self._info, kept, self._weak) if len(kept) else np.zeros((9, 9))
+        self._x = chosen.fit.x
+        self._info = chosen.fit.info + held  # the frames after the change and the kept block's earlier information
+        self._anchor = (self._x.copy(), self._info.copy())
+        assert self._after is not None
+        self.frames_used += len(self._after)
+        self._after = None
+        self._recent.clear()
+        event = replace(self._events[-1], kind=kind, size=self._size(old_x, self._x, kind))
+        self._events[-1] = event
+        resolved = self._check_resolved(t_s)
+        return resolved or event
+
+    def _size(self, old: FloatArray, new: FloatArray, kind: str) -> dict[str, float]:
+        """How large the change was, in the units of the event."""
+        assert self._linear is not None
+        model = PlaneModel(self.nominal_mount, self.nominal_plane)
+        out: dict[str, float] = {}
+        if kind in (KIND_MOUNT, KIND_EITHER):
+            a, b = model.mount(old), model.mount(new)
+            out["rotation_deg"] = math.degrees(a.angle_to(b))
+            out["translation_m"] = a.distance_to(b)
+        if kind in (KIND_PLANE, KIND_EITHER):
+            p, q = model.plane(old), model.plane(new)
+            out["plane_tilt_deg"] = math.degrees(math.acos(min(1.0, float(p.normal @ q.normal))))
+            out["plane_offset_m"] = float(q.offset_m - p.offset_m)
+        return out
+
+    def _check_resolved(self, t_s: float) -> ChangeEvent | None:
+        """Mark the open change resolved once every parameter seen before it is seen again; the event if so."""
+        if not self._events or self._events[-1].resolved_at_s is not None or self._after is not None:
+            return None
+        assert self._seen_before is not None
+        if np.any(self._seen_before & ~self._seen_mask(self._info)):
+            return None
+        event = replace(self._events[-1], resolved_at_s=t_s)
+        self._events[-1] = event
+        return event
+
+    # ------------------------------------------------------------------ state
+    def _unseen_basis(self, info: FloatArray) -> FloatArray:
+        """Orthonormal directions (columns, 9 x k) whose 1-sigma exceeds the hand-eye threshold."""
+        lam, vec = np.linalg.eigh(info)
+        threshold = max(UNOBSERVABLE_SIGMA ** -2, float(lam[-1]) * 1e-20)  # as observability.analyse (squared)
+        out: FloatArray = vec[:, lam < threshold]
+        return out
+
+    def _seen_mask(self, info: FloatArray) -> BoolArray:
+        """Per parameter, whether it lies (nearly) outside the unseen subspace."""
+        null = self._unseen_basis(info)
+        mask: BoolArray = np.linalg.norm(null, axis=1) < SEEN_SHARE
+        return mask
+
+    @property
+    def state(self) -> TrackState:
+        """The current estimate with intervals for what the work has shown."""
+        from cellcal.core.handeye.estimator import rpy_with_sigma_deg
+
+        s = self.settings
+        model = PlaneModel(self.nominal_mount, self.nominal_plane)
+        null = self._unseen_basis(self._info)
+        x = self._x - null @ (null.T @ self._x)  # the configured values along what is unseen
+        seen = np.linalg.norm(null, axis=1) < SEEN_SHARE
+        noise = (check_noise(self._nis_sum, 3 * len(self._nis), confidence=s.confidence, level=s.noise_test_level,
+                             max_interval_scale=math.inf) if self._nis else None)
+        scale = noise.interval_scale if noise else 1.0
+        z = noise.interval_z if noise else _normal_z(s.confidence)
+        withheld = ""
+        if scale > s.max_interval_scale:
+            withheld = (f"the residuals are {scale:.1f}x the stated noise: the noise model or the configured "
+                        "values are wrong, intervals withheld")
+        lam, vec = np.linalg.eigh(self._info)
+        keep = lam >= max(UNOBSERVABLE_SIGMA ** -2, float(lam[-1]) * 1e-20)
+        cov = (vec[:, keep] / lam[keep]) @ vec[:, keep].T * scale**2  # pseudo-inverse on the seen subspace
+        cov[~seen, :] = np.nan
+        cov[:, ~seen] = np.nan
+        if withheld or self._after is not None:
+            cov = np.full((9, 9), np.nan)
+        mount = model.mount(x)
+        rot_cov = np.nan_to_num(cov[MOUNT_ROTATION, MOUNT_ROTATION])
+        _, rpy_sigma = rpy_with_sigma_deg(mount, rot_cov)
+        _, rpy_unseen = rpy_with_sigma_deg(mount, null[MOUNT_ROTATION] @ null[MOUNT_ROTATION].T)  # share of the unseen
+        rpy_sigma[(rpy_unseen > math.degrees(SEEN_SHARE)) | ~np.all(np.isfinite(cov[MOUNT_ROTATION]))] = np.nan
+        observable = {name: bool(seen[i]) for i, name in enumerate(PARAMETERS)}
+        sq = np.sqrt(np.abs(np.diag(cov)))
+        return TrackState(
+            mount, model.plane(x), sq[MOUNT_TRANSLATION].copy(), rpy_sigma, np.degrees(sq[PLANE_TILT]),
+            float(sq[PLANE_OFFSET]), observable, self._unseen_texts(), self.frames_used, list(self._events),
+            any(e.resolved_at_s is None for e in self._events), z, scale, noise, x, cov, s.confidence, withheld)
+
+    def _unseen_texts(self) -> list[str]:
+        """What the work has not shown, named as the hand-eye observability report names it."""
+        if not self._normals:
+            return ["nothing yet: no frame has been used"]
+        lam, vec = np.linalg.eigh(self._info)
+        root = np.sqrt(np.clip(lam, 0.0, None))[:, None] * vec.T  # a square root of the information
+        report = analyse(root, list(range(9)), np.array(self._normals))
+        return [f"{d.what}: not shown by the work so far (would need {d.fix})" for d in report.unseen]
+
+
+def _normal_z(confidence: float) -> float:
+    """Half-width of a two-sided normal interval, in sigmas."""
+    from cellcal.core.handeye.noise import normal_z
+
+    return float(normal_z(confidence))
+
+
+__all__ = ["ChangeEvent", "TrackSettings", "TrackState", "TrackStep", "Tracker"]

@@ -1,0 +1,116 @@
+"""The hand-eye plane model (:mod:`cellcal.core.handeye.model`) vectorised over parameter sets and frames.
+
+The tracker evaluates the whitened residual of a frame at 19 parameter vectors per update
+(central differences of all nine parameters at once) and refits a few hundred buffered
+frames after a change, so the model is written here in stacked numpy (Rodrigues' formula,
+no scipy objects per call); a unit test checks it against ``PlaneModel.predict``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.handeye.model import PlaneObservation, tangent_basis, whitening
+from cellcal.devices.pose import Pose
+
+FloatArray = NDArray[np.float64]
+#: Central-difference step of the Jacobian (rad or m), as in the hand-eye estimator.
+STEP = 1e-6
+
+
+def rotvec_matrices(v: FloatArray) -> FloatArray:
+    """Rotation matrices (K, 3, 3) of rotation vectors (K, 3) (rad), by Rodrigues' formula."""
+    angle = np.linalg.norm(v, axis=1)
+    k = np.zeros((len(v), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]  # the cross-product matrix of v
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    a = np.sinc(angle / np.pi)[:, None, None]  # sin(angle)/angle, exact at 0
+    b = 0.5 * np.sinc(angle / (2 * np.pi))[:, None, None] ** 2  # (1 - cos(angle))/angle², exact at 0
+    out: FloatArray = np.eye(3) + a * k + b * (k @ k)
+    return out
+
+
+@dataclass(frozen=True)
+class Frames:
+    """Whitened plane observations stacked (N of them).
+
+    Attributes:
+        t_s: Frame times, s (N,).
+        rot_a, t_a: ``T_base_flange`` rotation matrices (N, 3, 3) and translations (N, 3), m.
+        normals, offsets: Measured camera-frame normals (N, 3) and offsets (N,), m.
+        bases: Tangent bases of the measured normals (N, 3, 2).
+        whiten: Inverse Cholesky factors of the residuals' covariance (N, 3, 3).
+    """
+
+    t_s: FloatArray
+    rot_a: FloatArray
+    t_a: FloatArray
+    normals: FloatArray
+    offsets: FloatArray
+    bases: FloatArray
+    whiten: FloatArray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @staticmethod
+    def of(t_s: float, obs: PlaneObservation, arm_translation_sigma_m: float, arm_rotation_sigma_rad: float,
+           lever_m: float) -> Frames:
+        """One observation as a stack of one (whitened as the hand-eye fit whitens it)."""
+        basis, white = whitening(obs, arm_translation_sigma_m, arm_rotation_sigma_rad, lever_m)
+        flange = obs.flange
+        return Frames(np.array([t_s]), flange.rotation_matrix[None].copy(), np.asarray(flange.translation)[None],
+                      np.asarray(obs.normal, dtype=np.float64)[None], np.array([obs.offset_m]), basis[None],
+                      white[None])
+
+    @staticmethod
+    def stack(frames: Sequence[Frames]) -> Frames:
+        """Several stacks as one."""
+        return Frames(*(np.concatenate([getattr(f, name) for f in frames]) for name in
+                        ("t_s", "rot_a", "t_a", "normals", "offsets", "bases", "whiten")))
+
+
+class LinearModel:
+    """Whitened residuals and their Jacobian of the nine parameters (as ``PARAMETERS``) for stacked frames.
+
+    Args:
+        nominal_mount: The configured ``T_flange_camera`` (the zero of the parameters).
+        nominal_plane: The configured base-frame plane, normal toward the camera side.
+    """
+
+    def __init__(self, nominal_mount: Pose, nominal_plane: Plane) -> None:
+        self.r_x0 = np.array(nominal_mount.rotation_matrix)
+        self.t_x0 = np.array(nominal_mount.translation)
+        self.n_b0 = np.array(nominal_plane.normal)
+        self.c_b0 = float(nominal_plane.offset_m)
+        self.tilt_axes = tangent_basis(self.n_b0)  # the plane's tilt axes (3x2), as PlaneModel's
+
+    def residuals(self, params: FloatArray, frames: Frames) -> FloatArray:
+        """Whitened residuals (K, N, 3) (predicted - measured) at parameter vectors (K, 9)."""
+        r_x = rotvec_matrices(params[:, 0:3]) @ self.r_x0  # mount turned about the flange axes
+        t_x = self.t_x0 + params[:, 3:6]  # mount translation, flange frame
+        n_b = np.einsum("kij,j->ki", rotvec_matrices(params[:, 6:8] @ self.tilt_axes.T), self.n_b0)  # tilted normal
+        c_b = self.c_b0 + params[:, 8]  # plane offset
+        u = np.einsum("nji,kj->kni", frames.rot_a, n_b)  # the normal in the flange frame, R_A^T n_B
+        n_c = np.einsum("kji,knj->kni", r_x, u)  # in the camera frame, R_X^T u
+        t_c = np.einsum("nij,kj->kni", frames.rot_a, t_x) + frames.t_a  # camera origin, base frame
+        c_c = c_b[:, None] + np.einsum("kni,ki->kn", t_c, n_b)  # the camera's distance to the plane
+        tangent = np.einsum("nij,kni->knj", frames.bases, n_c - frames.normals)  # normal error across itself
+        raw = np.concatenate([tangent, (c_c - frames.offsets)[:, :, None]], axis=2)
+        white: FloatArray = np.einsum("nij,knj->kni", frames.whiten, raw)
+        return white
+
+    def linearise(self, x: FloatArray, frames: Frames) -> tuple[FloatArray, FloatArray]:
+        """Whitened residuals (N, 3) at ``x`` (9,) and their Jacobian (N, 3, 9) by central differences."""
+        steps = np.vstack([np.zeros(9), STEP * np.eye(9), -STEP * np.eye(9)])
+        res = self.residuals(x + steps, frames)  # all 19 parameter vectors at once
+        jac = np.moveaxis((res[1:10] - res[10:19]) / (2 * STEP), 0, 2)  # (N, 3, 9)
+        return res[0], jac
+
+
+__all__ = ["Frames", "LinearModel", "rotvec_matrices"]
