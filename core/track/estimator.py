@@ -37,13 +37,18 @@ from cellcal.core.handeye.model import (
 from cellcal.core.handeye.noise import NoiseCheck, check_noise
 from cellcal.core.handeye.observability import UNOBSERVABLE_SIGMA, analyse
 from cellcal.core.track.detector import KIND_EITHER, KIND_MOUNT, KIND_PLANE, Cusum, Hypothesis, classify
-from cellcal.core.track.linear import Frames, LinearModel
+from cellcal.core.track.linear import FrameRing, Frames, LinearModel
 from cellcal.devices.pose import Pose
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 #: A parameter counts as seen when its share of the unseen subspace is below this.
 SEEN_SHARE = 0.05
+#: A change is tried again when the arm turned (rad) or moved (m) this much since the last try, or after
+#: this many frames.
+CLASSIFY_TURN_RAD = math.radians(0.5)
+CLASSIFY_MOVE_M = 0.005
+CLASSIFY_EVERY = 30
 #: A flange-frame plane normal is kept for naming unseen directions when it differs from the last kept by this, rad.
 NORMAL_STEP_RAD = math.radians(1.0)
 
@@ -66,7 +71,10 @@ class TrackSettings:
         min_change_frames: Frames after a change before "neither block alone" is concluded.
         accept_level, reject_level: A change hypothesis fits at p >= accept_level, is ruled out below reject_level.
         normals_kept: Flange-frame plane normals kept for naming the unseen directions.
-        iterations: Gauss-Newton iterations per frame (relinearisations).
+        iterations: Gauss-Newton iterations per frame and per batch step (relinearisations).
+        window: Latest accepted frames kept and relinearised about the estimate in each batch step;
+            older ones are held as a quadratic prior linearised when they left.
+        relinearise_every: Accepted frames between batch steps.
     """
 
     arm_translation_sigma_m: float = 2.5e-5
@@ -85,6 +93,8 @@ class TrackSettings:
     reject_level: float = 1e-6
     normals_kept: int = 256
     iterations: int = 2
+    window: int = 900
+    relinearise_every: int = 30
 
 
 @dataclass(frozen=True)
@@ -201,11 +211,15 @@ class Tracker:
         self._linear: LinearModel | None = None  # built at the first frame (plane orientation)
         self._weak = s.prior_sigma ** -2  # information of the isotropic prior per parameter
         self._x = np.zeros(9)  # parameter steps from the configured values
-        self._info = np.zeros((9, 9))  # the data's information (JᵀJ so far)
-        self._anchor = (self._x.copy(), self._info.copy())  # the state while the CUSUM was last at 0
+        self._info = np.zeros((9, 9))  # the data's information (JᵀJ so far: marginalised and in the window)
+        self._window = FrameRing(s.window)  # the latest accepted frames, relinearised in the batch steps
+        self._prior_info = np.zeros((9, 9))  # frames pushed out of the window: x'Λx - 2h'x, linearised when they left
+        self._prior_h = np.zeros(9)
+        self._since_batch = 0  # accepted frames since the last batch step
         self._cusum = Cusum(s.detector_reference, s.detector_clip, s.detector_threshold)
-        self._recent: deque[Frames] = deque(maxlen=s.change_window)  # the latest frames, for a change's restart
+        self._recent: deque[tuple[Frames, float]] = deque(maxlen=s.change_window)  # latest frames and their chi2
         self._after: deque[Frames] | None = None  # frames after a detected change, until it is classified
+        self._classified_at: tuple[int, Frames] | None = None  # frames buffered and the last one at the last try
         self._nis: deque[float] = deque(maxlen=s.noise_window)  # normalised innovation chi2 per accepted frame
         self._nis_sum = 0.0
         self._normals: deque[FloatArray] = deque(maxlen=s.normals_kept)  # plane normals in the flange frame
@@ -220,13 +234,12 @@ class Tracker:
         if self._linear is None:
             self._linear = self._start(obs)
         frame = Frames.of(t_s, obs, s.arm_translation_sigma_m, s.arm_rotation_sigma_rad, self._lever)
-        self._recent.append(frame)
-        r, jac = self._linear.linearise(self._x, frame)
-        r, jac = r[0], jac[0]  # one frame: (3,), (3, 9)
-        cov_pred = np.linalg.inv(self._info + self._weak * np.eye(9))  # the estimate's covariance with the prior
-        innov_cov = np.eye(3) + jac @ cov_pred @ jac.T  # predicted covariance of the whitened residual
-        nu = np.linalg.solve(np.linalg.cholesky(innov_cov), r)  # normalised innovation
+        nu = self._innovation(frame)
+        if float(nu @ nu) > s.detector_reference and self._since_batch and self._after is None:
+            self._batch()  # a surprising frame: first relinearise every frame in the window, then judge it
+            nu = self._innovation(frame)
         chi2 = float(nu @ nu)
+        self._recent.append((frame, chi2))
         if self._after is not None:
             return self._while_changed(t_s, frame, nu, chi2)
         alarm = self._cusum.update(chi2)
@@ -237,10 +250,17 @@ class Tracker:
         self._step(frame)
         self._remember_normal(obs)
         self._add_nis(chi2)
-        if self._cusum.statistic == 0.0:
-            self._anchor = (self._x.copy(), self._info.copy())
         event = self._check_resolved(t_s)
         return TrackStep(t_s, nu, chi2, True, event)
+
+    def _innovation(self, frame: Frames) -> FloatArray:
+        """The frame's whitened residual at the estimate, normalised by its predicted covariance (3,)."""
+        assert self._linear is not None
+        r, jac = self._linear.linearise(self._x, frame)
+        cov_pred = np.linalg.inv(self._info + self._weak * np.eye(9))  # the estimate's covariance with the prior
+        innov_cov = np.eye(3) + jac[0] @ cov_pred @ jac[0].T  # predicted covariance of the whitened residual
+        nu: FloatArray = np.linalg.solve(np.linalg.cholesky(innov_cov), r[0])
+        return nu
 
     def _start(self, obs: PlaneObservation) -> LinearModel:
         """The linear model with the configured plane turned toward the first frame's camera."""
@@ -264,6 +284,39 @@ class Tracker:
         self._x = x
         self._info = info_prev + jac.T @ jac
         self.frames_used += 1
+        self._keep(frame)
+        self._since_batch += 1
+        if self._since_batch >= self.settings.relinearise_every:
+            self._batch()
+
+    def _keep(self, frame: Frames) -> None:
+        """Put an accepted frame in the window; the one it pushes out joins the prior, linearised at the estimate."""
+        assert self._linear is not None
+        old = self._window.push(frame)
+        if old is not None:
+            r, jac3 = self._linear.linearise(self._x, old)
+            jac = jac3[0]
+            self._prior_info += jac.T @ jac  # |r + J (x - x̂)|² = x'J'Jx - 2 x'J'(J x̂ - r) + const
+            self._prior_h += jac.T @ (jac @ self._x - r[0])
+
+    def _batch(self) -> None:
+        """Gauss-Newton over the window and the prior, every frame relinearised about the estimate."""
+        assert self._linear is not None
+        self._since_batch = 0
+        if not len(self._window):
+            self._info = self._prior_info.copy()
+            return
+        frames = self._window.frames()
+        x = self._x
+        j2 = np.zeros((0, 9))
+        for _ in range(self.settings.iterations):
+            r, jac = self._linear.linearise(x, frames)
+            j2 = jac.reshape(-1, 9)
+            h = self._prior_info + self._weak * np.eye(9) + j2.T @ j2  # normal matrix
+            g = self._prior_info @ x - self._prior_h + self._weak * x + j2.T @ r.ravel()  # gradient / 2
+            x = x - np.linalg.solve(h, g)
+        self._x = x
+        self._info = self._prior_info + j2.T @ j2
 
     def _remember_normal(self, obs: PlaneObservation) -> None:
         """Keep the plane normal in the flange frame when it differs from the last kept one."""
@@ -281,10 +334,16 @@ class Tracker:
     # ------------------------------------------------------------------ changes
     def _detected(self, t_s: float, nu: FloatArray, chi2: float) -> TrackStep:
         """Open a change: back to the state before it, collect the frames after it."""
-        n_after = min(self._cusum.run_length, len(self._recent))
-        after = list(self._recent)[len(self._recent) - n_after:]  # frames since the estimated change point
+        # the frames after the change: the run's trailing frames above the CUSUM's reference
+        after: list[Frames] = []
+        for frame, value in reversed(list(self._recent)[max(0, len(self._recent) - self._cusum.run_length):]):
+            if value <= self.settings.detector_reference:
+                break
+            after.insert(0, frame)
         self._after = deque(after, maxlen=self.settings.change_window)
-        self._x, self._info = self._anchor[0].copy(), self._anchor[1].copy()  # the state before the change
+        self._classified_at = None
+        self.frames_used -= self._window.drop_from(float(after[0].t_s[0]))  # frames after the change taken back
+        self._batch()  # the state before the change
         self._seen_before = self._seen_mask(self._info)
         event = ChangeEvent(t_s, KIND_EITHER, {"innovation_chi2": chi2}, None, float(after[0].t_s[0]))
         self._events.append(event)
@@ -293,6 +352,17 @@ class Tracker:
         self._nis_sum = 0.0
         stepped = self._classify(t_s)
         return TrackStep(t_s, nu, chi2, stepped is not None, stepped or event, note="change detected")
+
+    def _worth_classifying(self) -> bool:
+        """Whether the frames since the last try can change the verdict: the arm moved, or enough came."""
+        assert self._after is not None
+        if self._classified_at is None or len(self._after) >= self.settings.change_window:
+            return True
+        count, last = self._classified_at
+        new = self._after[-1]
+        turned = float(np.linalg.norm(new.rot_a[0] - last.rot_a[0]))  # ~ the turn in rad (Frobenius / sqrt 2)
+        moved = float(np.linalg.norm(new.t_a[0] - last.t_a[0]))
+        return turned > CLASSIFY_TURN_RAD or moved > CLASSIFY_MOVE_M or len(self._after) - count >= CLASSIFY_EVERY
 
     def _while_changed(self, t_s: float, frame: Frames, nu: FloatArray, chi2: float) -> TrackStep:
         """A frame after a detected change that is not classified yet."""
@@ -306,6 +376,9 @@ class Tracker:
         """Try to tell the change apart and restart its block; the updated event when done."""
         assert self._after is not None and self._linear is not None
         s = self.settings
+        if not self._worth_classifying():
+            return None
+        self._classified_at = (len(self._after), self._after[-1])
         frames = Frames.stack(list(self._after))
         kind, mount, plane = classify(self._linear, frames, self._x, self._info, self._weak, s.accept_level,
                                       s.reject_level)
@@ -331,9 +404,13 @@ class Tracker:
         kept = {KIND_MOUNT: PLANE, KIND_PLANE: MOUNT}.get(kind, np.array([], dtype=np.intp))
         held = marginal_info(self._info, kept, self._weak) if len(kept) else np.zeros((9, 9))
         self._x = chosen.fit.x
-        self._info = chosen.fit.info + held  # the frames after the change and the kept block's earlier information
-        self._anchor = (self._x.copy(), self._info.copy())
+        self._prior_info = held  # the kept block's earlier information, about its earlier value
+        self._prior_h = held @ old_x
+        self._window.clear()
         assert self._after is not None
+        for frame in self._after:  # the frames after the change only
+            self._keep(frame)
+        self._batch()
         self.frames_used += len(self._after)
         self._after = None
         self._recent.clear()

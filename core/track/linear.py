@@ -75,6 +75,61 @@ class Frames:
                         ("t_s", "rot_a", "t_a", "normals", "offsets", "bases", "whiten")))
 
 
+class FrameRing:
+    """A bounded window of frames in preallocated arrays; the oldest is handed back when a new one pushes it out.
+
+    Args:
+        capacity: Frames kept.
+    """
+
+    _FIELDS = ("t_s", "rot_a", "t_a", "normals", "offsets", "bases", "whiten")
+    _SHAPES = ((), (3, 3), (3,), (3,), (), (3, 2), (3, 3))
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"a frame window needs a capacity of at least 1, got {capacity}")
+        self.capacity = capacity
+        self._arrays = [np.zeros((capacity, *shape)) for shape in self._SHAPES]
+        self._n = 0  # frames held
+        self._next = 0  # slot of the next frame (the oldest once full)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def push(self, frame: Frames) -> Frames | None:
+        """Add one frame (a stack of one); the frame it pushed out (None while not full)."""
+        evicted = None
+        if self._n == self.capacity:
+            evicted = Frames(*(a[self._next:self._next + 1].copy() for a in self._arrays))
+        for a, name in zip(self._arrays, self._FIELDS, strict=True):
+            a[self._next] = getattr(frame, name)[0]
+        self._next = (self._next + 1) % self.capacity
+        self._n = min(self._n + 1, self.capacity)
+        return evicted
+
+    def frames(self) -> Frames:
+        """The frames held (in slot order, not time order), as views."""
+        return Frames(*(a[:self._n] for a in self._arrays))
+
+    def drop_from(self, t_s: float) -> int:
+        """Remove the frames at or after ``t_s``; how many."""
+        times = self._arrays[0][:self._n]
+        order = np.argsort(times, kind="stable")
+        order = order[times[order] < t_s]  # the kept frames, oldest first
+        removed = self._n - len(order)
+        if removed == 0:
+            return 0
+        for a in self._arrays:
+            a[:len(order)] = a[order]  # compact in time order: the next push goes after the newest
+        self._n = len(order)
+        self._next = self._n % self.capacity
+        return removed
+
+    def clear(self) -> None:
+        """Remove every frame."""
+        self._n = self._next = 0
+
+
 class LinearModel:
     """Whitened residuals and their Jacobian of the nine parameters (as ``PARAMETERS``) for stacked frames.
 
@@ -113,4 +168,4 @@ class LinearModel:
         return res[0], jac
 
 
-__all__ = ["Frames", "LinearModel", "rotvec_matrices"]
+__all__ = ["FrameRing", "Frames", "LinearModel", "rotvec_matrices"]
