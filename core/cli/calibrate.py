@@ -12,8 +12,10 @@ from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from cellcal.core.cli.options import add_config_option, add_viz_port_option, check_viz_options
 from cellcal.core.cli.progress import progress_factory
+from cellcal.core.cli.report import add_no_report_option
 from cellcal.core.cli.resumable import resume_command, run_resumable
-from cellcal.devices.errors import ConfigError
+from cellcal.core.cli.text import one_line
+from cellcal.devices.errors import CellcalError, ConfigError, OutputError
 
 if TYPE_CHECKING:  # the calibration (numpy, OpenCV) is imported when the command runs, not by `cellcal --help`
     from cellcal.core.calibration.config import CellConfig
@@ -47,6 +49,7 @@ def register(sub: Any) -> None:
     p.add_argument("--replay", metavar="FILE.mcap", type=path_arg,
                    help="re-run a session recorded with 'cellcal record' from the file alone (its recorded "
                    "configuration, replay camera and arm); reports whether the result is identical")
+    add_no_report_option(p)
     p.set_defaults(func=run)
 
 
@@ -159,12 +162,36 @@ def _calibrate(args: argparse.Namespace, config: CellConfig, camera: Camera3D, a
     from cellcal.core.calibration.report import RESULT_FILENAME
 
     out = Path(args.out) / RESULT_FILENAME
-    calibrator = Calibrator(config, camera, arm, progress=progress_factory("poses", "pose", args.quiet),
-                            observer=None if view is None else view.observe_pose(config.mount.pose()))
-    document = run_resumable(lambda: run_to_file(calibrator, out, resume=getattr(args, "resume", False)),
-                             calibrator, len(calibrator.poses), out, resume_command("calibrate", args))
+    report = None
+    if not getattr(args, "no_report", False):  # the run's pictures and words (ADR 0037)
+        from cellcal.core.report.runs import CalibrationReport
+
+        report = CalibrationReport(config, camera, args.out)
+    live = None if view is None else view.observe_pose(config.mount.pose())
+    calibrator = Calibrator(config, camera if report is None else report.camera, arm,  # type: ignore[arg-type]
+                            progress=progress_factory("poses", "pose", args.quiet),
+                            observer=live if report is None else report.observer(live))
+    try:
+        document = run_resumable(lambda: run_to_file(calibrator, out, resume=getattr(args, "resume", False)),
+                                 calibrator, len(calibrator.poses), out, resume_command("calibrate", args))
+    except CellcalError as exc:
+        if report is not None and not isinstance(exc, (ConfigError, OutputError)):  # a run that failed, not bad input
+            report.failed_run(exc, one_line(f"cellcal: error: {exc}"), calibrator.poses)
+            report.write(quiet=True)
+        raise
+    if report is not None and not isinstance(document, int):
+        report.finished(document)
+        with report.tee():
+            status = _summarize(args, calibrator, document, out)
+        report.write(quiet=args.quiet)
+        return status
     if isinstance(document, int):  # interrupted: the exit status
         return document
+    return _summarize(args, calibrator, document, out)
+
+
+def _summarize(args: argparse.Namespace, calibrator: Any, document: dict[str, Any], out: Path) -> int:
+    """Print the report and the result's path; the exit status (``--strict`` fails a disagreement)."""
     if not args.quiet:
         _print_report(document)
     disagree = _disagreement(document)

@@ -10,7 +10,9 @@ from typing import Any
 from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_OK
 from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.report import add_no_report_option
 from cellcal.core.cli.resumable import resume_command, run_resumable
+from cellcal.core.cli.text import one_line
 
 
 def register(sub: Any) -> None:
@@ -39,6 +41,7 @@ def register(sub: Any) -> None:
     p.add_argument("--dry-run", action="store_true",
                    help="print every move of the plan with its safety checks and what it can observe; "
                    "connect and move nothing")
+    add_no_report_option(p)
     p.set_defaults(func=run)
 
 
@@ -62,14 +65,10 @@ def _dry_run(config: Any, poses: list[Any], seen: Any) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal handeye``; returns the exit status."""
-    from cellcal.core.calibration.calibrator import build_devices
     from cellcal.core.calibration.config import load_config
-    from cellcal.core.cli.progress import progress_factory
     from cellcal.core.handeye.plan import plan_poses
-    from cellcal.core.handeye.result import HANDEYE_FILENAME, format_report
-    from cellcal.core.handeye.run import check_observability, plan_calibrator
-    from cellcal.devices.errors import ConfigError
-    from cellcal.devices.safety import SafeArm
+    from cellcal.core.handeye.run import check_observability
+    from cellcal.devices.errors import CellcalError, ConfigError, OutputError
 
     if args.replay and args.config:
         raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
@@ -78,14 +77,36 @@ def run(args: argparse.Namespace) -> int:
 
         config, camera, arm = replay_session(args.replay)
     else:
-        config = load_config(args.config)
+        config, camera, arm = load_config(args.config), None, None
     poses = plan_poses(config, args.plan)
     # an unobservable plan is refused before anything moves (the board method has no such limit)
     seen = None if args.method == "charuco" else check_observability(config, poses)
     if args.dry_run:
         return _dry_run(config, poses, seen)
-    if args.method != "plane":
-        return _run_charuco(args, config, poses)
+    report = None
+    if not args.no_report:  # the run's pictures and words (ADR 0037)
+        from cellcal.core.report.runs import RunReport, camera_name
+
+        report = RunReport("handeye", args.out, camera_name(config), config.source)
+    try:
+        if args.method != "plane":
+            return _run_charuco(args, config, poses, report)
+        return _run_plane(args, config, camera, arm, poses, report)
+    except CellcalError as exc:
+        if report is not None and not isinstance(exc, (ConfigError, OutputError)):  # a run that failed, not bad input
+            report.failed(exc, one_line(f"cellcal: error: {exc}"))
+            report.write(quiet=True)
+        raise
+
+
+def _run_plane(args: argparse.Namespace, config: Any, camera: Any, arm: Any, poses: list[Any],
+               report: Any) -> int:
+    """``--method plane``: the journaled plan run (with ``--record`` / ``--replay``)."""
+    from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.cli.progress import progress_factory
+    from cellcal.core.handeye.run import plan_calibrator
+    from cellcal.devices.safety import SafeArm
+
     if not args.replay:
         camera, arm = build_devices(config)
     with contextlib.ExitStack() as stack:
@@ -98,23 +119,40 @@ def run(args: argparse.Namespace) -> int:
             recorder.log_result(document)
     if isinstance(document, int):
         return document
-    if not args.quiet:
-        print(format_report(document))
-    print(f"result written to {Path(args.out) / HANDEYE_FILENAME}")
-    if args.record:
-        print(f"session recorded to {args.record}")
-    if args.replay:
-        from cellcal.core.calibration.replay import compare_with_recording
+    with _tee(report, document):
+        _print_result(args, document)
+        if args.record:
+            print(f"session recorded to {args.record}")
+        if args.replay:
+            from cellcal.core.calibration.replay import compare_with_recording
 
-        print(compare_with_recording(args.replay, document))
+            print(compare_with_recording(args.replay, document))
+    if report is not None:
+        report.write(quiet=args.quiet)
     return EXIT_OK
 
 
-def _run_charuco(args: argparse.Namespace, config: Any, poses: list[Any]) -> int:
+def _tee(report: Any, document: dict[str, Any]) -> Any:
+    """While active, the printed words are the report's too (nothing without a report)."""
+    if report is None:
+        return contextlib.nullcontext()
+    report.section["result"] = document
+    return report.tee()
+
+
+def _print_result(args: argparse.Namespace, document: dict[str, Any]) -> None:
+    """The terminal report (unless ``--quiet``) and where the result is."""
+    from cellcal.core.handeye.result import HANDEYE_FILENAME, format_report
+
+    if not args.quiet:
+        print(format_report(document))
+    print(f"result written to {Path(args.out) / HANDEYE_FILENAME}")
+
+
+def _run_charuco(args: argparse.Namespace, config: Any, poses: list[Any], report: Any) -> int:
     """``--method charuco|both``: the board views and the planes of one plan run (no journal, no recording)."""
     from cellcal.core.cli.progress import progress_factory
     from cellcal.core.handeye.charuco_run import run_charuco
-    from cellcal.core.handeye.result import HANDEYE_FILENAME, format_report
     from cellcal.devices.errors import ConfigError
 
     if args.resume or args.record or args.replay:
@@ -122,9 +160,10 @@ def _run_charuco(args: argparse.Namespace, config: Any, poses: list[Any]) -> int
                           "journaled or replayed)")
     document = run_charuco(config, poses, args.out, method=args.method, plan_kind=args.plan,
                            progress=progress_factory("poses", "pose", args.quiet))
-    if not args.quiet:
-        print(format_report(document))
-    print(f"result written to {Path(args.out) / HANDEYE_FILENAME}")
+    with _tee(report, document):
+        _print_result(args, document)
+    if report is not None:
+        report.write(quiet=args.quiet)
     return EXIT_OK
 
 

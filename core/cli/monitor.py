@@ -7,6 +7,7 @@ Exit status: 0 no drift flagged during the run; 1 drift flagged, or a device fai
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
@@ -16,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 from cellcal.core.cli.argtypes import integer, path_arg, real
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from cellcal.core.cli.options import add_viz_port_option, check_input_file, check_viz_options
+from cellcal.core.cli.report import add_no_report_option
 
 if TYPE_CHECKING:  # the monitor (numpy, the fit) is imported by run(), not by `cellcal --help`
     from cellcal.core.calibration.config import CellConfig
@@ -46,6 +48,10 @@ def register(sub: Any) -> None:
     p.add_argument("--save-baseline", metavar="FILE", type=path_arg,
                    help="write the baselines in use at the end of the run")
     p.add_argument("--quiet", action="store_true", help="print only drift events and the summary")
+    p.add_argument("--out", metavar="DIR", type=path_arg,
+                   help="write the run's report there on exit (also on Ctrl-C): DIR/report.html with tilt and "
+                   "height over time, the thresholds and flagged drift, report.txt, report-data.json")
+    add_no_report_option(p)
     add_viz_port_option(p)
     p.set_defaults(func=run)
 
@@ -141,7 +147,7 @@ def _label(path: str | None, taken: set[str]) -> str:
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal monitor``; returns the exit status."""
     from cellcal.core.calibration.config import load_config
-    from cellcal.core.monitor import Monitor, monitored_cameras, write_baselines
+    from cellcal.core.monitor import monitored_cameras
 
     check_viz_options(args)
     if args.baseline:
@@ -151,11 +157,57 @@ def run(args: argparse.Namespace) -> int:
     configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]
     specs = monitored_cameras(configs, args.baseline)
     printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)
+    report, capture = _monitor_report(args, configs)
+    callback: Any = printer if capture is None else _chain(capture, printer)
+    with contextlib.nullcontext() if report is None else report.tee():
+        code, summary = _watch(args, configs, specs, callback, printer)
+    if report is not None:
+        report.section["cameras"] = {c.label: _camera_report(c, capture) for c in summary.cameras}
+        report.data["status"] = "interrupted" if summary.interrupted else (
+            "drift flagged" if summary.drift_detected else "ok")
+        report.write(quiet=args.quiet)
+    return code
+
+
+def _monitor_report(args: argparse.Namespace, configs: list[tuple[str, CellConfig]]) -> tuple[Any, Any]:
+    """With ``--out`` (and no ``--no-report``): the run's report and the capture of its drift values."""
+    if not args.out or args.no_report:
+        return None, None
+    from cellcal.core.report import MonitorCapture
+    from cellcal.core.report.runs import RunReport, camera_name
+
+    report = RunReport("monitor", args.out, ", ".join(f"{label}: {camera_name(c)}" for label, c in configs),
+                       ", ".join(str(c.source) for _, c in configs))
+    return report, MonitorCapture()
+
+
+def _chain(first: Any, then: Any) -> Any:
+    """A status callback that calls ``first`` then ``then``."""
+
+    def both(status: MonitorStatus) -> None:
+        first(status)
+        then(status)
+
+    return both
+
+
+def _camera_report(c: Any, capture: Any) -> dict[str, Any]:
+    """A monitored camera's part of the report data (SI units, as the summary has them)."""
+    return {"frames": c.frames, "errors": c.errors, "drift_events": sum(e.kind == "drift_started" for e in c.events),
+            "drifting": c.drifting, "max_tilt_deviation_rad": c.max_tilt_deviation_rad,
+            "max_height_deviation_m": c.max_height_deviation_m, "tilt_threshold_rad": c.tilt_threshold_rad,
+            "height_threshold_m": c.height_threshold_m, "series": capture.series.get(c.label, {})}
+
+
+def _watch(args: argparse.Namespace, configs: list[tuple[str, CellConfig]], specs: Any, callback: Any,
+           printer: _Printer) -> tuple[int, MonitorSummary]:
+    """Watch the cameras until the run ends; the exit status and the summary."""
     from cellcal.core.liveview import MonitorFeed, linger, live_view_session
+    from cellcal.core.monitor import Monitor, write_baselines
 
     with live_view_session(getattr(args, "viz_port", None), drift=True, wait_s=getattr(args, "viz_wait", None)) as view:
-        feed = None if view is None else MonitorFeed(view, printer, [label for label, _ in configs])
-        monitor = Monitor(specs, printer) if feed is None else Monitor(specs, feed.on_status, fit=feed.fit)
+        feed = None if view is None else MonitorFeed(view, callback, [label for label, _ in configs])
+        monitor = Monitor(specs, callback) if feed is None else Monitor(specs, feed.on_status, fit=feed.fit)
         printer.monitor = monitor
         if not args.quiet:
             where = ", ".join(f"{label} ({c.camera_section['backend']}, {c.source})" for label, c in configs)
@@ -167,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"baselines written to {write_baselines(args.save_baseline, summary.cameras)}")
         sys.stdout.flush()
         if summary.interrupted:
-            return EXIT_INTERRUPTED
+            return EXIT_INTERRUPTED, summary
         if view is not None and getattr(args, "viz_linger", None):
             linger(view, args.viz_linger)
-    return EXIT_FAILURE if summary.drift_detected else EXIT_OK
+    return (EXIT_FAILURE if summary.drift_detected else EXIT_OK), summary

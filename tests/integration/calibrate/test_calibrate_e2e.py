@@ -99,7 +99,7 @@ def test_nine_point_uncertainty_is_honest_and_beats_law_of_cosines() -> None:
 
 def test_failed_run_leaves_the_earlier_result_untouched(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
-    assert main(["calibrate", "--out", str(out), "--quiet"]) == 0
+    assert main(["calibrate", "--out", str(out), "--quiet", "--no-report"]) == 0  # the reports: tests/integration/report
     before = (out / "result.json").read_bytes()
     # the second pose is inside the safety box but beyond the simulated arm's reach:
     # the arm itself raises mid-plan
@@ -107,7 +107,7 @@ def test_failed_run_leaves_the_earlier_result_untouched(tmp_path: Path, capsys: 
                                        {"xyz_m": [0.69, 0.45, 0.6], "rpy_deg": [180.0, 0.0, 0.0]}]})
     config = write_toml(tmp_path / "bad.toml", doc)
     capsys.readouterr()
-    code = main(["calibrate", "--config", str(config), "--out", str(out), "--quiet"])
+    code = main(["calibrate", "--config", str(config), "--out", str(out), "--quiet", "--no-report"])
     err = capsys.readouterr().err
     assert code == 1
     assert err.count("\n") == 1 and err.startswith("cellcal: error: ")

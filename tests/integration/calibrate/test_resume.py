@@ -139,7 +139,8 @@ def test_cli_resume_and_its_errors(tmp_path: Path, capsys: pytest.CaptureFixture
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "journal.jsonl" in err and "changed since the interrupted run" in err
 
-    assert main(["calibrate", "--config", str(config), "--out", str(out_dir), "--quiet", "--resume"]) == 0
+    assert main(["calibrate", "--config", str(config), "--out", str(out_dir), "--quiet", "--resume",
+                 "--no-report"]) == 0
     result = json.loads((out_dir / "result.json").read_text())
     assert result["resumed_poses"] == [0, 1] and len(result["poses"]) == N_POSES
     assert sorted(p.name for p in out_dir.iterdir()) == ["result.json"]
