@@ -3,15 +3,18 @@
 An iterated extended Kalman filter in information form over the nine hand-eye parameters
 (:mod:`cellcal.core.handeye.model`): per accepted frame the Gauss-Newton step of
 ``|x - x_prev|²_Λ + |x|²_Π + |r(x)|²`` (``Λ`` the data's information so far, ``Π`` a weak
-isotropic prior at the configured values, ``r`` the frame's whitened residual),
-relinearised about the current estimate, then ``Λ += JᵀJ``. Which directions the work has
-shown is decided from ``Λ`` with the hand-eye threshold (1-sigma below 0.1 rad / 0.1 m,
-:mod:`cellcal.core.handeye.observability`); only those get intervals and the reported
-values keep the configured ones along the others. The stated noise is tested both ways
-on the normalised innovations of a bounded window (:mod:`cellcal.core.handeye.noise`).
-A CUSUM on the same innovations detects a change (:mod:`.detector`); the changed block
-is restarted from the frames after it. Memory is bounded: 9x9 matrices and fixed-size
-windows.
+isotropic prior at the configured values, ``r`` the frame's whitened residual). A bounded
+window of the latest accepted frames is relinearised about the estimate every 30 frames
+and before a surprising frame is judged; frames leaving it join a quadratic prior
+linearised about the estimate of that moment (a fixed-lag smoother). Which directions the
+work has shown is decided from ``Λ`` with the hand-eye threshold (1-sigma below 0.1 rad /
+0.1 m, :mod:`cellcal.core.handeye.observability`); only those get intervals, and the
+reported values keep the configured ones along the others. The stated noise is tested
+both ways per residual component on the normalised innovations of a bounded window
+(:mod:`cellcal.core.handeye.noise`); a component with more residual than stated scales its
+share of the covariance (a sandwich). A CUSUM on the same innovations detects a change
+(:mod:`.detector`); the changed block is restarted from the frames after it. Memory is
+bounded: 9x9 matrices and fixed-size windows.
 """
 
 from __future__ import annotations
@@ -49,6 +52,8 @@ SEEN_SHARE = 0.05
 CLASSIFY_TURN_RAD = math.radians(0.5)
 CLASSIFY_MOVE_M = 0.005
 CLASSIFY_EVERY = 30
+#: Frames in the noise test's window before the change test uses its scale.
+MIN_NOISE_FRAMES = 30
 #: A flange-frame plane normal is kept for naming unseen directions when it differs from the last kept by this, rad.
 NORMAL_STEP_RAD = math.radians(1.0)
 
@@ -105,7 +110,8 @@ class ChangeEvent:
         detected_at_s: Time of the frame that raised the alarm, s.
         kind: ``"mount"``, ``"plane"`` or ``"mount or plane"`` (not told apart yet, or both).
         size: How large: ``rotation_deg``, ``translation_m`` (mount), ``plane_tilt_deg``,
-            ``plane_offset_m`` (plane), once the frames after it have been fitted; at detection
+            ``plane_offset_m``, ``plane_shift_m`` (along the normal, toward the camera) (plane), once
+            the frames after it have been fitted; at detection
             ``innovation_chi2``.
         resolved_at_s: When the restarted estimate saw again every parameter it saw before (None: not yet).
         started_at_s: Time of the first frame after the estimated change point, s.
@@ -215,13 +221,17 @@ class Tracker:
         self._window = FrameRing(s.window)  # the latest accepted frames, relinearised in the batch steps
         self._prior_info = np.zeros((9, 9))  # frames pushed out of the window: x'Λx - 2h'x, linearised when they left
         self._prior_h = np.zeros(9)
+        # the information split by whitened residual component (normal across x2, offset) and a 4th part for
+        # a restart's kept block: the noise test scales each part by its own component's measured noise
+        self._parts = np.zeros((4, 9, 9))
+        self._prior_parts = np.zeros((4, 9, 9))
         self._since_batch = 0  # accepted frames since the last batch step
         self._cusum = Cusum(s.detector_reference, s.detector_clip, s.detector_threshold)
         self._recent: deque[tuple[Frames, float]] = deque(maxlen=s.change_window)  # latest frames and their chi2
         self._after: deque[Frames] | None = None  # frames after a detected change, until it is classified
         self._classified_at: tuple[int, Frames] | None = None  # frames buffered and the last one at the last try
-        self._nis: deque[float] = deque(maxlen=s.noise_window)  # normalised innovation chi2 per accepted frame
-        self._nis_sum = 0.0
+        self._nis: deque[FloatArray] = deque(maxlen=s.noise_window)  # squared normalised innovations (3,) per frame
+        self._nis_sum = np.zeros(3)
         self._normals: deque[FloatArray] = deque(maxlen=s.normals_kept)  # plane normals in the flange frame
         self._events: list[ChangeEvent] = []
         self._seen_before: BoolArray | None = None  # parameters seen when the open change was detected
@@ -239,17 +249,18 @@ class Tracker:
             self._batch()  # a surprising frame: first relinearise every frame in the window, then judge it
             nu = self._innovation(frame)
         chi2 = float(nu @ nu)
-        self._recent.append((frame, chi2))
+        judged = chi2 / self._noise_scale2()  # against the noise the window has shown (>= the stated noise)
+        self._recent.append((frame, judged))
         if self._after is not None:
             return self._while_changed(t_s, frame, nu, chi2)
-        alarm = self._cusum.update(chi2)
+        alarm = self._cusum.update(judged)
         if alarm:
             return self._detected(t_s, nu, chi2)
-        if chi2 > s.detector_clip:  # far off the model: held back until the CUSUM decides
+        if judged > s.detector_clip:  # far off the model: held back until the CUSUM decides
             return TrackStep(t_s, nu, chi2, False, note="residual far beyond the noise model")
         self._step(frame)
         self._remember_normal(obs)
-        self._add_nis(chi2)
+        self._add_nis(nu * nu)
         event = self._check_resolved(t_s)
         return TrackStep(t_s, nu, chi2, True, event)
 
@@ -272,7 +283,7 @@ class Tracker:
     def _step(self, frame: Frames) -> None:
         """The iterated information-form update with one frame."""
         assert self._linear is not None
-        x_prev, info_prev = self._x, self._info
+        x_prev, info_prev, parts_prev = self._x, self._info, self._parts
         x = x_prev.copy()
         jac = np.zeros((3, 9))
         for _ in range(self.settings.iterations):
@@ -283,6 +294,7 @@ class Tracker:
             x = x - np.linalg.solve(h, g)
         self._x = x
         self._info = info_prev + jac.T @ jac
+        self._parts = parts_prev + _split(jac[None])
         self.frames_used += 1
         self._keep(frame)
         self._since_batch += 1
@@ -297,6 +309,7 @@ class Tracker:
             r, jac3 = self._linear.linearise(self._x, old)
             jac = jac3[0]
             self._prior_info += jac.T @ jac  # |r + J (x - x̂)|² = x'J'Jx - 2 x'J'(J x̂ - r) + const
+            self._prior_parts += _split(jac3)
             self._prior_h += jac.T @ (jac @ self._x - r[0])
 
     def _batch(self) -> None:
@@ -305,10 +318,12 @@ class Tracker:
         self._since_batch = 0
         if not len(self._window):
             self._info = self._prior_info.copy()
+            self._parts = self._prior_parts.copy()
             return
         frames = self._window.frames()
         x = self._x
         j2 = np.zeros((0, 9))
+        jac = np.zeros((0, 3, 9))
         for _ in range(self.settings.iterations):
             r, jac = self._linear.linearise(x, frames)
             j2 = jac.reshape(-1, 9)
@@ -317,6 +332,7 @@ class Tracker:
             x = x - np.linalg.solve(h, g)
         self._x = x
         self._info = self._prior_info + j2.T @ j2
+        self._parts = self._prior_parts + _split(jac)
 
     def _remember_normal(self, obs: PlaneObservation) -> None:
         """Keep the plane normal in the flange frame when it differs from the last kept one."""
@@ -324,8 +340,19 @@ class Tracker:
         if not self._normals or math.acos(min(1.0, float(u @ self._normals[-1]))) > NORMAL_STEP_RAD:
             self._normals.append(u)
 
-    def _add_nis(self, chi2: float) -> None:
-        """Add a normalised innovation chi2 to the noise test's window."""
+    def _noise_scale2(self) -> float:
+        """The window's mean chi2 per residual, at least 1 and at most the largest interval scale squared.
+
+        The change test divides each frame's chi2 by it, so that noise larger than stated (the
+        intervals are scaled for it) is not taken for a change; a change is abrupt against it.
+        """
+        if len(self._nis) < MIN_NOISE_FRAMES:
+            return 1.0
+        worst = float(self._nis_sum.max()) / len(self._nis)  # the worst of the three residual components
+        return min(max(1.0, worst), self.settings.max_interval_scale ** 2)
+
+    def _add_nis(self, chi2: FloatArray) -> None:
+        """Add a frame's squared normalised innovation (per component) to the noise test's window."""
         if len(self._nis) == self._nis.maxlen:
             self._nis_sum -= self._nis[0]
         self._nis.append(chi2)
@@ -349,7 +376,7 @@ class Tracker:
         self._events.append(event)
         self._cusum.reset()
         self._nis.clear()
-        self._nis_sum = 0.0
+        self._nis_sum = np.zeros(3)
         stepped = self._classify(t_s)
         return TrackStep(t_s, nu, chi2, stepped is not None, stepped or event, note="change detected")
 
@@ -406,6 +433,8 @@ class Tracker:
         self._x = chosen.fit.x
         self._prior_info = held  # the kept block's earlier information, about its earlier value
         self._prior_h = held @ old_x
+        self._prior_parts = np.zeros((4, 9, 9))
+        self._prior_parts[3] = held
         self._window.clear()
         assert self._after is not None
         for frame in self._after:  # the frames after the change only
@@ -431,7 +460,8 @@ class Tracker:
         if kind in (KIND_PLANE, KIND_EITHER):
             p, q = model.plane(old), model.plane(new)
             out["plane_tilt_deg"] = math.degrees(math.acos(min(1.0, float(p.normal @ q.normal))))
-            out["plane_offset_m"] = float(q.offset_m - p.offset_m)
+            out["plane_offset_m"] = float(q.offset_m - p.offset_m)  # of n.x + offset = 0
+            out["plane_shift_m"] = float(p.offset_m - q.offset_m)  # moved along its normal, toward the camera
         return out
 
     def _check_resolved(self, t_s: float) -> ChangeEvent | None:
@@ -469,9 +499,14 @@ class Tracker:
         null = self._unseen_basis(self._info)
         x = self._x - null @ (null.T @ self._x)  # the configured values along what is unseen
         seen = np.linalg.norm(null, axis=1) < SEEN_SHARE
-        noise = (check_noise(self._nis_sum, 3 * len(self._nis), confidence=s.confidence, level=s.noise_test_level,
-                             max_interval_scale=math.inf) if self._nis else None)
-        scale = noise.interval_scale if noise else 1.0
+        # the stated noise tested per residual component (normal across x2, offset), both ways; a
+        # component with more residual than stated has its information's share of the covariance
+        # scaled by its chi2/dof (a sandwich: never narrower than the data support)
+        checks = [check_noise(float(v), len(self._nis), confidence=s.confidence, level=s.noise_test_level,
+                              max_interval_scale=math.inf) for v in self._nis_sum] if self._nis else []
+        factors = np.array([c.interval_scale**2 for c in checks] + [1.0]) if checks else np.ones(4)
+        noise = max(checks, key=lambda c: c.chi2) if checks else None  # the worst component's test
+        scale = float(np.sqrt(factors.max()))
         z = noise.interval_z if noise else _normal_z(s.confidence)
         withheld = ""
         if scale > s.max_interval_scale:
@@ -479,7 +514,8 @@ class Tracker:
                         "values are wrong, intervals withheld")
         lam, vec = np.linalg.eigh(self._info)
         keep = lam >= max(UNOBSERVABLE_SIGMA ** -2, float(lam[-1]) * 1e-20)
-        cov = (vec[:, keep] / lam[keep]) @ vec[:, keep].T * scale**2  # pseudo-inverse on the seen subspace
+        inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T  # pseudo-inverse on the seen subspace
+        cov = inv @ np.einsum("k,kij->ij", factors, self._parts) @ inv  # the sandwich with the measured noise
         cov[~seen, :] = np.nan
         cov[:, ~seen] = np.nan
         if withheld or self._after is not None:
@@ -488,7 +524,9 @@ class Tracker:
         rot_cov = np.nan_to_num(cov[MOUNT_ROTATION, MOUNT_ROTATION])
         _, rpy_sigma = rpy_with_sigma_deg(mount, rot_cov)
         _, rpy_unseen = rpy_with_sigma_deg(mount, null[MOUNT_ROTATION] @ null[MOUNT_ROTATION].T)  # share of the unseen
-        rpy_sigma[(rpy_unseen > math.degrees(SEEN_SHARE)) | ~np.all(np.isfinite(cov[MOUNT_ROTATION]))] = np.nan
+        rpy_sigma[rpy_unseen > math.degrees(SEEN_SHARE)] = np.nan  # an angle that moves with an unseen turn
+        if not np.isfinite(cov[MOUNT_ROTATION, MOUNT_ROTATION]).any():
+            rpy_sigma[:] = np.nan  # intervals withheld, or no turn seen
         observable = {name: bool(seen[i]) for i, name in enumerate(PARAMETERS)}
         sq = np.sqrt(np.abs(np.diag(cov)))
         return TrackState(
@@ -504,6 +542,13 @@ class Tracker:
         root = np.sqrt(np.clip(lam, 0.0, None))[:, None] * vec.T  # a square root of the information
         report = analyse(root, list(range(9)), np.array(self._normals))
         return [f"{d.what}: not shown by the work so far (would need {d.fix})" for d in report.unseen]
+
+
+def _split(jac: FloatArray) -> FloatArray:
+    """Information ``JᵀJ`` of stacked Jacobians (N, 3, 9) split by residual component, plus an empty 4th (4, 9, 9)."""
+    out = np.zeros((4, 9, 9))
+    out[:3] = np.einsum("nki,nkj->kij", jac, jac)
+    return out
 
 
 def _normal_z(confidence: float) -> float:
