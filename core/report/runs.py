@@ -69,15 +69,17 @@ class RunReport:
 
         A report that cannot be written costs the run nothing but that line (stderr).
         """
+        from cellcal.core.calibration.outlock import OutputLock
         from cellcal.devices.errors import CellcalError
 
         self.data["summary_text"] = self.summary.text
-        try:
-            write_report_data(self.out_dir, self.data)
+        try:  # one run per output directory: the report too is written under its lock
+            with OutputLock.for_directory(self.out_dir):
+                write_report_data(self.out_dir, self.data)
+                page, note = draw_in_child(self.out_dir)
         except CellcalError as exc:
             print(f"cellcal: report not written: {exc}".replace("\n", " "), file=sys.stderr)
             return None
-        page, note = draw_in_child(self.out_dir)
         if note:
             print(f"cellcal: {note}".replace("\n", " "), file=sys.stderr)
         if page is not None and not quiet:

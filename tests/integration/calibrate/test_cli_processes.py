@@ -110,7 +110,7 @@ def test_a_second_run_on_the_same_output_is_refused_while_the_first_goes_on(tmp_
     # 2.5 s per pose: the second process's start-up (up to 2 s on a loaded machine) ends long before the first run
     config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=2.5))
     out = tmp_path / "out"
-    first = CellcalProcess(["calibrate", "--config", str(config), "--out", str(out)])
+    first = CellcalProcess(["calibrate", "--config", str(config), "--out", str(out), "--no-report"])
     assert first.wait_for(f"1/{N_POSES}"), first.stderr_so_far()  # running, one pose in its journal
     assert (out / LOCK_NAME).read_text() == f"{first.pid}\n"
     second = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(out)])
@@ -143,7 +143,7 @@ def test_the_lock_of_a_killed_run_blocks_nobody(tmp_path: Path) -> None:
     assert crashed.finish()[0] == -signal.SIGKILL
     assert LOCK_NAME in _names(out)  # left behind, but no longer locked
     code, _text, err = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(out),
-                                       "--resume"]).finish()
+                                       "--resume", "--no-report"]).finish()
     assert code == 0, err
     assert json.loads((out / "result.json").read_text())["resumed_poses"] == [0]
     assert _names(out) == ["result.json"]
@@ -214,6 +214,6 @@ def test_interrupted_run_counts_only_its_own_saved_poses(tmp_path: Path) -> None
     assert code == 130 and _one_line(err) == "cellcal: interrupted", err
     assert [e.index for e in read_journal(journal, header["fingerprint"])] == [0]  # the first run's, intact
     code, _text, err = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(out),
-                                       "--resume"]).finish()
+                                       "--resume", "--no-report"]).finish()
     assert code == 0, err
     assert json.loads((out / "result.json").read_text())["resumed_poses"] == [0]

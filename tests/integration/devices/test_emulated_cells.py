@@ -49,7 +49,8 @@ def test_emulated_configs_differ_from_sim_only_in_one_backend(config_name: str) 
 
 @pytest.mark.parametrize("config_name", ["xarm_emulated.toml", "o3r_emulated.toml"])
 def test_cli_runs_the_emulated_cells(config_name: str, tmp_path: Path) -> None:
-    assert main(["calibrate", "--config", str(CONFIGS / config_name), "--out", str(tmp_path), "--quiet"]) == 0
+    assert main(["calibrate", "--config", str(CONFIGS / config_name), "--out", str(tmp_path), "--quiet",
+                 "--no-report"]) == 0
     result = json.loads((tmp_path / "result.json").read_text(encoding="utf-8"))
     assert result["schema"] == "cellcal.calibration/2"
     emulated = tomllib.loads((CONFIGS / config_name).read_text())
