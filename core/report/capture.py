@@ -75,6 +75,7 @@ def pose_pictures(frame: Frame, result: FullFrameResult, region: np.ndarray | No
     classes, residual = pixel_classes(frame, result, region)
     h, w = classes.shape
     step = downsample_step(w)
+    used = np.ones(classes.shape, dtype=bool) if region is None else (classes & REGION_BIT) > 0
     valid = np.asarray(frame.valid, dtype=bool)
     depth_mm = np.where(valid, np.asarray(frame.xyz[..., 2], dtype=np.float32) * 1000.0, np.nan)
     # a reproducible sample of the valid points for the side view, camera frame, mm
@@ -93,7 +94,8 @@ def pose_pictures(frame: Frame, result: FullFrameResult, region: np.ndarray | No
         "points_mm": encode_array(points_mm, "float32"),
         "point_classes": encode_array(classes.ravel()[idx], "uint8"),
         "plane_cam": {"normal": [float(v) for v in result.plane.normal], "offset_m": float(result.plane.offset_m)},
-        "class_counts": {CLASS_NAMES[c]: int(np.count_nonzero((classes & 3) == c)) for c in CLASS_NAMES},
+        # counted where the fit looked: inside the region (the whole image without one)
+        "class_counts": {CLASS_NAMES[c]: int(np.count_nonzero(((classes & 3) == c) & used)) for c in CLASS_NAMES},
     }
 
 

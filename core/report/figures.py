@@ -101,6 +101,10 @@ def pose_image_figure(pose: Mapping[str, Any], camera: str) -> bytes:
     ax_c.imshow(classes & 3, cmap=cmap, vmin=-0.5, vmax=3.5, extent=extent, aspect="auto", interpolation="nearest")
     if pics.get("region"):
         inside = (classes & REGION_BIT) > 0
+        # outside the region the fit did not look: veiled in white
+        veil = np.zeros((*inside.shape, 4))
+        veil[~inside] = (1.0, 1.0, 1.0, 0.65)
+        ax_c.imshow(veil, extent=extent, aspect="auto", interpolation="nearest")
         ys = np.linspace(0, h - 1, inside.shape[0])
         xs = np.linspace(0, w - 1, inside.shape[1])
         ax_c.contour(xs, ys, inside.astype(float), levels=[0.5], colors="#000000", linewidths=1.5,
@@ -112,7 +116,7 @@ def pose_image_figure(pose: Mapping[str, Any], camera: str) -> bytes:
     if pics.get("region"):
         from matplotlib.lines import Line2D
 
-        handles.append(Line2D([], [], color="#000000", linestyle="--", label="region used"))
+        handles.append(Line2D([], [], color="#000000", linestyle="--", label="region used (outside: veiled)"))
     ax_c.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     ax_c.set_title("pixels: plane, mixed, outliers" + (", region" if pics.get("region") else ""))
     # residuals: diverging, symmetric about zero, scaled to the inliers' spread

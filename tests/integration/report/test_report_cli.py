@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -132,3 +133,20 @@ def test_monitor_writes_its_report_on_exit(tmp_path: Path) -> None:
     assert data["status"] == "ok" and len(series["t"]) == len(series["tilt_deg"]) > 10
     assert (out / "monitor-sim.png").stat().st_size > 10_000
     assert "monitor finished after" in (out / "report.txt").read_text()
+
+
+def test_monitor_writes_its_report_on_ctrl_c(tmp_path: Path) -> None:
+    from fault_cells import CellcalProcess
+
+    out = tmp_path / "mon"
+    run = CellcalProcess(["monitor", "--out", str(out)], announce=True)
+    run.wait_ready()
+    time.sleep(3.0)  # start-up, the baseline frames, then drift values at the sim's 20 Hz
+    run.interrupt()
+    code, text, err = run.finish()
+    assert code == 130, err
+    data = json.loads((out / "report-data.json").read_text())
+    assert data["status"] == "interrupted" and data["monitor"]["cameras"]["sim"]["series"]["t"]
+    assert "monitor interrupted after" in (out / "report.txt").read_text()
+    assert (out / "monitor-sim.png").stat().st_size > 10_000
+    assert f"report written to {out / 'report.html'}" in text

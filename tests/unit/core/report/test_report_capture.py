@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import copy
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
+from report_runs import SIM, decode, run_report, share_of_class_in_colour
 
+from cellcal.core.report import figures
 from cellcal.core.report.arrays import decode_array
-from cellcal.core.report.capture import CLASS_INLIER, CLASS_MIXED, CLASS_OUTLIER, MAX_SIDE_POINTS
+from cellcal.core.report.capture import CLASS_INLIER, CLASS_MIXED, CLASS_OUTLIER, MAX_SIDE_POINTS, REGION_BIT
 
 
 def test_each_pose_keeps_maps_matching_its_fit(passing: dict[str, Any]) -> None:
@@ -46,3 +51,24 @@ def test_a_refused_pose_is_fitted_again_and_shows_why(refused: dict[str, Any]) -
     assert np.count_nonzero(classes == CLASS_OUTLIER) > 0.03 * classes.size
     residual = decode_array(pose["pictures"]["residual_mm"]).astype(np.float64)
     assert np.nanmin(residual[classes == CLASS_OUTLIER]) < -100  # the table, 150 mm below the box top
+
+
+def test_the_region_is_kept_and_counted_where_the_fit_looked(tmp_path: Path) -> None:
+    doc = copy.deepcopy(SIM)
+    polygon = [[40.0, 30.0], [180.0, 30.0], [180.0, 140.0], [40.0, 140.0]]
+    doc["region"] = {"polygon_px": polygon}
+    data, error = run_report(doc, tmp_path)
+    assert error is None
+    for pose in data["calibrate"]["poses"]:
+        pics = pose["pictures"]
+        assert pics["region"] is True
+        classes = decode_array(pics["classes"])
+        inside = (classes & REGION_BIT) > 0
+        assert inside.sum() == pose["full_frame"]["region"]["n_pixels"]
+        rows, cols = np.nonzero(inside)
+        assert (rows.min(), rows.max(), cols.min(), cols.max()) == pytest.approx((30, 140, 40, 180), abs=1)
+        inlier = (classes & 3) == CLASS_INLIER
+        assert not np.any(inlier & ~inside)  # the fit saw only the region
+        assert pics["class_counts"]["plane (inlier)"] == pose["full_frame"]["n_inliers"]
+        image = decode(figures.pose_image_figure(pose, "sim"))
+        assert share_of_class_in_colour(image, classes & 3, CLASS_INLIER, figures.CLASS_COLORS[CLASS_INLIER]) > 0.97

@@ -11,48 +11,16 @@ import pytest
 cv2 = pytest.importorskip("cv2")
 pytest.importorskip("matplotlib")
 
+from report_runs import decode, rgb, share_of_class_in_colour  # noqa: E402
+
 from cellcal.core.report import figures  # noqa: E402
 from cellcal.core.report.arrays import decode_array  # noqa: E402
 from cellcal.core.report.capture import CLASS_INLIER, CLASS_OUTLIER  # noqa: E402
 
 
-def decode(png: bytes) -> np.ndarray:
-    """The PNG as an (H, W, 3) RGB uint8 image."""
-    assert png[:8] == b"\x89PNG\r\n\x1a\n"
-    bgr = cv2.imdecode(np.frombuffer(png, dtype=np.uint8), cv2.IMREAD_COLOR)
-    assert bgr is not None
-    return bgr[..., ::-1]
-
-
-def rgb(hex_colour: str) -> np.ndarray:
-    return np.array([int(hex_colour[i:i + 2], 16) for i in (1, 3, 5)])
-
-
 def assert_not_blank(image: np.ndarray) -> None:
     grey = image.mean(axis=2)
     assert grey.std() > 10 and np.count_nonzero(grey < 200) > 0.02 * grey.size
-
-
-def share_of_class_in_colour(image: np.ndarray, classes: np.ndarray, cls: int, colour: str) -> float:
-    """Of the class map's pixels of ``cls`` (away from other classes), the share drawn in ``colour`` in the panel."""
-    left, bottom, width, height = figures.CLASS_AXES
-    h_img, w_img = image.shape[:2]
-    x0, x1 = left * w_img, (left + width) * w_img
-    y0, y1 = (1 - bottom - height) * h_img, (1 - bottom) * h_img
-    mask = classes == cls
-    # only pixels whose 3x3 neighbourhood is the same class (the drawing resamples at the borders)
-    core = mask.copy()
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            core &= np.roll(np.roll(mask, dr, 0), dc, 1)
-    core[[0, -1], :] = False
-    core[:, [0, -1]] = False
-    rows, cols = np.nonzero(core)
-    hm, wm = classes.shape
-    ys = np.floor(y0 + (rows + 0.5) / hm * (y1 - y0)).astype(int)
-    xs = np.floor(x0 + (cols + 0.5) / wm * (x1 - x0)).astype(int)
-    drawn = image[ys, xs].astype(int)
-    return float(np.mean(np.all(np.abs(drawn - rgb(colour)) <= 3, axis=1)))
 
 
 def test_pose_image_has_the_plane_colour_where_the_plane_is(passing: dict[str, Any]) -> None:
