@@ -361,10 +361,14 @@ class Tracker:
     # ------------------------------------------------------------------ changes
     def _detected(self, t_s: float, nu: FloatArray, chi2: float) -> TrackStep:
         """Open a change: back to the state before it, collect the frames after it."""
-        # the frames after the change: the run's trailing frames above the CUSUM's reference
+        # the frames after the change: the run's trailing frames beyond the clip when the alarm's frame is (a
+        # large change: a frame before it that merely exceeded the reference stays out), else beyond the reference
+        s = self.settings
+        _, last = self._recent[-1]
+        bound = s.detector_clip if last > s.detector_clip else s.detector_reference
         after: list[Frames] = []
         for frame, value in reversed(list(self._recent)[max(0, len(self._recent) - self._cusum.run_length):]):
-            if value <= self.settings.detector_reference:
+            if value <= bound:
                 break
             after.insert(0, frame)
         self._after = deque(after, maxlen=self.settings.change_window)
