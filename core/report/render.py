@@ -149,7 +149,7 @@ def draw_report(out_dir: str | Path) -> tuple[Path, str]:
     pics, note = _pictures_or_note(data, out)
     for pic in pics:
         write_bytes_atomic(out / pic.name, pic.png)
-    return write_bytes_atomic(out / REPORT_HTML_FILENAME, render_html(data, pics, note).encode("utf-8")), note
+    return write_bytes_atomic(out / REPORT_HTML_FILENAME, _page(data, pics, note, out)), note
 
 
 def write_report(out_dir: str | Path, data: Mapping[str, Any]) -> tuple[Path, str]:
@@ -212,4 +212,17 @@ def render_to_file(directory: str | Path, out_file: str | Path) -> tuple[Path, s
 
     data = load_report_data(directory)
     pics, note = _pictures_or_note(data, Path(directory))
-    return write_bytes_atomic(out_file, render_html(data, pics, note).encode("utf-8")), note
+    return write_bytes_atomic(out_file, _page(data, pics, note, Path(directory))), note
+
+
+def _page(data: Mapping[str, Any], pics: list[Picture], note: str, directory: Path) -> bytes:
+    """The page's bytes.
+
+    Raises:
+        ConfigError: The data is malformed (naming the file).
+    """
+    try:
+        return render_html(data, pics, note).encode("utf-8")
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise ConfigError(f"malformed report data: {type(exc).__name__}: {exc}",
+                          source=str(directory / REPORT_DATA_FILENAME)) from None

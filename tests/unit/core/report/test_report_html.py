@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import base64
+import json
+import re
 from html.parser import HTMLParser
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -13,7 +16,8 @@ cv2 = pytest.importorskip("cv2")
 pytest.importorskip("matplotlib")
 
 from cellcal.core.report.html import render_html  # noqa: E402
-from cellcal.core.report.render import pictures  # noqa: E402
+from cellcal.core.report.render import pictures, render_to_file  # noqa: E402
+from cellcal.devices.errors import ConfigError  # noqa: E402
 
 
 class Page(HTMLParser):
@@ -83,3 +87,19 @@ def test_a_failed_run_says_why_on_the_page(refused: dict[str, Any]) -> None:
     assert "The run failed:" in text and "quality gate 'expected_plane' failed" in text
     assert "failed: expected_plane" in text
     assert len(page.images) == 3  # the refused pose's two pictures and the tilt/height one
+
+
+@pytest.mark.parametrize(("document", "message"), [
+    ({"schema": "cellcal.report/9"}, "schema 'cellcal.report/9'; expected 'cellcal.report/1'"),
+    ({"schema": "cellcal.report/1", "kind": "calibrate", "calibrate": {"poses": [{"index": "a"}]}},
+     "malformed report data: ValueError"),
+    ({"schema": "cellcal.report/1", "kind": "handeye", "handeye": {"result": {"mount": {"translation_m": 1}}}},
+     "malformed report data: "),
+])
+def test_report_data_that_cannot_be_drawn_is_refused_in_one_line(tmp_path: Path, document: dict[str, Any],
+                                                                  message: str) -> None:
+    (tmp_path / "report-data.json").write_text(json.dumps(document))
+    with pytest.raises(ConfigError, match=re.escape(message)) as info:
+        render_to_file(tmp_path, tmp_path / "page.html")
+    assert "\n" not in str(info.value) and "report-data.json" in str(info.value)
+    assert not (tmp_path / "page.html").exists()
