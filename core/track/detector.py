@@ -90,7 +90,8 @@ def hypothesis(kind: str, model: LinearModel, frames: Frames, anchor_x: FloatArr
     kept = np.setdiff1d(np.arange(9), changed)
     held = marginal_info(anchor_info, kept, weak) if len(kept) else np.zeros((9, 9))
     prior = held + weak * np.eye(9)
-    mean = np.linalg.solve(prior, held @ anchor_x)  # kept block at its old value, new block toward the configured
+    # the kept block at its old value, the new block toward the configured one
+    mean = np.asarray(np.linalg.solve(prior, held @ anchor_x), dtype=np.float64)
     start = anchor_x.copy()
     fit = refit(model, frames, start, prior, mean)
     dof = fit.n_residuals - len(changed)  # the priors add as many terms as parameters they hold

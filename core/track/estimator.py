@@ -419,7 +419,7 @@ class Tracker:
         if kind is None and not full:
             return None  # both fit: the poses since the change cannot tell them apart yet
         chosen = {KIND_MOUNT: mount, KIND_PLANE: plane}.get(kind or "")
-        if chosen is None:  # both blocks new: restart everything from the frames after the change
+        if chosen is None or kind is None:  # both blocks new: restart everything from the frames after the change
             from cellcal.core.track.detector import hypothesis
 
             chosen = hypothesis(KIND_EITHER, self._linear, frames, self._x, self._info, self._weak)
