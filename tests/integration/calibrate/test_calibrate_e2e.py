@@ -99,7 +99,8 @@ def test_nine_point_uncertainty_is_honest_and_beats_law_of_cosines() -> None:
 
 def test_failed_run_leaves_the_earlier_result_untouched(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
-    assert main(["calibrate", "--out", str(out), "--quiet", "--no-report"]) == 0  # the reports: tests/integration/report
+    # (the reports have their own tests: tests/integration/report)
+    assert main(["calibrate", "--out", str(out), "--quiet", "--no-report"]) == 0
     before = (out / "result.json").read_bytes()
     # the second pose is inside the safety box but beyond the simulated arm's reach:
     # the arm itself raises mid-plan

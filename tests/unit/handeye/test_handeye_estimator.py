@@ -78,7 +78,8 @@ def test_a_given_parameter_stays_at_its_configured_value(flanges: list[Pose]) ->
     assert any("plane_offset, mount_z held exact" in note for note in est.notes)
     # by default residuals 74x the stated noise are refused, naming the gate and the scale the fit above found
     assert 70 < est.interval_scale < 80
-    with pytest.raises(CalibrationQualityError, match=rf"'noise_model' failed: {est.interval_scale:.6g} vs threshold 10;"):
+    refusal = rf"'noise_model' failed: {est.interval_scale:.6g} vs threshold 10;"
+    with pytest.raises(CalibrationQualityError, match=refusal):
         estimate_mount(views, NOMINAL_MOUNT, TABLE, given=("plane_offset", "mount_z"))
 
 
