@@ -2,8 +2,8 @@
 
 The tracker evaluates the whitened residual of a frame at 19 parameter vectors per update
 (central differences of all nine parameters at once) and refits a few hundred buffered
-frames after a change, so the model is written here in stacked numpy (Rodrigues' formula,
-no scipy objects per call); a unit test checks it against ``PlaneModel.predict``.
+frames after a change, so the model is written here in stacked numpy (one rotation object per
+call for all parameter sets); a unit test checks it against ``PlaneModel.predict``.
 """
 
 from __future__ import annotations
@@ -24,14 +24,10 @@ STEP = 1e-6
 
 
 def rotvec_matrices(v: FloatArray) -> FloatArray:
-    """Rotation matrices (K, 3, 3) of rotation vectors (K, 3) (rad), by Rodrigues' formula."""
-    angle = np.linalg.norm(v, axis=1)
-    k = np.zeros((len(v), 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]  # the cross-product matrix of v
-    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    a = np.sinc(angle / np.pi)[:, None, None]  # sin(angle)/angle, exact at 0
-    b = 0.5 * np.sinc(angle / (2 * np.pi))[:, None, None] ** 2  # (1 - cos(angle))/angle², exact at 0
-    out: FloatArray = np.eye(3) + a * k + b * (k @ k)
+    """Rotation matrices (K, 3, 3) of rotation vectors (K, 3) (rad), all in one call."""
+    from scipy.spatial.transform import Rotation
+
+    out: FloatArray = Rotation.from_rotvec(v).as_matrix()
     return out
 
 
