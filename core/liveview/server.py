@@ -11,7 +11,8 @@ from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
-from cellcal.core.liveview.sdklog import route_sdk_logging
+from cellcal.core.liveview.sdklog import flush_sdk_log, route_sdk_logging
+from cellcal.core.liveview.subprotocol import SubprotocolRelay
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.recording.codec import dumps, seconds_to_ns
 from cellcal.devices.recording.foxglove import scene_messages
@@ -32,6 +33,10 @@ HOST = "127.0.0.1"
 SERVER_NAME = "cellcal"
 #: Longest wait in :meth:`LiveView.close` for the SDK to release the port, s.
 RELEASE_TIMEOUT_S = 2.0
+#: Most viewers connected at once; more are closed as they connect (ADR 0039).
+MAX_CLIENTS = 8
+#: Messages the SDK queues per client before it drops the oldest data message (ADR 0039).
+MESSAGE_BACKLOG = 16
 
 
 def import_foxglove() -> Any:
@@ -74,6 +79,12 @@ class LiveView:
     subscribed at the time it is published; the last scene of each camera is kept, so
     :meth:`republish` can show it to a client that subscribes later (ADR 0035).
 
+    The SDK listens on an ephemeral loopback port; the user's port is a
+    :class:`~cellcal.core.liveview.subprotocol.SubprotocolRelay` in front of it, which admits
+    clients offering either name of the protocol and at most :data:`MAX_CLIENTS` at once. Each
+    client's queue holds :data:`MESSAGE_BACKLOG` messages (the oldest is dropped), so a viewer
+    that does not read costs bounded memory and never holds the run up (ADR 0039).
+
     Args:
         port: TCP port (0: any free port; see :attr:`port`).
         drift: Also advertise the drift channel (the monitor).
@@ -92,14 +103,25 @@ class LiveView:
         self._channels = {topic: foxglove.Channel(topic, schema=foxglove.Schema(
             name=name, encoding="jsonschema", data=json.dumps(SCENE_SCHEMAS[name]).encode("utf-8")),
             message_encoding="json", context=self._context) for topic, name in topics.items()}
-        try:
-            self._server = foxglove.start_server(name=SERVER_NAME, host=HOST, port=port, context=self._context,
-                                                 server_listener=self._subscriptions)
-        except Exception as exc:  # the SDK raises its own error type for a port in use or not allowed
+        try:  # the SDK on a port of its own; the user's port is the relay's
+            self._server = foxglove.start_server(name=SERVER_NAME, host=HOST, port=0, context=self._context,
+                                                 server_listener=self._subscriptions,
+                                                 message_backlog_size=MESSAGE_BACKLOG)
+        except Exception as exc:  # the SDK raises its own error type when it cannot listen
             self._close_channels()
-            raise ConfigError(f"--viz-port {port}: cannot listen on {HOST}:{port}: {exc}") from None
-        #: The port the server listens on.
-        self.port = int(self._server.port)
+            raise ConfigError(f"--viz-port {port}: the live view's server cannot start: {exc}") from None
+        #: The SDK server's own (ephemeral, loopback) port, behind the relay.
+        self.upstream_port = int(self._server.port)
+        try:
+            self._relay: SubprotocolRelay | None = SubprotocolRelay(HOST, port, self.upstream_port,
+                                                                    max_clients=MAX_CLIENTS)
+        except (OSError, OverflowError) as exc:  # in use, not allowed, or out of range
+            self._server.stop()
+            self._close_channels()
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            raise ConfigError(f"--viz-port {port}: cannot listen on {HOST}:{port}: {reason}") from None
+        #: The port viewers connect to (the relay's).
+        self.port = self._relay.port
         #: Messages published per topic (to at least one subscribed client).
         self.message_counts: dict[str, int] = dict.fromkeys(topics, 0)
 
@@ -154,12 +176,16 @@ class LiveView:
     def close(self) -> None:
         """Stop the server, close the channels, and wait (at most :data:`RELEASE_TIMEOUT_S`) for the
         port to be released, so a next run can listen on it at once. Idempotent."""
+        relay, self._relay = self._relay, None
+        if relay is not None:
+            relay.close(RELEASE_TIMEOUT_S)  # closes the user's port and every viewer's connection
         server, self._server = self._server, None
         if server is not None:
-            server.stop()  # asynchronous: the SDK's runtime drops the listener a moment later
+            server.stop()  # asynchronous: the SDK's runtime drops its listener a moment later
         self._close_channels()
-        if server is not None:
+        if relay is not None:
             _wait_until_released(self.port, time.monotonic() + RELEASE_TIMEOUT_S)
+        flush_sdk_log()  # say how many of the SDK's records were held back, if any
 
     def _close_channels(self) -> None:
         for channel in self._channels.values():

@@ -75,6 +75,7 @@ class _Pair:
     to_client: bytearray = field(default_factory=bytearray)
     to_server: bytearray = field(default_factory=bytearray)
     stage: str = "request"  # request -> reply -> open
+    closing_since: float | None = None  # when one side closed: the rest is sent to the other, then both close
 
 
 class SubprotocolRelay:
@@ -165,8 +166,9 @@ class SubprotocolRelay:
 
     def _read(self, pair: _Pair, sock: socket.socket) -> None:
         data = sock.recv(CHUNK_BYTES)
-        if not data:  # that side closed: so does the relay, after nothing more can be sent
-            self._drop(pair)
+        if not data:  # that side closed: the other gets what is buffered for it (e.g. an HTTP 400), then closes
+            pair.closing_since = time.monotonic()
+            self._interest(pair)
             return
         if pair.stage == "open" or (pair.stage == "reply" and sock is pair.client):
             # the other side's buffer: bounded, reading stops while it is full (see _interest)
@@ -207,13 +209,19 @@ class SubprotocolRelay:
         self._interest(pair)
 
     def _interest(self, pair: _Pair) -> None:
-        """Read a side only while the buffer toward the other side has room; write a side with data for it."""
+        """Read a side only while the buffer toward the other side has room; write a side with data for it.
+
+        Once a side has closed nothing more is read; the pair is dropped when what was buffered is sent.
+        """
+        if pair.closing_since is not None and not (pair.to_client or pair.to_server):
+            self._drop(pair)
+            return
         for sock, incoming, outgoing in ((pair.client, pair.to_client, pair.to_server),
                                          (pair.server, pair.to_server, pair.to_client)):
             if sock is None or sock not in self._pairs:
                 continue
             mask = selectors.EVENT_WRITE if incoming else 0
-            if len(outgoing) < MAX_BUFFER_BYTES:
+            if len(outgoing) < MAX_BUFFER_BYTES and pair.closing_since is None:
                 mask |= selectors.EVENT_READ
             if mask and sock in self._registered:
                 self._selector.modify(sock, mask)
@@ -228,6 +236,8 @@ class SubprotocolRelay:
         for pair in {id(p): p for p in self._pairs.values()}.values():
             if pair.stage != "open" and now - pair.opened_at > HANDSHAKE_TIMEOUT_S:
                 self._drop(pair)
+            elif pair.closing_since is not None and now - pair.closing_since > HANDSHAKE_TIMEOUT_S:
+                self._drop(pair)  # the rest could not be delivered in time
 
     def _drop(self, pair: _Pair) -> None:
         pair.stage = "closed"

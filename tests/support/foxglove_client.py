@@ -28,10 +28,10 @@ class Collected:
 class FoxgloveClient:
     """Connects to ``ws://host:port`` (use as a context manager); :meth:`subscribe_all` then :meth:`collect`."""
 
-    def __init__(self, url: str, timeout_s: float = 5.0) -> None:
+    def __init__(self, url: str, timeout_s: float = 5.0, subprotocols: tuple[str, ...] = SUBPROTOCOLS) -> None:
         from websockets.sync.client import connect
 
-        connection = connect(url, subprotocols=list(SUBPROTOCOLS), max_size=None,  # type: ignore[arg-type]
+        connection = connect(url, subprotocols=list(subprotocols), max_size=None,  # type: ignore[arg-type]
                              open_timeout=timeout_s)
         self.ws = connection.__enter__()  # entered: websockets 17 warns about a connection used bare
         self.seen = Collected()

@@ -42,7 +42,7 @@ def test_an_offer_with_the_sdk_name_or_without_either_passes_unchanged(offer: by
 @contextlib.contextmanager
 def _relayed(max_clients: int = 16) -> Iterator[tuple[LiveView, SubprotocolRelay]]:
     with LiveView(0) as view:
-        relay = SubprotocolRelay("127.0.0.1", 0, view.port, max_clients=max_clients)
+        relay = SubprotocolRelay("127.0.0.1", 0, view.upstream_port, max_clients=max_clients)
         try:
             yield view, relay
         finally:

@@ -95,9 +95,11 @@ def test_with_viz_wait_a_viewer_joining_a_second_after_start_sees_every_pose_and
         head = _read_until(proc, "waiting up to 60 s for a viewer")
         time.sleep(1.0)  # the viewer joins a second after the start
         url = f"ws://127.0.0.1:{port}"
-        # a client offering only the protocol's original name is refused by foxglove-sdk (ADR 0035) ...
-        assert _refused(url, ["foxglove.websocket.v1"])
-        with FoxgloveClient(url) as client:
+        # a client offering another protocol only is refused (HTTP 400) ...
+        assert _refused(url, ["other.v1"])
+        # ... and a viewer offering only the protocol's original name (Lichtblick, an older Foxglove) is admitted
+        with FoxgloveClient(url, subprotocols=("foxglove.websocket.v1",)) as client:
+            assert client.ws.subprotocol == "foxglove.websocket.v1"
             client.wait_for_channels(SCENE_TOPICS)
             client.subscribe_all()
             seen = client.collect(SCENE_TOPICS, count=n_poses, timeout_s=LINE_TIMEOUT_S)
@@ -171,15 +173,16 @@ def test_a_linger_that_runs_out_keeps_the_runs_exit_status(tmp_path: Path) -> No
     assert (tmp_path / "result.json").is_file() and port_free(port)
 
 
-def test_the_sdk_speaks_foxglove_sdk_v1_and_logs_a_refused_handshake_without_printing_it(
+def test_both_names_of_the_protocol_are_admitted_and_a_refused_handshake_is_logged_without_printing_it(
         caplog: pytest.LogCaptureFixture, capfd: pytest.CaptureFixture[str]) -> None:
-    """What Foxglove offers (``foxglove.sdk.v1``) is accepted; ``foxglove.websocket.v1`` alone cannot be (ADR 0035)."""
+    """``foxglove.sdk.v1`` and ``foxglove.websocket.v1`` alone are each admitted; neither is refused (ADR 0035)."""
     caplog.set_level(logging.INFO, logger="cellcal.liveview")
     with LiveView(0) as view:
-        with connect(view.url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as ws:  # type: ignore[list-item]
-            assert ws.subprotocol == "foxglove.sdk.v1"
-            assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
-        assert _refused(view.url, ["foxglove.websocket.v1"])
+        for name in ("foxglove.sdk.v1", "foxglove.websocket.v1"):
+            with connect(view.url, subprotocols=[name], open_timeout=10) as ws:  # type: ignore[list-item]
+                assert ws.subprotocol == name
+                assert json.loads(ws.recv(timeout=10))["op"] == "serverInfo"
+        assert _refused(view.url, ["other.v1"])
         deadline = time.monotonic() + LINE_TIMEOUT_S  # the SDK logs from its own thread
         while not (ours := [r for r in caplog.records
                             if r.name == "cellcal.liveview" and "handshake failed" in r.getMessage()]):
