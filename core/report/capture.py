@@ -22,7 +22,7 @@ from cellcal.devices.jsonsafe import json_safe
 if TYPE_CHECKING:
     from cellcal.core.calibration.calibrator import PoseRecord
     from cellcal.core.calibration.config import CellConfig
-    from cellcal.core.methods.fullframe import FullFrameResult
+    from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings
     from cellcal.core.monitor import MonitorStatus
     from cellcal.devices.pose import Pose
     from cellcal.devices.types import Frame
@@ -69,9 +69,27 @@ def pixel_classes(frame: Frame, result: FullFrameResult, region: np.ndarray | No
     return classes, residual
 
 
+def coverage_picture(result: FullFrameResult, settings: FullFrameSettings,
+                     region: np.ndarray | None) -> dict[str, Any] | None:
+    """The coverage grid as the ``coverage`` gate judged it: cell edges (px) and which cells lack plane inliers."""
+    from cellcal.core.methods.fullframe.gates import coverage_cells
+
+    mask = np.asarray(result.inlier_mask, dtype=bool)
+    if mask.ndim != 2:  # a raw-cloud fit has no image
+        return None
+    cells = coverage_cells(mask, settings, None if region is None else np.asarray(region, dtype=bool))
+    counted = cells.area > 0
+    # a counted cell is covered when its inliers reach the per-cell share of its pixels
+    covered = cells.counts >= settings.min_cell_inlier_fraction * cells.area
+    return {"row_edges_px": [int(v) for v in cells.row_edges], "col_edges_px": [int(v) for v in cells.col_edges],
+            "uncovered": (counted & ~covered).astype(int).tolist(), "counted": counted.astype(int).tolist(),
+            "min_cell_inlier_fraction": float(settings.min_cell_inlier_fraction)}
+
+
 def pose_pictures(frame: Frame, result: FullFrameResult, region: np.ndarray | None, *,
-                  seed: int = 0) -> dict[str, Any]:
-    """The maps and cloud sample of one pose (JSON data; mm, downsampled to at most 320 columns)."""
+                  seed: int = 0, settings: FullFrameSettings | None = None) -> dict[str, Any]:
+    """The maps and cloud sample of one pose (JSON data; mm, downsampled to at most 320 columns), and with
+    ``settings`` the coverage grid as the gate judged it."""
     classes, residual = pixel_classes(frame, result, region)
     h, w = classes.shape
     step = downsample_step(w)
@@ -96,6 +114,7 @@ def pose_pictures(frame: Frame, result: FullFrameResult, region: np.ndarray | No
         "plane_cam": {"normal": [float(v) for v in result.plane.normal], "offset_m": float(result.plane.offset_m)},
         # counted where the fit looked: inside the region (the whole image without one)
         "class_counts": {CLASS_NAMES[c]: int(np.count_nonzero(((classes & 3) == c) & used)) for c in CLASS_NAMES},
+        "coverage": None if settings is None else coverage_picture(result, settings, region),
     }
 
 
@@ -141,7 +160,8 @@ class CalibrationCapture:
         if result is not None and frames:
             region = None if record.full_frame is None or record.full_frame.get("region") is None else \
                 self._region(frames[0], record.camera)
-            entry["pictures"] = pose_pictures(frames[0], result, region, seed=record.index)
+            entry["pictures"] = pose_pictures(frames[0], result, region, seed=record.index,
+                                              settings=self.config.full_frame)
         self.poses.append(json_safe(entry))
 
     def _region(self, frame: Frame, camera_pose: Pose) -> np.ndarray | None:
@@ -193,7 +213,7 @@ class CalibrationCapture:
             if gate is not None:  # the gate that refused the pose, as the run measured it
                 entry["full_frame"].setdefault("gates", {})[gate] = {
                     "value": getattr(exc, "value", None), "threshold": getattr(exc, "threshold", None), "passed": False}
-            entry["pictures"] = pose_pictures(frames[0], result, region, seed=index)
+            entry["pictures"] = pose_pictures(frames[0], result, region, seed=index, settings=config.full_frame)
         self.poses.append(json_safe(entry))
 
 

@@ -109,6 +109,7 @@ def pose_image_figure(pose: Mapping[str, Any], camera: str) -> bytes:
         xs = np.linspace(0, w - 1, inside.shape[1])
         ax_c.contour(xs, ys, inside.astype(float), levels=[0.5], colors="#000000", linewidths=1.5,
                      linestyles="--")
+    uncovered = _uncovered_cells(ax_c, pose, h, w)
     counts = pics.get("class_counts", {})
     handles: list[Any] = [Patch(facecolor=CLASS_COLORS[c], edgecolor="#000000",
                                 label=f"{CLASS_NAMES[c].split(' ')[0]}: {counts.get(CLASS_NAMES[c], 0)} px")
@@ -117,6 +118,9 @@ def pose_image_figure(pose: Mapping[str, Any], camera: str) -> bytes:
         from matplotlib.lines import Line2D
 
         handles.append(Line2D([], [], color="#000000", linestyle="--", label="region used (outside: veiled)"))
+    if uncovered:
+        handles.append(Patch(facecolor="none", edgecolor=FAILED, hatch="xx", linewidth=2.0,
+                             label=f"too few plane pixels: {uncovered[0]} of {uncovered[1]} cells"))
     ax_c.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     ax_c.set_title("pixels: plane, mixed, outliers" + (", region" if pics.get("region") else ""))
     # residuals: diverging, symmetric about zero, scaled to the inliers' spread
@@ -127,11 +131,37 @@ def pose_image_figure(pose: Mapping[str, Any], camera: str) -> bytes:
     im = ax_r.imshow(residual, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent, aspect="auto",
                      interpolation="nearest")
     fig.colorbar(im, cax=fig.add_axes(_COLORBAR_AXES[1])).set_label("residual (mm, + toward the camera)")
-    ax_r.set_title("residual to the fitted plane")
+    flat = ((pose.get("full_frame") or {}).get("gates") or {}).get("flatness")
+    if flat and not flat.get("passed", True) and flat.get("value") is not None:
+        # a non-flat surface: the residual pattern above is why; say by how much in the panel's title
+        ax_r.set_title(f"residual: NOT FLAT, a local plane {1000.0 * float(flat['value']):.2g} mm off "
+                       f"(tolerance {1000.0 * float(flat['threshold']):.2g} mm)", color=FAILED, fontsize=9)
+    else:
+        ax_r.set_title("residual to the fitted plane")
     for ax in (ax_d, ax_c, ax_r):
         ax.set_xlabel("u (px)")
         ax.set_ylabel("v (px)")
     return _png(fig)
+
+
+def _uncovered_cells(ax: Any, pose: Mapping[str, Any], h: int, w: int) -> tuple[int, int] | None:
+    """On a pose the coverage gate refused: outline and hatch the grid cells without enough plane inliers.
+
+    Returns (uncovered, counted) cells, or None when the gate did not refuse the pose.
+    """
+    from matplotlib.patches import Rectangle
+
+    coverage = pose["pictures"].get("coverage")
+    gate = ((pose.get("full_frame") or {}).get("gates") or {}).get("coverage")
+    if not coverage or not gate or gate.get("passed", True):
+        return None
+    rows = [*coverage["row_edges_px"], h]  # cell edges in full-resolution pixels
+    cols = [*coverage["col_edges_px"], w]
+    bad = np.asarray(coverage["uncovered"], dtype=bool)
+    for r, c in zip(*np.nonzero(bad), strict=True):
+        ax.add_patch(Rectangle((cols[c] - 0.5, rows[r] - 0.5), cols[c + 1] - cols[c], rows[r + 1] - rows[r],
+                               fill=False, edgecolor=FAILED, hatch="xx", linewidth=2.0))
+    return int(bad.sum()), int(np.asarray(coverage["counted"], dtype=bool).sum())
 
 
 #: Gate name -> (label, scale, unit, "min"/"max").

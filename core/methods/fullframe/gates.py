@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -11,7 +12,8 @@ from cellcal.core.methods.fullframe.result import FullFrameResult
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.devices.errors import CalibrationQualityError
 
-__all__ = ["GATE_NAMES", "check_gates", "expected_rms_m", "floor_reference_m", "residual_threshold_m"]
+__all__ = ["GATE_NAMES", "CoverageCells", "check_gates", "coverage_cells", "expected_rms_m", "floor_reference_m",
+           "image_coverage", "residual_threshold_m"]
 
 #: Gate names in the order they are checked.
 #: A lock-on, a wrong plane and a second surface come early: each also halves the inliers and the
@@ -168,6 +170,23 @@ def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings,
         region: (H, W) region of interest: a cell's share is taken over its region pixels,
             and cells holding none are not counted. None: the whole image.
     """
+    cells = coverage_cells(mask, settings, region)
+    seen = cells.area > 0
+    return float(np.mean(cells.counts[seen] >= settings.min_cell_inlier_fraction * cells.area[seen]))
+
+
+class CoverageCells(NamedTuple):
+    """The coverage grid of one image: inliers and counted pixels per cell, and the cells' first rows / columns."""
+
+    counts: NDArray[np.int32]   # (rows, cols) inliers per cell
+    area: NDArray[np.int32]     # (rows, cols) pixels counted per cell (region pixels with a region)
+    row_edges: NDArray[np.int_]  # (rows,) first image row of each cell
+    col_edges: NDArray[np.int_]  # (cols,) first image column of each cell
+
+
+def coverage_cells(mask: NDArray[np.bool_], settings: FullFrameSettings,
+                   region: NDArray[np.bool_] | None = None) -> CoverageCells:
+    """Inliers and counted pixels in each ``coverage_grid`` cell (the numbers :func:`image_coverage` judges)."""
     h, w = mask.shape
     cols, rows = settings.coverage_grid
     rows, cols = min(rows, h), min(cols, w)              # no more cells than pixels
@@ -182,5 +201,4 @@ def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings,
     else:                                                # region pixels per cell
         area = np.add.reduceat(np.add.reduceat(region.view(np.uint8), r_edges, axis=0, dtype=np.int32),
                                c_edges, axis=1)
-    seen = area > 0
-    return float(np.mean(counts[seen] >= settings.min_cell_inlier_fraction * area[seen]))
+    return CoverageCells(counts, area, r_edges, c_edges)
