@@ -9,7 +9,6 @@ the backend), ``[mount]``, ``[reference]``, ``[region]``, ``[safety]``, ``[plan]
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
@@ -25,6 +24,7 @@ import cv2
 import numpy as np
 
 from cellcal.core.methods.fullframe import FullFrameSettings
+from cellcal.devices import boundedjson
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
@@ -444,7 +444,7 @@ def _mount_from_handeye(mount: MountSection, table: Mapping[str, Any] | None, so
         path = Path(source).parent / path  # relative to the configuration file
     text, where = read_config_text(path)
     try:
-        data = json.loads(text)
+        data = boundedjson.loads(text)
         estimate, schema = data["mount"], data["schema"]
         values = {"translation_m": estimate["translation_m"], "rpy_deg": estimate["rpy_deg"]}
     except (ValueError, KeyError, TypeError):

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.core.calibration.report import write_bytes_atomic
+from cellcal.devices import boundedjson
 from cellcal.devices.errors import CalibrationError, ConfigError, OutputError
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
@@ -137,7 +138,9 @@ def read_journal(path: str | Path, fingerprint: str) -> list[JournalEntry]:
     objs: list[dict[str, Any]] = []
     for n, text in enumerate(lines, 1):
         try:
-            obj = json.loads(text)
+            obj = boundedjson.loads(text)
+        except boundedjson.JSONTooDeepError as exc:
+            raise CalibrationError(f"{path}: line {n} is {exc}; the journal is damaged") from None
         except json.JSONDecodeError:
             if n == len(lines):
                 break  # torn last line: the process died while writing it
@@ -152,11 +155,19 @@ def read_journal(path: str | Path, fingerprint: str) -> list[JournalEntry]:
                           f"(journal fingerprint {str(objs[0].get('fingerprint'))[:12]}, now {fingerprint[:12]}); "
                           "run without --resume to start afresh", source=str(path))
     entries: dict[int, JournalEntry] = {}
+    n_poses = objs[0].get("poses")
     for n, obj in enumerate(objs[1:], 2):
         index = obj.get("index")
         if (obj.get("kind") != "pose" or obj.get("fingerprint") != fingerprint or not isinstance(index, int)
-                or not isinstance(obj.get("pose"), dict)):
+                or isinstance(index, bool) or not isinstance(obj.get("pose"), dict)):
             raise CalibrationError(f"{path}: line {n} is not a pose record of this run; the journal is damaged")
+        # each plan pose once, and only poses the plan has
+        if index < 0 or (isinstance(n_poses, int) and index >= n_poses):
+            raise CalibrationError(f"{path}: line {n} records pose index {index}, not one of the plan's "
+                                   f"{n_poses} poses (0 to {n_poses - 1 if isinstance(n_poses, int) else '?'}); "
+                                   "the journal is damaged")
+        if index in entries:
+            raise CalibrationError(f"{path}: line {n} records pose index {index} a second time; the journal is damaged")
         entries[index] = JournalEntry(index, obj["pose"], dict(obj.get("device_state") or {}))
     return [entries[i] for i in sorted(entries)]
 

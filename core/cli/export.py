@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_OK
 from cellcal.core.cli.options import check_input_file
+from cellcal.devices import boundedjson
 from cellcal.devices.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -52,13 +53,22 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+#: Largest magnitude accepted per mount component: metres for a translation (a camera 10 m from its
+#: flange is no mount), degrees for roll / pitch / yaw, 1 for a quaternion component.
+MOUNT_BOUNDS = {"translation_m": 10.0, "rpy_deg": 360.0, "quaternion_xyzw": 1.0 + 1e-6}
+
+
 def _vector(mount: Mapping[str, Any], key: str, size: int, source: str) -> list[float]:
-    """``mount[key]`` as ``size`` finite numbers (ConfigError naming the key otherwise)."""
+    """``mount[key]`` as ``size`` finite numbers within :data:`MOUNT_BOUNDS` (ConfigError naming the key otherwise)."""
     value = mount.get(key)
     items: list[Any] = value if isinstance(value, list) else []
     numbers = [v for v in items if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
     if not isinstance(value, list) or len(value) != size or len(numbers) != size:
         raise ConfigError(f"must be a list of {size} finite numbers, got {json.dumps(value)[:80]}",
+                          source=source, key=f"mount.{key}")
+    bound = MOUNT_BOUNDS[key]
+    if any(abs(v) > bound for v in numbers):
+        raise ConfigError(f"has a component beyond +-{bound:g} (got {json.dumps(value)[:80]}): not a camera mount",
                           source=source, key=f"mount.{key}")
     return [float(v) for v in numbers]
 
@@ -99,7 +109,7 @@ def read_document(path: str) -> dict[str, Any]:
     check_input_file(path, MAX_INPUT_BYTES)
     try:
         with open(path, encoding="utf-8") as fh:
-            document = json.load(fh)
+            document = boundedjson.loads(fh.read())
     except FileNotFoundError:
         raise ConfigError("file not found", source=path) from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,7 @@ from cellcal.core.calibration.report import write_json_atomic
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.monitor.monitor import CameraSummary, MonitoredCamera
 from cellcal.core.monitor.samples import Baseline
+from cellcal.devices import boundedjson
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.errors import CalibrationError, ConfigError
 
@@ -41,10 +41,10 @@ def read_baseline_file(path: str) -> Any:
         ConfigError: Missing or unreadable file, invalid JSON.
     """
     try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
+        return boundedjson.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError("baseline file not found", source=path) from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ConfigError(f"cannot read baseline file: {exc}", source=path) from None
 
 

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from cellcal.core.report.html import Picture, render_html
+from cellcal.devices import boundedjson
 from cellcal.devices.errors import ConfigError, MissingDependencyError
 
 __all__ = ["MAX_REPORT_DATA_BYTES", "NO_MATPLOTLIB", "REPORT_DATA_FILENAME", "REPORT_HTML_FILENAME", "REPORT_SCHEMA",
@@ -189,8 +189,8 @@ def load_report_data(directory: str | Path) -> dict[str, Any]:
     if size > MAX_REPORT_DATA_BYTES:
         raise ConfigError(f"{size} bytes, more than the {MAX_REPORT_DATA_BYTES} a report can have", source=str(path))
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = boundedjson.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ConfigError(f"not a report data file: {exc}", source=str(path)) from None
     if not isinstance(data, dict) or data.get("schema") != REPORT_SCHEMA:
         found = data.get("schema") if isinstance(data, dict) else type(data).__name__
