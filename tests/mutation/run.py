@@ -5,6 +5,7 @@ Usage::
     .venv/bin/python tests/mutation/run.py                 # every module of modules.toml
     .venv/bin/python tests/mutation/run.py safety journal  # some of them
     .venv/bin/python tests/mutation/run.py --list
+    .venv/bin/python tests/mutation/run.py handeye-estimator --survivors   # re-check the last run's survivors
 
 Each module is mutated in a staged copy of the repository (never in the work tree): the
 top-level folders are copied under ``cellcal/`` so that a file's path is its import name,
@@ -31,29 +32,50 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[2]
 MODULES = Path(__file__).with_name("modules.toml")
 PACKAGES = ("configs", "core", "devices", "drivers", "sims", "testing")
+#: Folders the tests read beside the package, by their path in the repository (``REPO_ROOT / "configs"``,
+#: ``docs/extending.md``, ``examples/``): staged at the root as well, and copied by mutmut into ``mutants/``.
+BESIDE = ("configs", "docs", "examples")
+#: The project's shared data, which tests read as ``REPO_ROOT.parent / "shared"``.
+SHARED = REPO.parent / "shared"
 #: mutmut statuses that mean the tests noticed the mutant.
 DETECTED = ("killed", "timeout", "segfault", "caught by type check")
 IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "mutants", ".hypothesis")
 
 
 def stage(name: str, module: dict[str, object], workdir: Path) -> Path:
-    """Copy the repository into ``workdir/name`` with the package folders under ``cellcal/``."""
+    """Copy the repository into ``workdir/name`` with the package folders under ``cellcal/``.
+
+    What the tests read beside the package is staged too, where they look for it: mutmut runs
+    them in ``root/mutants/`` (so ``REPO_ROOT`` is ``root/mutants``), with ``tests/`` (and its
+    ``tests/data``) and the :data:`BESIDE` folders copied there by mutmut (``also_copy``), and
+    ``root/shared`` a symlink to the shared data (``REPO_ROOT.parent / "shared"``).
+    """
     root = workdir / name
     shutil.rmtree(root, ignore_errors=True)
     for package in PACKAGES:
         shutil.copytree(REPO / package, root / "cellcal" / package, ignore=IGNORE)
     shutil.copytree(REPO / "tests", root / "tests", ignore=IGNORE)
+    beside = [folder for folder in BESIDE if (REPO / folder).is_dir()]
+    for folder in beside:
+        shutil.copytree(REPO / folder, root / folder, ignore=IGNORE)
+    if SHARED.is_dir():
+        (root / "shared").symlink_to(SHARED, target_is_directory=True)
     tests = [str(t) for t in module["tests"] if (REPO / str(t)).is_file()]  # type: ignore[attr-defined]
     missing = sorted(set(map(str, module["tests"])) - set(tests))  # type: ignore[call-overload]
     if missing:
         print(f"  [{name}] not in this checkout, skipped: {', '.join(missing)}")
-    per_module = (f"only_mutate = {json.dumps(['cellcal/' + str(module['file'])])}\n"
-                  f"pytest_add_cli_args_test_selection = {json.dumps(tests)}\n")
     text = (REPO / "pyproject.toml").read_text(encoding="utf-8")
-    if "\n[tool.mutmut]\n" not in text:
+    shared = tomllib.loads(text).get("tool", {}).get("mutmut")
+    if shared is None or "\n[tool.mutmut]\n" not in text:
         raise SystemExit("pyproject.toml has no [tool.mutmut] table")
-    (root / "pyproject.toml").write_text(text.replace("\n[tool.mutmut]\n", "\n[tool.mutmut]\n" + per_module, 1),
-                                         encoding="utf-8")
+    also_copy = list(dict.fromkeys([*shared.get("also_copy", []), "tests", *beside]))
+    per_module = {"only_mutate": ["cellcal/" + str(module["file"])], "pytest_add_cli_args_test_selection": tests,
+                  "also_copy": also_copy}
+    # the staged table: pyproject's settings with this module's (TOML's strings and lists are JSON's)
+    table = "".join(f"{key} = {json.dumps(value)}\n" for key, value in {**shared, **per_module}.items())
+    head, _, rest = text.partition("\n[tool.mutmut]\n")
+    tail = rest[rest.find("\n[") + 1:] if "\n[" in rest else ""  # the tables after [tool.mutmut]
+    (root / "pyproject.toml").write_text(f"{head}\n[tool.mutmut]\n{table}\n{tail}", encoding="utf-8")
     return root
 
 
@@ -127,12 +149,25 @@ def recheck(root: Path, name: str) -> bool:
     return done.returncode != 0
 
 
+def last_survivors(workdir: Path, name: str) -> list[str]:
+    """The mutants the previous run of module ``name`` left not killed (from its ``survivors.txt``)."""
+    path = workdir / name / "survivors.txt"
+    if not path.is_file():
+        raise SystemExit(f"no earlier run of {name} in {workdir} (no survivors.txt): run it whole first")
+    return [line.split(" (", 1)[0] for line in path.read_text(encoding="utf-8").splitlines()
+            if line.startswith("cellcal.") and line.endswith(")")]
+
+
 def run_module(name: str, module: dict[str, object], workdir: Path, timeout_s: float,
-               children: int) -> dict[str, object]:
-    """Stage, mutate and test one module; returns its figures."""
+               children: int, only: list[str] | None = None) -> dict[str, object]:
+    """Stage, mutate and test one module (only the mutants ``only`` names, when given); returns its figures."""
     print(f"[{name}] {module['file']}", flush=True)
+    if only == []:
+        print(f"[{name}] no mutant left to re-check")
+        return {"module": name, "file": module["file"], "killed": 0, "total": 0, "rate_pct": float("nan"),
+                "not_killed": 0, "survived": 0, "no_tests": 0, "seconds": 0, "complete": True, "counts": {}}
     root = stage(name, module, workdir)
-    scope = [str(p) for p in module.get("mutants", [])]  # type: ignore[attr-defined]
+    scope = only if only is not None else [str(p) for p in module.get("mutants", [])]  # type: ignore[attr-defined]
     started = time.monotonic()
     code, _ = mutmut(root, ["run", "--max-children", str(children), *scope], timeout_s, log=root / "mutmut.log")
     status = statuses(root, scope)
@@ -147,13 +182,15 @@ def run_module(name: str, module: dict[str, object], workdir: Path, timeout_s: f
     (root / "survivors.txt").write_text("".join(f"{m} ({status[m]})\n{shown[m]}\n\n" for m in left),
                                         encoding="utf-8")
     rate = 100.0 * killed / total if total else float("nan")
+    untested = sum(1 for m in left if status[m] == "no tests")
     print(f"[{name}] {killed}/{total} killed ({rate:.1f} %; {counts['timeout']} by a timeout, {len(late)} only in "
-          f"a fresh process), {len(left)} not killed, {seconds:.0f} s"
+          f"a fresh process), {len(left) - untested} survived, {untested} reached by no test, {seconds:.0f} s"
           + ("" if code is not None else f" - STOPPED at the {timeout_s:.0f} s bound, figures are partial"), flush=True)
     for m in left:
         print(f"    {m} ({status[m]})\n      " + shown[m].replace("\n", "\n      "))
     return {"module": name, "file": module["file"], "killed": killed, "total": total, "rate_pct": round(rate, 1),
-            "not_killed": len(left), "seconds": round(seconds), "complete": code is not None, "counts": dict(counts)}
+            "not_killed": len(left), "survived": len(left) - untested, "no_tests": untested,
+            "seconds": round(seconds), "complete": code is not None, "counts": dict(counts)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -165,6 +202,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-children", type=int, default=1, help="parallel mutmut workers (default 1)")
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/cellcal-mutation"), help="staging folder")
     parser.add_argument("--list", action="store_true", help="list the modules and their tests, then exit")
+    parser.add_argument("--mutants", nargs="+", metavar="PATTERN",
+                        help="only these mutants (names or fnmatch patterns), instead of the module's selection")
+    parser.add_argument("--survivors", action="store_true",
+                        help="only the mutants the previous run of each module left (its survivors.txt)")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.modules) - set(modules))
     if unknown:
@@ -173,13 +214,15 @@ def main(argv: list[str] | None = None) -> int:
         for name, module in modules.items():
             print(f"{name}: {module['file']} <- {' '.join(module['tests'])}")
         return 0
-    results = [run_module(n, modules[n], args.workdir, args.timeout, args.max_children)
-               for n in (args.modules or list(modules))]
+    names = args.modules or list(modules)
+    only = {n: (last_survivors(args.workdir, n) if args.survivors else args.mutants) for n in names}
+    results = [run_module(n, modules[n], args.workdir, args.timeout, args.max_children, only[n]) for n in names]
     (args.workdir / "summary.json").write_text(json.dumps(results, indent=1), encoding="utf-8")
-    print("\n| module | file | killed | mutants | kill rate | not killed | time |\n|---|---|---|---|---|---|---|")
+    print("\n| module | file | mutants | killed | survived | no test reaches | score | time |\n"
+          "|---|---|---|---|---|---|---|---|")
     for r in results:
-        print(f"| {r['module']} | `{r['file']}` | {r['killed']} | {r['total']} | {r['rate_pct']} % | "
-              f"{r['not_killed']} | {r['seconds']} s{'' if r['complete'] else ' (stopped)'} |")
+        print(f"| {r['module']} | `{r['file']}` | {r['total']} | {r['killed']} | {r['survived']} | {r['no_tests']} | "
+              f"{r['rate_pct']} % | {r['seconds']} s{'' if r['complete'] else ' (stopped)'} |")
     return 0 if all(r["complete"] for r in results) else 1
 
 
