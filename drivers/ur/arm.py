@@ -53,6 +53,7 @@ from .codes import (
 from .config import UR_MAX_TOOL_ACCELERATION_M_S2, UR_MAX_TOOL_SPEED_M_S, URConfig
 from .dashboard import DashboardLink
 from .fd_capture import captured_output
+from .limits import checked_mode, checked_tcp
 from .rtde_probe import probe_stream
 
 log = logging.getLogger(__name__)
@@ -63,6 +64,21 @@ DISCONNECT_TIMEOUT_S = 2.0
 #: packages arrived (or for at most SETTLE_S seconds).
 SETTLE_PACKAGES = 3
 SETTLE_S = 0.2
+
+
+def _safety(receive: Any) -> int:
+    """The receive interface's safety mode, checked against the documented set."""
+    return checked_mode(receive.getSafetyMode(), SAFETY_MODES, "getSafetyMode")
+
+
+def _robot(receive: Any) -> int:
+    """The receive interface's robot mode, checked against the documented set."""
+    return checked_mode(receive.getRobotMode(), ROBOT_MODES, "getRobotMode")
+
+
+def _runtime(receive: Any) -> int:
+    """The receive interface's program state, checked against the documented set."""
+    return checked_mode(receive.getRuntimeState(), RUNTIME_STATES, "getRuntimeState")
 
 
 def _quiet_disconnect(handle: Any) -> None:
@@ -215,7 +231,7 @@ class URArm(RobotArm):
     # ------------------------------------------------------------ reads
     def _get_pose(self, timeout: float) -> Pose:
         receive = self._fresh_receive(self._clock() + timeout)
-        return pose_from_ur(self._vector(receive.getActualTCPPose(), 6, "getActualTCPPose"))
+        return pose_from_ur(self._tcp_pose(receive))
 
     def _joint_positions(self, timeout: float) -> NDArray[np.float64]:
         receive = self._fresh_receive(self._clock() + timeout)
@@ -223,7 +239,7 @@ class URArm(RobotArm):
 
     def _status(self, timeout: float) -> ArmStatus:
         receive = self._fresh_receive(self._clock() + timeout)
-        safety = int(receive.getSafetyMode())
+        safety = _safety(receive)
         if safety not in SAFETY_OK:
             return ArmStatus(error_code=safety, message=f"safety mode {name(SAFETY_MODES, safety)}",
                              can_move=False)
@@ -296,7 +312,7 @@ class URArm(RobotArm):
         last, fresh = float(receive.getTimestamp()), 0
         until = self._clock() + SETTLE_S
         while True:
-            actual = pose_from_ur(self._vector(receive.getActualTCPPose(), 6, "getActualTCPPose"))
+            actual = pose_from_ur(self._tcp_pose(receive))
             if actual.distance_to(pose) <= tight_m and actual.angle_to(pose) <= tight_rad:
                 return
             if fresh >= SETTLE_PACKAGES or self._clock() >= until:
@@ -325,8 +341,8 @@ class URArm(RobotArm):
         receive = self._fresh_receive(deadline)
         if receive.isEmergencyStopped():
             self._raise_failure("clear_errors")  # an e-stop is released by hand, never remotely
-        if receive.isProtectiveStopped() or int(receive.getSafetyMode()) not in SAFETY_OK \
-                or int(receive.getRobotMode()) != ROBOT_MODE_RUNNING:
+        if receive.isProtectiveStopped() or _safety(receive) not in SAFETY_OK \
+                or _robot(receive) != ROBOT_MODE_RUNNING:
             dash = self._dash.open(self._remaining(deadline), required=True)
             self._dash.call("closeSafetyPopup", "close safety popup")
             self._unlock_protective_stop(dash, deadline)
@@ -346,13 +362,13 @@ class URArm(RobotArm):
             except RuntimeError as exc:  # ur_rtde raises when the controller refuses
                 refusal = str(exc)
             if self._clock() >= deadline:
-                raise VendorError("ur", int(self._fresh_receive(deadline).getSafetyMode()), (
+                raise VendorError("ur", _safety(self._fresh_receive(deadline)), (
                     f"clear_errors could not unlock the protective stop in time ({refusal or 'still stopped'})"))
             self._sleep(max(self.config.poll_interval_s, 0.05))
 
     def _power_up(self, deadline: float, timeout: float) -> None:
         receive = self._fresh_receive(deadline)
-        robot = int(receive.getRobotMode())
+        robot = _robot(receive)
         if robot == ROBOT_MODE_RUNNING:
             return
         if not self.config.allow_power_on:
@@ -361,10 +377,10 @@ class URArm(RobotArm):
                 "or set allow_power_on = true"))
         self._dash.call("powerOn", "power on")
         self._dash.call("brakeRelease", "brake release")
-        while int(receive.getRobotMode()) != ROBOT_MODE_RUNNING:
+        while _robot(receive) != ROBOT_MODE_RUNNING:
             if self._clock() >= deadline:
                 raise DeviceTimeoutError(f"ur: arm not RUNNING within {timeout:g} s after power on "
-                                         f"(robot mode {name(ROBOT_MODES, int(receive.getRobotMode()))})")
+                                         f"(robot mode {name(ROBOT_MODES, _robot(receive))})")
             self._sleep(max(self.config.poll_interval_s, 0.05))
             receive = self._fresh_receive(deadline)
 
@@ -376,7 +392,7 @@ class URArm(RobotArm):
         # Both links must see it: ur_rtde refuses commands while its own stream says STOPPED.
         while not (self._program_running(receive) and self._control.isProgramRunning()):
             if self._clock() >= deadline:
-                state = int(receive.getRuntimeState())
+                state = _runtime(receive)
                 raise DeviceTimeoutError(
                     f"ur {self.config.host}: the control script did not start in time (program state "
                     f"{name(RUNTIME_STATES, state)}; {self._not_ready_reason(receive) or 'arm ready'})"
@@ -393,14 +409,14 @@ class URArm(RobotArm):
 
     @staticmethod
     def _ready_for_program(receive: Any) -> bool:
-        return int(receive.getSafetyMode()) in SAFETY_OK and int(receive.getRobotMode()) == ROBOT_MODE_RUNNING
+        return _safety(receive) in SAFETY_OK and _robot(receive) == ROBOT_MODE_RUNNING
 
     def _not_ready_reason(self, receive: Any) -> str:
         """Why the arm cannot move now ("" when it can): safety, power, or the control script."""
-        safety = int(receive.getSafetyMode())
+        safety = _safety(receive)
         if safety not in SAFETY_OK:
             return f"safety mode {name(SAFETY_MODES, safety)}"
-        robot = int(receive.getRobotMode())
+        robot = _robot(receive)
         if robot != ROBOT_MODE_RUNNING:
             return f"robot mode {name(ROBOT_MODES, robot)} (needs power on, brakes released)"
         if not self._program_running(receive):
@@ -526,6 +542,11 @@ class URArm(RobotArm):
         self.receive_rebuilds += 1
         return receive
 
+    def _tcp_pose(self, receive: Any) -> NDArray[np.float64]:
+        """The reported TCP pose ``[x, y, z, rx, ry, rz]`` (m, rad), checked against the model's reach."""
+        values = self._vector(receive.getActualTCPPose(), 6, "getActualTCPPose")
+        return checked_tcp(values, str(self._dash.identity.get("model", "")), "getActualTCPPose")
+
     def _vector(self, values: Any, n: int, what: str) -> NDArray[np.float64]:
         try:
             arr = np.asarray(values, dtype=np.float64)
@@ -563,7 +584,7 @@ class URArm(RobotArm):
 
     def _raise_known_cause(self, receive: Any, operation: str) -> None:
         """Raise the typed error for the state the receive interface reports, if any."""
-        safety = int(receive.getSafetyMode())
+        safety = _safety(receive)
         if receive.isEmergencyStopped():
             raise VendorError("ur", safety, (
                 f"{operation} failed: emergency stop engaged (safety mode {name(SAFETY_MODES, safety)}); "
@@ -574,12 +595,12 @@ class URArm(RobotArm):
                 "remove the cause, then call clear_errors()"))
         if safety not in SAFETY_OK:
             raise VendorError("ur", safety, f"{operation} failed: safety mode {name(SAFETY_MODES, safety)}")
-        robot = int(receive.getRobotMode())
+        robot = _robot(receive)
         if robot != ROBOT_MODE_RUNNING:
             raise VendorError("ur", robot, (
                 f"{operation} failed: robot mode {name(ROBOT_MODES, robot)} (power on and release the brakes)"))
         if not self._program_running(receive):
-            state = int(receive.getRuntimeState())
+            state = _runtime(receive)
             raise VendorError("ur", state, (
                 f"{operation} failed: the RTDE control script is not running (program state "
                 f"{name(RUNTIME_STATES, state)}){self._dash.remote_control_hint()}; clear_errors() restarts it"))

@@ -12,6 +12,7 @@ ur_rtde is tested against the emulator in tests/integration/ur/.
 from __future__ import annotations
 
 import math
+import re
 import sys
 import threading
 from typing import Any
@@ -33,6 +34,7 @@ from cellcal.devices.errors import (
     DeviceConnectionError,
     DeviceTimeoutError,
     MissingDependencyError,
+    ProtocolError,
     SafetyError,
     VendorError,
 )
@@ -457,3 +459,34 @@ def test_connects_in_protective_stop_and_clear_errors_retries_the_refused_unlock
     arm.clear_errors(timeout=5.0)
     assert dash.unlockProtectiveStop.call_count == 4 and vendor.uploads == 1 and arm.status().ok
     arm.close()
+
+
+# ---------------------------------------------------------------- bounded controller values (issue #31)
+@pytest.mark.parametrize(("pose", "says"), [
+    ([1e300, 0.0, 0.4, 0.0, 0.0, 0.0], "reported a position 1e+300 m from the base, beyond the"),
+    ([2.0, 0.0, 0.0, 0.0, 0.0, 0.0], "reported a position 2 m from the base, beyond the 1.2 m a UR5 can reach"),
+    ([0.3, 0.0, 0.4, 40.0, 0.0, 0.0], "reported a rotation vector of 40 rad, not a rotation"),
+])
+def test_a_pose_no_ur_arm_can_have_is_a_protocol_error(robot: Any, vendor: FakeController, pose: list[float],
+                                                       says: str) -> None:
+    vendor.pose = pose
+    with pytest.raises(ProtocolError, match=re.escape(says)):
+        robot.get_pose(timeout=1.0)
+
+
+@pytest.mark.parametrize("field", ["safety", "robot"])
+@pytest.mark.parametrize("value", [949222551, -7, 2.5])
+def test_a_mode_outside_the_documented_set_is_a_protocol_error_not_a_stop(robot: Any, vendor: FakeController,
+                                                                          field: str, value: float) -> None:
+    setattr(vendor, field, value)
+    what = "getSafetyMode" if field == "safety" else "getRobotMode"
+    with pytest.raises(ProtocolError, match=re.escape(f"ur: {what} reported {value!r}, not one of the documented")):
+        robot.status(timeout=1.0)
+
+
+def test_the_reach_follows_the_model_the_dashboard_names() -> None:
+    from cellcal.drivers.ur.limits import REACH_MARGIN_M, reach_m
+
+    assert reach_m("UR3e") == 0.5 and reach_m("UR10") == 1.3 and reach_m("UR20") == 1.75
+    assert reach_m("") == reach_m("XR-9") == 1.75  # unknown: the largest known reach
+    assert REACH_MARGIN_M < 0.5
