@@ -25,6 +25,21 @@ def box_document() -> dict[str, Any]:
     return doc
 
 
+def thin_plate_document() -> dict[str, Any]:
+    """sim.toml with an 8 mm plate on the table under the camera: the surface is not flat."""
+    doc = copy.deepcopy(SIM)
+    doc["sim"]["boxes"] = [{"center_xy_m": [0.3, 0.0], "size_m": [0.16, 0.16, 0.008]}]
+    return doc
+
+
+def corner_box_document() -> dict[str, Any]:
+    """sim.toml with a 0.1 m box at the image's edge and every coverage cell required to hold the plane."""
+    doc = copy.deepcopy(SIM)
+    doc["sim"]["boxes"] = [{"center_xy_m": [0.4, 0.1], "size_m": [0.08, 0.08, 0.1]}]
+    doc.setdefault("full_frame", {})["min_coverage"] = 1.0
+    return doc
+
+
 def run_report(doc: dict[str, Any], out: Path) -> tuple[dict[str, Any], Exception | None]:
     """Run ``doc``'s plan as ``cellcal calibrate`` does with its report; the report data and the error."""
     from cellcal.core.report.runs import CalibrationReport
