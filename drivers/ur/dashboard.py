@@ -8,9 +8,17 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 from typing import Any
 
-from cellcal.devices.errors import CellcalError, DeviceConnectionError, MissingDependencyError, VendorError
+from cellcal.devices.errors import (
+    CellcalError,
+    DeviceConnectionError,
+    DeviceTimeoutError,
+    MissingDependencyError,
+    ProtocolError,
+    VendorError,
+)
 
 from .fd_capture import captured_output
 from .rtde_probe import open_port
@@ -18,6 +26,43 @@ from .rtde_probe import open_port
 log = logging.getLogger(__name__)
 
 LOCAL_CONTROL = "the pendant is in Local Control (switch it to Remote Control)"
+#: Longest greeting line accepted from the dashboard server, bytes (its greeting is ~45).
+MAX_LINE_BYTES = 4096
+
+
+def read_greeting(host: str, port: int, timeout: float) -> str:
+    """The dashboard server's greeting line, read with a plain socket within ``timeout`` s and 4 KiB.
+
+    ur_rtde's client reads a line without bound: a peer streaming bytes without a line end held
+    ``connect(timeout=6)`` for 7-10 s. This check runs first, under the caller's deadline.
+
+    Raises:
+        DeviceConnectionError: If the port is refused or closes before a line.
+        DeviceTimeoutError: If no line arrives within ``timeout``.
+        ProtocolError: If :data:`MAX_LINE_BYTES` arrive without a line end.
+    """
+    deadline = time.monotonic() + timeout
+    received = bytearray()
+    with open_port(host, port, timeout, "dashboard") as sock:
+        while b"\n" not in received:
+            if len(received) >= MAX_LINE_BYTES:
+                raise ProtocolError(f"ur {host}: the dashboard port {port} sent {len(received)} bytes without a "
+                                    "line end: not a UR dashboard server")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise DeviceTimeoutError(f"ur {host}: no greeting line from the dashboard port {port} within "
+                                         f"{timeout:.3g} s")
+            sock.settimeout(left)
+            try:
+                chunk = sock.recv(MAX_LINE_BYTES - len(received))
+            except TimeoutError:
+                continue  # the deadline check above ends it
+            except OSError as exc:
+                raise DeviceConnectionError(f"ur {host}: dashboard port {port}: {exc.strerror or exc}") from None
+            if not chunk:
+                raise DeviceConnectionError(f"ur {host}: the dashboard port {port} closed before its greeting")
+            received += chunk
+    return received.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
 
 
 class DashboardLink:
@@ -51,6 +96,18 @@ class DashboardLink:
             import dashboard_client
         except ImportError:
             raise MissingDependencyError("ur_rtde (dashboard_client)", "ur") from None
+        started = time.monotonic()
+        try:  # a plain, bounded look at the greeting first (ur_rtde's own read has no bound)
+            read_greeting(self.host, self.port, timeout)
+        except CellcalError as exc:
+            reason = str(exc).removeprefix(f"ur {self.host}: ")
+            if required and isinstance(exc, DeviceConnectionError):
+                raise DeviceConnectionError(f"ur {self.host}: dashboard server port {self.port}: {reason}") from None
+            if required:
+                raise  # silent, or not a dashboard: typed, one line
+            log.warning("ur %s: dashboard unavailable (%s); identity unknown", self.host, reason)
+            return None
+        timeout = max(0.001, timeout - (time.monotonic() - started))
         dash = dashboard_client.DashboardClient(self.host, self.port)
         try:
             with captured_output(f"ur {self.host}: dashboard connect"):  # ur_rtde's own lines: debug log only

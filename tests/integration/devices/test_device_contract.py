@@ -84,6 +84,7 @@ def ur_factory(mocker: Any) -> Callable[[], RobotArm]:
     mocker.patch.object(test_ur.rtde_receive, "RTDEReceiveInterface", side_effect=ctl.make_receive)
     mocker.patch.object(test_ur.rtde_control, "RTDEControlInterface", side_effect=ctl.make_control)
     mocker.patch.object(test_ur.dashboard_client, "DashboardClient", side_effect=ctl.make_dashboard)
+    mocker.patch("cellcal.drivers.ur.dashboard.read_greeting", side_effect=ctl.greeting)  # no socket either
 
     def make() -> RobotArm:
         arm = test_ur.URArm.from_config({"backend": "ur", "host": test_ur.HOST, "stale_after_s": 0.05})

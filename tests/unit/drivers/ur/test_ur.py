@@ -85,6 +85,11 @@ class FakeController:
         self.operation = 0
         self.control_flags: list[Any] = []
 
+    def greeting(self, host: str, port: int, timeout: float) -> str:
+        """The dashboard server's first line (the link's plain-socket look before ur_rtde connects)."""
+        assert host == HOST and timeout > 0
+        return "Connected: Universal Robots Dashboard Server"
+
     # -- receive side
     def make_receive(self, *args: Any, **kwargs: Any) -> Any:
         for sig in pybind_signatures(REAL_RECEIVE.__init__):
@@ -203,6 +208,8 @@ def vendor(mocker: Any, ctl: FakeController) -> FakeController:
     mocker.patch.object(rtde_receive, "RTDEReceiveInterface", side_effect=ctl.make_receive)
     mocker.patch.object(rtde_control, "RTDEControlInterface", side_effect=ctl.make_control)
     mocker.patch.object(dashboard_client, "DashboardClient", side_effect=ctl.make_dashboard)
+    # the controller's greeting, which the link reads with a plain socket before ur_rtde's client connects
+    mocker.patch("cellcal.drivers.ur.dashboard.read_greeting", side_effect=ctl.greeting)
     return ctl
 
 
@@ -464,7 +471,7 @@ def test_connects_in_protective_stop_and_clear_errors_retries_the_refused_unlock
 # ---------------------------------------------------------------- bounded controller values (issue #31)
 @pytest.mark.parametrize(("pose", "says"), [
     ([1e300, 0.0, 0.4, 0.0, 0.0, 0.0], "reported a position 1e+300 m from the base, beyond the"),
-    ([2.0, 0.0, 0.0, 0.0, 0.0, 0.0], "reported a position 2 m from the base, beyond the 1.2 m a UR5 can reach"),
+    ([2.0, 0.0, 0.0, 0.0, 0.0, 0.0], "reported a position 2 m from the base, beyond the 1.2 m a UR5"),
     ([0.3, 0.0, 0.4, 40.0, 0.0, 0.0], "reported a rotation vector of 40 rad, not a rotation"),
 ])
 def test_a_pose_no_ur_arm_can_have_is_a_protocol_error(robot: Any, vendor: FakeController, pose: list[float],
