@@ -68,6 +68,9 @@ def _vector(mount: Mapping[str, Any], key: str, size: int, source: str) -> list[
                           source=source, key=f"mount.{key}")
     bound = MOUNT_BOUNDS[key]
     if any(abs(v) > bound for v in numbers):
+        if key == "quaternion_xyzw":  # a component beyond 1 is the first sign, not the whole story
+            raise ConfigError(f"is not a unit quaternion (a component beyond +-1, got {json.dumps(value)[:80]})",
+                              source=source, key=f"mount.{key}")
         raise ConfigError(f"has a component beyond +-{bound:g} (got {json.dumps(value)[:80]}): not a camera mount",
                           source=source, key=f"mount.{key}")
     return [float(v) for v in numbers]

@@ -275,3 +275,35 @@ def test_axis_text_in_another_frame() -> None:
 
 def test_the_parameter_order_the_null_space_relies_on() -> None:
     assert PARAMETERS[ROT_X] == "mount_rot_x" and PARAMETERS[OFFSET] == "plane_offset"
+
+
+# ---------------------------------------------------------------------- condition, few rows, the height fix
+def test_the_condition_is_the_ratio_when_every_value_is_seen() -> None:
+    # the smallest singular value 20 is above the threshold of 10: seen, and the condition is 1000 / 20
+    report = analyse(diagonal([1000.0] * 8 + [20.0]), ALL, FACING_Z)
+    assert report.observable and report.condition == 50.0 and report.to_dict()["condition"] == 50.0
+
+
+def test_an_exact_zero_singular_value_gives_an_infinite_condition_without_a_division_warning() -> None:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a division by the zero would warn
+        report = analyse(diagonal([1000.0] * 8 + [0.0]), ALL, FACING_Z)
+    assert report.singular_values[-1] == 0.0 and report.condition == math.inf
+    assert report.to_dict()["condition"] is None  # JSON has no infinity
+
+
+def test_fewer_residuals_than_parameters_still_name_nine_singular_values() -> None:
+    report = analyse(diagonal([300.0, 200.0], rows=2) @ np.eye(2, 9), ALL, FACING_Z)
+    assert (report.rank, report.n_parameters) == (2, 9)
+    assert report.singular_values == (300.0, 200.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    assert not report.observable and report.unseen
+
+
+def test_a_plan_that_trades_only_the_mount_height_with_the_plane_height_is_told_to_give_the_plane_offset() -> None:
+    report = analyse(with_null([unit((MZ, 1.0), (OFFSET, 1.0))]), ALL, FACING_Z)
+    (only,) = report.unseen
+    assert only.what.endswith(" vs the plane's height")
+    assert report.message() == (f"cannot see 1 of 9 parameters: {only.what}; fix: {FIX_PLAN}"
+                                ", or give [handeye] given = [\"plane_offset\"]")
