@@ -63,6 +63,10 @@ class Device(ABC):
 
     backend_name: ClassVar[str] = ""
     Config: ClassVar[type[Any]]
+    #: The backend calls a native (C/C++) library that can crash the process: it runs that library
+    #: in a worker process (:class:`~cellcal.devices.isolation.NativeHost`) so a crash is a
+    #: :class:`~cellcal.devices.errors.NativeCrashError` (ADR 0038). Shown by ``cellcal devices``.
+    wraps_native_code: ClassVar[bool] = False
     default_timeout_s: float = 2.0
 
     def __init__(self) -> None:

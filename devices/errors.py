@@ -95,6 +95,23 @@ class DeviceConnectionError(DeviceError, builtins.ConnectionError):
     """Connecting failed, or an established link to a device was lost."""
 
 
+class NativeCrashError(DeviceConnectionError):
+    """The worker process running a backend's native library died (a segfault, an abort).
+
+    cellcal itself is unharmed; every connection the library held is gone with the process.
+
+    Args:
+        message: One line naming the backend, the call and how the process ended.
+        backend: The backend's name, e.g. ``"ur"``.
+        signal_name: The signal that ended the process (``"SIGSEGV"``), or "" for an exit status.
+    """
+
+    def __init__(self, message: str, *, backend: str = "", signal_name: str = ""):
+        super().__init__(message)
+        self.backend = backend
+        self.signal_name = signal_name
+
+
 class DeviceTimeoutError(DeviceError, builtins.TimeoutError):
     """A device I/O call did not complete within its timeout."""
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import sys
-import threading
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
@@ -29,14 +27,15 @@ from cellcal.devices.errors import (
     DeviceConnectionError,
     DeviceTimeoutError,
     MotionError,
+    NativeCrashError,
     ProtocolError,
     SafetyError,
     VendorError,
 )
 from cellcal.devices.geometry.vendor_poses import pose_from_ur, pose_to_ur
+from cellcal.devices.isolation import InlineHost, NativeHost
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
-from cellcal.drivers._blocking import BoundedCaller
 
 from . import availability, discover
 from .codes import (
@@ -51,15 +50,15 @@ from .codes import (
     name,
 )
 from .config import UR_MAX_TOOL_ACCELERATION_M_S2, UR_MAX_TOOL_SPEED_M_S, URConfig
-from .dashboard import DashboardLink
+from .dashboard import DashboardLink, stop_program
 from .fd_capture import captured_output
 from .limits import checked_mode, checked_tcp
 from .rtde_probe import probe_stream
 
 log = logging.getLogger(__name__)
 
-#: Bound on a ``disconnect()`` of a stale receive interface (ur_rtde joins its threads there), s.
-DISCONNECT_TIMEOUT_S = 2.0
+#: Seconds the dashboard gets to stop the program after ur_rtde's worker process died.
+CRASH_STOP_TIMEOUT_S = 1.0
 #: After a move, a pose short of the target is read again until this many newer receive
 #: packages arrived (or for at most SETTLE_S seconds).
 SETTLE_PACKAGES = 3
@@ -79,25 +78,6 @@ def _robot(receive: Any) -> int:
 def _runtime(receive: Any) -> int:
     """The receive interface's program state, checked against the documented set."""
     return checked_mode(receive.getRuntimeState(), RUNTIME_STATES, "getRuntimeState")
-
-
-def _quiet_disconnect(handle: Any) -> None:
-    with contextlib.suppress(Exception):
-        handle.disconnect()
-
-
-def _release(box: list[Any]) -> None:
-    """Disconnect the one ur_rtde object in ``box`` by dropping the last reference to it.
-
-    ur_rtde's destructors disconnect (joining their receive thread, ~0.5 s, holding the
-    GIL), and a ``disconnect()`` before them would cost that time twice; so
-    ``disconnect()`` is called only if something else still holds the object.
-    """
-    handle = box.pop()
-    with contextlib.suppress(Exception):
-        if sys.getrefcount(handle) > 2:  # beyond this name and getrefcount's own argument
-            handle.disconnect()
-    del handle
 
 
 class URArm(RobotArm):
@@ -154,16 +134,15 @@ class URArm(RobotArm):
         self._clock: Callable[[], float] = time.monotonic
         self._sleep: Callable[[float], None] = time.sleep
         self._probe: Callable[[str, float], float] = probe_stream
-        self._caller = BoundedCaller(f"ur {config.host}")
+        self._host: NativeHost | InlineHost = self._new_host()
+        self._crash_stop = ""
         self._rtde_control: Any = None
         self._rtde_receive: Any = None
         self._control: Any = None
         self._receive: Any = None
-        self._dash = DashboardLink(config.host, config.dashboard_port)
+        self._dash = DashboardLink(config.host, config.dashboard_port, load=self._load)
         self._last_ts: float | None = None
         self._last_change = 0.0
-        #: Stale receive interfaces, each with the thread disconnecting it; destroyed at close.
-        self._retired: list[tuple[Any, threading.Thread]] = []
         #: The controller turned a new connection away: treat every link to it as down.
         self._link_down = False
 
@@ -173,15 +152,46 @@ class URArm(RobotArm):
         return availability.unavailable_reason()
 
     # ------------------------------------------------------------ life cycle
-    def _connect(self, timeout: float) -> None:
+    def _new_host(self) -> NativeHost | InlineHost:
+        """Where ur_rtde runs: a worker process (``isolate = true``) or this process."""
+        name = f"ur {self.config.host}"
+        if not self.config.isolate:
+            return InlineHost(name, library="ur_rtde", backend="ur")
+        return NativeHost(name, library="ur_rtde", backend="ur", default_timeout_s=self.config.timeout_s,
+                          on_crash=self._stop_after_crash)
+
+    def _load(self, module: str) -> Any:
+        """Import one of ur_rtde's modules where ur_rtde runs (MissingDependencyError if it is not installed)."""
         try:
-            import rtde_control
-            import rtde_receive
+            return self._host.module(module)
         except ImportError:
             raise availability.missing_error() from None
-        self._rtde_control, self._rtde_receive = rtde_control, rtde_receive
+
+    def _stop_after_crash(self) -> str:
+        """ur_rtde's worker died: tell the arm to stop over the dashboard, a plain socket (never raises)."""
         try:
-            self._open_interfaces(self._clock() + timeout)
+            stop_program(self.config.host, self.config.dashboard_port, CRASH_STOP_TIMEOUT_S)
+        except CellcalError as exc:
+            self._crash_stop = f"the arm could not be told to stop ({exc})"
+        else:
+            self._crash_stop = f"the arm was told to stop (dashboard 'stop', port {self.config.dashboard_port})"
+        return self._crash_stop
+
+    def _connect(self, timeout: float) -> None:
+        deadline = self._clock() + timeout
+        if self.unavailable_reason() is not None:  # said here, before a worker is started for nothing
+            raise availability.missing_error()
+        # A plain-socket RTDE exchange first: one clear error for a refused port, an unreachable host or a
+        # silent stream, within the deadline (ur_rtde's constructors would hold the GIL for 2.5 s, and
+        # its dashboard client says "Timeout" for a refused port); no worker is started for nothing.
+        self._probe(self.config.host, self._remaining(deadline))
+        if self._host.isolated:
+            self._host = self._new_host()  # a fresh worker for every connection
+            self._crash_stop = ""
+        self._host.start(self._remaining(deadline))
+        self._rtde_control, self._rtde_receive = self._load("rtde_control"), self._load("rtde_receive")
+        try:
+            self._open_interfaces(deadline)
         except BaseException as exc:
             # The traceback's frames hold the ur_rtde objects: free them, so that close() (next, in
             # connect) destroys them once (~0.5 s each) instead of disconnecting and leaving them alive.
@@ -189,10 +199,6 @@ class URArm(RobotArm):
             raise
 
     def _open_interfaces(self, deadline: float) -> None:
-        # A plain-socket RTDE exchange first: one clear error for a refused port, an unreachable host or a
-        # silent stream, within the deadline (ur_rtde's constructors would hold the GIL for 2.5 s, and
-        # its dashboard client says "Timeout" for a refused port).
-        self._probe(self.config.host, self._remaining(deadline))
         if self.config.use_dashboard:
             self._dash.open(self._remaining(deadline), required=False)
             self._dash.require_remote_control()
@@ -208,18 +214,15 @@ class URArm(RobotArm):
                         self.config.host, self._not_ready_reason(self._receive))
 
     def _close(self) -> None:
-        end = time.monotonic() + DISCONNECT_TIMEOUT_S
-        for _handle, worker in self._retired:
-            worker.join(max(0.0, end - time.monotonic()))
-        boxes = [[h] for h in (self._control, self._receive, *(h for h, _w in self._retired)) if h is not None]
+        handles = [h for h in (self._control, self._receive) if h is not None]
         self._control = self._receive = None
-        self._retired = []
         self._last_ts = None
         self._link_down = False
         self._dash.close()
-        for box in boxes:
-            _release(box)
-        self._caller.join(1.0)
+        for handle in handles:  # freed in order; their destructors disconnect
+            self._host.drop(handle, disconnect=False)
+        del handles
+        self._host.close()
 
     def _info(self) -> DeviceInfo:
         return DeviceInfo(
@@ -281,6 +284,8 @@ class URArm(RobotArm):
             try:
                 receive = self._fresh_receive(deadline)
                 self._require_control_link("moveL")
+            except NativeCrashError:
+                raise  # the worker told the arm to stop on its way out; its message says so
             except (DeviceConnectionError, DeviceTimeoutError, ProtocolError) as exc:
                 raise MotionError(f"ur: contact lost during moveL ({exc}); the command was not sent again; "
                                   f"{self._stop_quietly()}") from None
@@ -437,8 +442,10 @@ class URArm(RobotArm):
             raise DeviceTimeoutError(f"ur {self.config.host}: no time left to {what}")
         try:
             # ur_rtde's constructors print their own lines from C++: to the debug log, not the terminal
-            with captured_output(f"ur {self.config.host}: {what}"):
-                return self._caller.call(fn, remaining, what, on_late=lambda h: h.disconnect())
+            quiet = captured_output(f"ur {self.config.host}: {what}") if not self._host.isolated \
+                else contextlib.nullcontext()  # a worker's own output goes to the debug log already
+            with quiet:
+                return self._host.bounded(fn, remaining, what, on_late=lambda h: h.disconnect())
         except RuntimeError as exc:  # ur_rtde reports constructor failures as RuntimeError
             text = str(exc)
             hint = " (switch the pendant to Remote Control)" if "remote control" in text.lower() else ""
@@ -457,10 +464,12 @@ class URArm(RobotArm):
         self._require_control_link(what)
         control = self._control
         remaining = min(self._remaining(deadline), self.config.timeout_s)
-        return self._caller.call(lambda: fn(control), remaining, what)
+        return self._host.bounded(lambda: fn(control), remaining, what)
 
     def _stop_quietly(self) -> str:
         """Tell the arm to stop, ignoring errors; says what happened, for messages."""
+        if self._crash_stop:  # ur_rtde's worker died and the dashboard was asked already
+            return self._crash_stop
         try:
             self._stop(self.config.timeout_s)
         except CellcalError as exc:
@@ -519,12 +528,10 @@ class URArm(RobotArm):
         log.warning("ur %s: %s; rebuilding the receive interface", self.config.host, why)
         old, self._receive = self._receive, None
         if old is not None:
-            # A stale interface can take ur_rtde's 2.5 s read timeout to disconnect: do it in the
-            # background (GIL released); its destructor runs at close.
-            worker = threading.Thread(target=_quiet_disconnect, args=(old,), daemon=True,
-                                      name=f"ur {self.config.host}: disconnect a stale receive interface")
-            worker.start()
-            self._retired.append((old, worker))
+            # A stale interface can take ur_rtde's 2.5 s read timeout to disconnect. In a worker it is
+            # handed to the worker's reaper, which alone holds it from then on; in-process it is
+            # disconnected here, on this thread. No other thread ever touches it.
+            self._host.drop(old)
         del old
         # A controller that streams sends its first package within a few ms: no need to wait out the deadline.
         probe_s = min(self._remaining(deadline), max(0.5, 4 * self.config.stale_after_s))

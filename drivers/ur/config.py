@@ -27,6 +27,8 @@ class URConfig:
         use_dashboard: Use the dashboard server (port 29999) for identity and recovery.
         dashboard_port: Dashboard server port.
         allow_power_on: Let :meth:`URArm.clear_errors` power the arm on and release brakes.
+        isolate: Run ur_rtde in a worker process, so a crash in it is an error and not the end of
+            cellcal (ADR 0038); ``false`` runs it in-process, for a debugger only.
     """
 
     host: str
@@ -44,6 +46,7 @@ class URConfig:
     use_dashboard: bool = True
     dashboard_port: int = field(default=29999, metadata={"gt": 0, "lt": 65536})
     allow_power_on: bool = False
+    isolate: bool = True
 
     def __post_init__(self) -> None:
         if not self.host.strip():

@@ -7,8 +7,10 @@ commands of ``URArm.clear_errors``. ``dashboard_client`` is imported only in :me
 from __future__ import annotations
 
 import contextlib
+import importlib
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 from cellcal.devices.errors import (
@@ -42,27 +44,54 @@ def read_greeting(host: str, port: int, timeout: float) -> str:
         ProtocolError: If :data:`MAX_LINE_BYTES` arrive without a line end.
     """
     deadline = time.monotonic() + timeout
-    received = bytearray()
     with open_port(host, port, timeout, "dashboard") as sock:
-        while b"\n" not in received:
-            if len(received) >= MAX_LINE_BYTES:
-                raise ProtocolError(f"ur {host}: the dashboard port {port} sent {len(received)} bytes without a "
-                                    "line end: not a UR dashboard server")
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise DeviceTimeoutError(f"ur {host}: no greeting line from the dashboard port {port} within "
-                                         f"{timeout:.3g} s")
-            sock.settimeout(left)
-            try:
-                chunk = sock.recv(MAX_LINE_BYTES - len(received))
-            except TimeoutError:
-                continue  # the deadline check above ends it
-            except OSError as exc:
-                raise DeviceConnectionError(f"ur {host}: dashboard port {port}: {exc.strerror or exc}") from None
-            if not chunk:
-                raise DeviceConnectionError(f"ur {host}: the dashboard port {port} closed before its greeting")
-            received += chunk
+        return _read_line(sock, host, port, deadline, "greeting line")
+
+
+def _read_line(sock: Any, host: str, port: int, deadline: float, what: str) -> str:
+    """One line from the dashboard port, at most :data:`MAX_LINE_BYTES`, before ``deadline`` (monotonic s)."""
+    received = bytearray()
+    while b"\n" not in received:
+        if len(received) >= MAX_LINE_BYTES:
+            raise ProtocolError(f"ur {host}: the dashboard port {port} sent {len(received)} bytes without a "
+                                "line end: not a UR dashboard server")
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise DeviceTimeoutError(f"ur {host}: no {what} from the dashboard port {port} within the deadline")
+        sock.settimeout(left)
+        try:
+            chunk = sock.recv(1)  # a byte at a time: what follows the line stays in the socket
+        except TimeoutError:
+            continue  # the deadline check above ends it
+        except OSError as exc:
+            raise DeviceConnectionError(f"ur {host}: dashboard port {port}: {exc.strerror or exc}") from None
+        if not chunk:
+            raise DeviceConnectionError(f"ur {host}: the dashboard port {port} closed before its {what}")
+        received += chunk
     return received.split(b"\n", 1)[0].decode("utf-8", "replace").strip()
+
+
+def stop_program(host: str, port: int, timeout: float) -> str:
+    """Send the dashboard's ``stop`` over a plain socket (no ur_rtde) and return its answer.
+
+    The channel left when ur_rtde's worker process has died: stopping the running program
+    (ur_rtde's control script) brings a moving arm to a stop.
+
+    Raises:
+        DeviceConnectionError / DeviceTimeoutError / ProtocolError: As :func:`read_greeting`.
+        VendorError: If the controller answers other than ``Stopped``.
+    """
+    deadline = time.monotonic() + timeout
+    with open_port(host, port, timeout, "dashboard") as sock:
+        _read_line(sock, host, port, deadline, "greeting line")
+        try:
+            sock.sendall(b"stop\n")
+        except OSError as exc:
+            raise DeviceConnectionError(f"ur {host}: dashboard port {port}: {exc.strerror or exc}") from None
+        answer = _read_line(sock, host, port, deadline, "answer to 'stop'")
+    if not answer.lower().startswith("stopped"):
+        raise VendorError("ur", 0, f"dashboard 'stop' answered {answer[:80]!r}")
+    return answer
 
 
 class DashboardLink:
@@ -77,9 +106,10 @@ class DashboardLink:
         identity: ``model``, ``serial`` and ``polyscope`` once opened.
     """
 
-    def __init__(self, host: str, port: int) -> None:
+    def __init__(self, host: str, port: int, *, load: Callable[[str], Any] = importlib.import_module) -> None:
         self.host = host
         self.port = port
+        self._load = load
         self.client: Any = None
         self.identity: dict[str, str] = {}
 
@@ -93,8 +123,8 @@ class DashboardLink:
         if self.client is not None and self.client.isConnected():
             return self.client
         try:
-            import dashboard_client
-        except ImportError:
+            dashboard_client = self._load("dashboard_client")
+        except (ImportError, MissingDependencyError):
             raise MissingDependencyError("ur_rtde (dashboard_client)", "ur") from None
         started = time.monotonic()
         try:  # a plain, bounded look at the greeting first (ur_rtde's own read has no bound)

@@ -87,7 +87,8 @@ def ur_factory(mocker: Any) -> Callable[[], RobotArm]:
     mocker.patch("cellcal.drivers.ur.dashboard.read_greeting", side_effect=ctl.greeting)  # no socket either
 
     def make() -> RobotArm:
-        arm = test_ur.URArm.from_config({"backend": "ur", "host": test_ur.HOST, "stale_after_s": 0.05})
+        arm = test_ur.URArm.from_config({"backend": "ur", "host": test_ur.HOST, "stale_after_s": 0.05,
+                                         "isolate": False})
         clock = test_ur.FakeClock()
         arm._clock, arm._sleep = clock, clock.sleep
         arm._probe = ctl.probe          # the connect's plain-socket stream probe: the fake answers, no socket

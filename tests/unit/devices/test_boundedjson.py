@@ -20,7 +20,8 @@ def test_depth_counts_brackets_outside_strings(text: str, depth: int) -> None:
 def test_the_bound_is_inclusive_and_the_parser_is_never_reached_beyond_it() -> None:
     at = "[" * MAX_DEPTH + "]" * MAX_DEPTH
     assert json_depth(loads(at).__repr__()) == MAX_DEPTH
-    with pytest.raises(JSONTooDeepError, match=f"nested {MAX_DEPTH + 1} levels deep, more than the {MAX_DEPTH} accepted"):
+    too_deep = f"nested {MAX_DEPTH + 1} levels deep, more than the {MAX_DEPTH} accepted"
+    with pytest.raises(JSONTooDeepError, match=too_deep):
         loads("[" + at + "]")
     # 100 000 levels: the plain parser raises RecursionError; the bounded one a ValueError
     with pytest.raises(ValueError, match="nested 100000 levels deep"):

@@ -215,7 +215,7 @@ def vendor(mocker: Any, ctl: FakeController) -> FakeController:
 
 @pytest.fixture
 def robot(vendor: FakeController) -> Any:
-    arm = URArm.from_config({"backend": "ur", "host": HOST, "stale_after_s": 0.05})
+    arm = URArm.from_config({"backend": "ur", "host": HOST, "stale_after_s": 0.05, "isolate": False})
     clock = FakeClock()
     arm._clock, arm._sleep, arm._probe = clock, clock.sleep, vendor.probe
     arm.connect(timeout=2.0)
@@ -345,7 +345,7 @@ def test_no_command_on_a_control_link_that_reports_itself_down(robot: URArm, ctl
 def test_remote_control_off_is_reported(vendor: FakeController, mocker: Any) -> None:
     mocker.patch.object(rtde_control, "RTDEControlInterface",
                         side_effect=RuntimeError("ur_rtde: Please enable remote control on the robot!"))
-    arm = URArm.from_config({"host": HOST})
+    arm = URArm.from_config({"host": HOST, "isolate": False})
     arm._probe = vendor.probe                            # connect asks the stream first
     with pytest.raises(DeviceConnectionError, match="Remote Control"):
         arm.connect(timeout=2.0)
@@ -364,9 +364,9 @@ def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeCon
         return c
 
     mocker.patch.object(rtde_control, "RTDEControlInterface", side_effect=slow_control)
-    arm = URArm.from_config({"host": HOST})
+    arm = URArm.from_config({"host": HOST, "isolate": False})
     arm._probe = vendor.probe                            # connect asks the stream first
-    arm._caller.join = lambda timeout: None               # close() must not wait for the worker here
+    arm._host.caller.join = lambda timeout: None          # close() must not wait for the worker here
     with pytest.raises(DeviceTimeoutError, match="did not finish within"):
         arm.connect(timeout=0.2)
     release.set()
@@ -378,7 +378,7 @@ def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeCon
 
 def test_missing_extra_names_it(mocker: Any) -> None:
     mocker.patch.dict(sys.modules, {"rtde_control": None})
-    arm = URArm.from_config({"host": HOST})            # constructing imports nothing
+    arm = URArm.from_config({"host": HOST, "isolate": False})            # constructing imports nothing
     with pytest.raises(MissingDependencyError, match=r"cellcal\[ur\]"):
         arm.connect(timeout=1.0)
 
@@ -434,7 +434,7 @@ def test_control_interface_opens_without_waiting_and_the_driver_starts_the_scrip
 
 def test_a_script_that_never_runs_is_a_connect_timeout(vendor: FakeController) -> None:
     vendor.robot, vendor.program = 5, False              # IDLE: programs cannot run...
-    arm = URArm.from_config({"host": HOST})
+    arm = URArm.from_config({"host": HOST, "isolate": False})
     arm._probe = vendor.probe                            # connect asks the stream first
     clock = FakeClock()
     arm._clock, arm._sleep = clock, clock.sleep
@@ -446,7 +446,7 @@ def test_a_script_that_never_runs_is_a_connect_timeout(vendor: FakeController) -
 
 def test_connects_in_protective_stop_and_clear_errors_retries_the_refused_unlock(vendor: FakeController) -> None:
     vendor.safety, vendor.program = 3, False             # a protective stop also stops the program
-    arm = URArm.from_config({"host": HOST})
+    arm = URArm.from_config({"host": HOST, "isolate": False})
     arm._probe = vendor.probe                            # connect asks the stream first
     clock = FakeClock()
     arm._clock, arm._sleep = clock, clock.sleep

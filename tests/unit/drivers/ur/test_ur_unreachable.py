@@ -61,8 +61,8 @@ def silent_host() -> Iterator[str]:
         yield host
 
 
-def _arm(host: str) -> URArm:
-    return URArm.from_config({"backend": "ur", "host": host, "timeout_s": 1.0})
+def _arm(host: str, *, isolate: bool = True) -> URArm:
+    return URArm.from_config({"backend": "ur", "host": host, "timeout_s": 1.0, "isolate": isolate})
 
 
 def test_a_closed_port_is_one_line_saying_refused(closed_host: str, capfd: pytest.CaptureFixture[str],
@@ -138,7 +138,7 @@ def test_ur_rtde_own_constructor_output_goes_to_the_debug_log(closed_host: str, 
                                                               caplog: pytest.LogCaptureFixture) -> None:
     import rtde_receive
 
-    arm = _arm(closed_host)
+    arm = _arm(closed_host, isolate=False)                  # in-process: the output capture of this process
     arm._rtde_receive = rtde_receive
     with caplog.at_level(logging.DEBUG, logger="cellcal.drivers.ur.fd_capture"), \
             pytest.raises(DeviceConnectionError, match=f"ur {closed_host}: cannot open the RTDE receive interface"):
