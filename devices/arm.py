@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 
 from .arrival import ArrivalTolerance, arrival_problem, format_pose
 from .base import Device
-from .errors import CellcalError, MotionError
+from .errors import CellcalError, MotionError, NativeCrashError
 from .pose import Pose
 from .types import ArmStatus
 
@@ -70,6 +70,8 @@ class RobotArm(Device):
         tol = self.arrival_tolerance
         try:
             readings = [self._get_pose(self.default_timeout_s) for _ in range(tol.reads)]
+        except NativeCrashError:
+            raise  # the backend's library died; its message says what became of the arm
         except CellcalError as exc:
             problem = f"the pose could not be read back ({exc})"
         else:

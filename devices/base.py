@@ -65,7 +65,7 @@ class Device(ABC):
     Config: ClassVar[type[Any]]
     #: The backend calls a native (C/C++) library that can crash the process: it runs that library
     #: in a worker process (:class:`~cellcal.devices.isolation.NativeHost`) so a crash is a
-    #: :class:`~cellcal.devices.errors.NativeCrashError` (ADR 0038). Shown by ``cellcal devices``.
+    #: :class:`~cellcal.devices.errors.NativeCrashError` (ADR 0038).
     wraps_native_code: ClassVar[bool] = False
     default_timeout_s: float = 2.0
 

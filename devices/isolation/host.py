@@ -280,6 +280,6 @@ class NativeHost:
                    f"cellcal is unaffected, the device's connections are gone"
                    f"{'; ' + stopped if stopped else ''}")
         self._dead = NativeCrashError(message, backend=self.backend, signal_name=sig_name)
-        log.error("%s", message)
+        log.debug("%s", message)  # the exception carries it to the user, once
         raise NativeCrashError(message, backend=self.backend, signal_name=sig_name)
 

@@ -111,6 +111,8 @@ class URArm(RobotArm):
     """
 
     backend_name: ClassVar[str] = "ur"
+    #: ur_rtde is C++: it runs in a worker process unless ``isolate = false`` (ADR 0038).
+    wraps_native_code: ClassVar[bool] = True
     Config: ClassVar[type[URConfig]] = URConfig
 
     # ------------------------------------------------------------ network discovery

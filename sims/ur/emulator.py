@@ -53,8 +53,8 @@ class UREmulator:
 
     Fault injection: :meth:`safety_stop` (protective or emergency stop, now or part-way
     through the next motion), :meth:`refuse_script` (uploaded scripts never start),
-    :meth:`freeze_stream` (RTDE data stops, sockets stay open), :meth:`drop_connections`
-    (every link cut, new ones optionally reset for a while).
+    :meth:`freeze_stream` (RTDE data stops, sockets stay open), :meth:`send_raw_rtde` (malformed
+    bytes), :meth:`drop_connections` (every link cut, new ones optionally reset for a while).
 
     Args:
         arm: The simulated arm (connected).
@@ -186,6 +186,10 @@ class UREmulator:
     def freeze_stream(self, target: str = "all", *, new_sessions: bool = False) -> int:
         """Stop RTDE data packages to ``"receive"``, ``"control"`` or ``"all"`` sessions; sockets stay open."""
         return self.rtde.freeze(target, new_sessions=new_sessions)
+
+    def send_raw_rtde(self, data_hex: str, target: str = "receive") -> int:
+        """Send the bytes ``data_hex`` (hex text) to the ``target`` RTDE sessions between two messages."""
+        return self.rtde.send_raw(bytes.fromhex(data_hex), target)
 
     def unfreeze_stream(self) -> None:
         """Resume every RTDE stream."""

@@ -44,6 +44,7 @@ def commands(emulator: UREmulator) -> dict[str, Callable[..., Any]]:
         "refuse_script": emulator.refuse_script,
         "freeze_stream": emulator.freeze_stream,
         "unfreeze_stream": emulator.unfreeze_stream,
+        "send_raw_rtde": emulator.send_raw_rtde,
         "drop_connections": emulator.drop_connections,
         "accept_connections": emulator.accept_connections,
         "set_remote_control": emulator.set_remote_control,

@@ -54,6 +54,8 @@ class RTDESession:
         self.outputs: dict[int, _Output] = {}
         self.inputs: dict[int, w.Recipe] = {}
         self.packages_sent = 0
+        #: Raw bytes to send between two messages (fault injection), by this session's own thread.
+        self.pending_raw: list[bytes] = []
         self._handlers: dict[int, Callable[[bytes], None]] = {
             w.REQUEST_PROTOCOL_VERSION: self._on_protocol, w.GET_URCONTROL_VERSION: self._on_version,
             w.CONTROL_PACKAGE_SETUP_OUTPUTS: self._on_outputs, w.CONTROL_PACKAGE_SETUP_INPUTS: self._on_inputs,
@@ -100,6 +102,8 @@ class RTDESession:
 
     def _send_due(self) -> None:
         """Send each output recipe that is due: at most one package per controller cycle, no catch-up bursts."""
+        while self.pending_raw:  # injected bytes go out whole, between two messages
+            self.conn.send(self.pending_raw.pop(0))
         if not self.started or self.frozen:
             return
         now = time.monotonic()
@@ -236,6 +240,19 @@ class RTDEServer:
         for session in hit:
             session.frozen = True
         self._freeze_new = target if new_sessions else None
+        return len(hit)
+
+    def send_raw(self, data: bytes, target: str = "receive") -> int:
+        """Send ``data`` as is to the matching sessions, between two of their messages; returns how many.
+
+        Fault injection: a malformed message (a size field smaller than its header, say) as a
+        broken or hostile controller would send it.
+        """
+        if target not in FREEZE_TARGETS:
+            raise ValueError(f"target must be one of {FREEZE_TARGETS}, got {target!r}")
+        hit = [s for s in self.sessions if target in ("all", s.kind)]
+        for session in hit:
+            session.pending_raw.append(bytes(data))
         return len(hit)
 
     def unfreeze(self) -> None:
