@@ -10,6 +10,7 @@ the dashboard's plain socket, and the driver connects again with a new worker.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import struct
@@ -22,7 +23,7 @@ import numpy as np
 import pytest
 from ur_rig import HOME, wait_until
 
-from cellcal.devices.errors import DeviceConnectionError, NativeCrashError
+from cellcal.devices.errors import CellcalError, DeviceConnectionError, NativeCrashError
 from cellcal.devices.pose import Pose
 from cellcal.drivers.ur.arm import URArm
 from cellcal.sims.ur.process import UREmulatorProcess
@@ -99,3 +100,27 @@ def test_an_rtde_size_field_smaller_than_its_header_aborts_the_worker_not_cellca
             time.sleep(0.01)
     assert info.value.signal_name == "SIGABRT" and "(SIGABRT, a crash in native code)" in str(info.value)
     assert _pid_gone(pid)
+
+
+@pytest.mark.parametrize("run", range(4))
+def test_a_controller_resetting_every_link_after_a_move_then_accepting_again_never_takes_cellcal_down(
+        emu: UREmulatorProcess, arm: URArm, run: int) -> None:
+    # the case that segfaulted 4 runs of 4 while a background thread disconnected the stale receive interface
+    emu.call("set_time_scale", time_scale=1.0)
+    before = emu.snapshot()["moves_started"]
+    start = arm.get_pose()
+    target = Pose(start.rotation, start.translation + np.array([0.0, -0.1, 0.0]))
+    timer = threading.Timer(0.05, lambda: emu.call("drop_connections", refuse_s=0.0))
+    timer.start()
+    try:
+        with pytest.raises(CellcalError):       # typed: a lost contact, a crash of the worker: never ours
+            arm.move_linear(target, speed=0.1, acceleration=1.0, timeout=3.0)
+    finally:
+        timer.join()
+    assert emu.snapshot()["moves_started"] - before <= 1          # never a second move
+    for _ in range(3):                                             # later calls: typed errors or answers
+        with contextlib.suppress(CellcalError):
+            arm.get_pose(timeout=1.0)
+    arm.close()
+    arm.connect(timeout=10.0)                                      # and the cell can go on
+    assert arm.get_pose().distance_to(start) < 0.2
