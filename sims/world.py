@@ -25,6 +25,7 @@ from cellcal.devices.scene_view import SceneSnapshot, publish_scene_view
 from .charuco import CharucoConfig
 from .scene import DEFAULT_REFLECTIVITY, MAX_REFLECTIVITY, Box, Scene
 from .tof import ArtefactsConfig
+from .work import EventConfig, WorkConfig, WorkPlan
 
 #: Key of the shared world in ``BackendContext.shared``.
 SHARED_KEY = "sim.world"
@@ -97,6 +98,10 @@ class SimConfig:
         default=(180.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0,
                                              "doc": "flange orientation at start (tool pointing down), degrees"})
     seed: int | None = field(default=None, metadata={"ge": 0, "doc": "seed of the world; default [cell] seed"})
+    work: WorkConfig | None = field(default=None, metadata={
+        "doc": "the arm's own work program (moves on its own from the start; cellcal track reads it)"})
+    events: list[EventConfig] = field(default_factory=list, metadata={
+        "doc": "changes of the true mount or plane at given simulated times"})
 
     def __post_init__(self) -> None:
         if float(np.linalg.norm(self.plane_normal)) < 1e-9:
@@ -195,16 +200,29 @@ class SimArmModel:
         self._sim_start = 0.0
         self._wall_start = 0.0
         self._motion_t = 0.0
+        self._work: WorkPlan | None = None
 
     @property
     def clock(self) -> SimClock:
         """The world's clock."""
         return self._clock
 
+    def start_work(self, plan: WorkPlan) -> None:
+        """Follow ``plan`` on the simulated clock from now on (the arm's own program; ``[sim.work]``)."""
+        with self.lock:
+            self._work = plan
+            self._update()
+
+    @property
+    def working(self) -> bool:
+        """Whether the arm follows its own work plan (a commanded motion ends it)."""
+        return self._work is not None
+
     def start_motion(self, motion: Motion, time_scale: float) -> None:
-        """Start ``motion`` now (replacing any motion under way at its current pose)."""
+        """Start ``motion`` now (replacing any motion under way at its current pose; a work plan ends)."""
         with self.lock:
             self._update()
+            self._work = None
             self._motion = motion
             self._time_scale = max(0.0, float(time_scale))
             self._sim_start = self._clock.elapsed_s
@@ -213,6 +231,9 @@ class SimArmModel:
             self._update()
 
     def _update(self) -> None:
+        if self._work is not None:  # the arm's own program: where it is at the clock's time
+            self._pose = self._work.pose_at(self._clock.elapsed_s)
+            return
         m = self._motion
         if m is None:
             return
@@ -293,6 +314,8 @@ class SimWorld:
         self.artefacts = artefacts or ArtefactsConfig()
         #: A ChArUco board on the plane (``[sim.charuco]``), or None.
         self.charuco: CharucoConfig | None = None
+        #: Changes of the truth still to come (``[[sim.events]]``), earliest first.
+        self.events: list[EventConfig] = []
 
     @classmethod
     def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
@@ -301,11 +324,28 @@ class SimWorld:
         world = cls(config.scene(), m.pose(), config.initial_flange_pose(),
                     seed if config.seed is None else config.seed, artefacts=config.artefacts)
         world.charuco = config.charuco
+        world.events = sorted(config.events, key=lambda e: e.at_s)
+        if config.work is not None:
+            world.arm.start_work(WorkPlan(config.initial_flange_pose(), config.work))
         return world
 
     def camera_pose(self) -> Pose:
         """True camera pose in the base frame, ``T_base_camera = T_base_flange @ T_flange_camera``."""
+        self.apply_events()
         return self.arm.flange_pose() @ self.mount
+
+    def apply_events(self) -> None:
+        """Make every ``[[sim.events]]`` change whose time has come (called before each frame is rendered)."""
+        now = self.clock.elapsed_s
+        while self.events and self.events[0].at_s <= now:
+            event = self.events.pop(0)
+            mount = event.mount()
+            if mount is not None:
+                self.mount = mount
+            if event.plane_point_m is not None and event.plane_normal is not None:
+                s = self.scene
+                self.scene = Scene(np.asarray(event.plane_point_m, dtype=np.float64),
+                                   np.asarray(event.plane_normal, dtype=np.float64), s.boxes, s.plane_reflectivity)
 
     def view_from_camera(self) -> SceneSnapshot:
         """The plane and boxes in the true camera frame now (:class:`~cellcal.devices.scene_view.SceneView`)."""

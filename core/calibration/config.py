@@ -425,6 +425,8 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
 
 #: Schema prefix of the documents ``[mount] from_handeye`` reads (``cellcal handeye``'s output).
 HANDEYE_SCHEMA_PREFIX = "cellcal.handeye/"
+#: Every schema whose mount ``from_handeye`` takes: a hand-eye result, a tracked calibration (``track --apply``).
+MOUNT_SCHEMA_PREFIXES = (HANDEYE_SCHEMA_PREFIX, "cellcal.track-calibration/")
 
 
 def _mount_from_handeye(mount: MountSection, table: Mapping[str, Any] | None, source: str) -> MountSection:
@@ -448,10 +450,12 @@ def _mount_from_handeye(mount: MountSection, table: Mapping[str, Any] | None, so
         estimate, schema = data["mount"], data["schema"]
         values = {"translation_m": estimate["translation_m"], "rpy_deg": estimate["rpy_deg"]}
     except (ValueError, KeyError, TypeError):
-        raise ConfigError("not a handeye.json of 'cellcal handeye' (no mount.translation_m / mount.rpy_deg)",
+        raise ConfigError("not a handeye.json of 'cellcal handeye' nor a calibration.json of 'cellcal track --apply' "
+                          "(no mount.translation_m / mount.rpy_deg)",
                           source=where) from None
-    if not str(schema).startswith(HANDEYE_SCHEMA_PREFIX):
-        raise ConfigError(f"schema {schema!r} is not {HANDEYE_SCHEMA_PREFIX}N", source=where)
+    if not str(schema).startswith(MOUNT_SCHEMA_PREFIXES):
+        raise ConfigError(f"schema {schema!r} is not {' or '.join(p + 'N' for p in MOUNT_SCHEMA_PREFIXES)}",
+                          source=where)
     parsed = parse_section(MountSection, values, where="mount", source=where)
     return dataclasses.replace(parsed, from_handeye=mount.from_handeye)
 

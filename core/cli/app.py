@@ -27,7 +27,8 @@ from cellcal.devices.errors import (
 __all__ = ["SUBCOMMANDS", "build_parser", "exit_status", "run_command"]
 
 #: Subcommand modules, in the order they appear in ``cellcal --help``.
-SUBCOMMANDS = ("calibrate", "handeye", "board", "monitor", "report", "study", "record", "export", "devices", "paper")
+SUBCOMMANDS = ("calibrate", "handeye", "board", "monitor", "track", "report", "study", "record", "export", "devices",
+               "paper")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -169,14 +169,9 @@ def _run_charuco(args: argparse.Namespace, config: Any, poses: list[Any], report
 
 def _recorder(stack: contextlib.ExitStack, args: argparse.Namespace, config: Any) -> Any:
     """A session recorder writing ``--record``, entered on ``stack`` (the file locked for the run)."""
-    from cellcal.core.calibration.config import read_config_text
-    from cellcal.core.calibration.outlock import OutputLock
-    from cellcal.devices.recording import SessionRecorder
+    from cellcal.core.cli.record import open_recorder
 
-    stack.enter_context(OutputLock.for_file(args.record))
-    return stack.enter_context(SessionRecorder(args.record, config_document=config.document,
-                                               config_source=config.source,
-                                               config_text=read_config_text(args.config)[0]))
+    return open_recorder(stack, args.record, config, args.config)
 
 
 def _run(args: argparse.Namespace, calibrator: Any, n_poses: int) -> dict[str, Any] | int:

@@ -181,3 +181,18 @@ def run(args: argparse.Namespace) -> int:
               f"re-run with: cellcal calibrate --replay {out}")
     print(f"recording written to {out}")
     return EXIT_OK
+
+
+def open_recorder(stack: contextlib.ExitStack, path: str, config: CellConfig, config_path: str | None
+                  ) -> SessionRecorder:
+    """A session recorder writing ``path`` (``--record`` of calibrate's siblings), entered on ``stack``.
+
+    The file is locked for the run; the configuration's text is recorded as it was read.
+    """
+    from cellcal.core.calibration.config import read_config_text
+    from cellcal.core.calibration.outlock import OutputLock
+    from cellcal.devices.recording import SessionRecorder
+
+    stack.enter_context(OutputLock.for_file(path))
+    return stack.enter_context(SessionRecorder(path, config_document=config.document, config_source=config.source,
+                                               config_text=read_config_text(config_path)[0]))

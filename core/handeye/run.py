@@ -43,15 +43,19 @@ def plane_config(config: CellConfig) -> CellConfig:
     return dataclasses.replace(config, plan=dataclasses.replace(config.plan, methods=("full_frame",)))
 
 
-def reference_plane(config: CellConfig) -> Plane:
+def reference_plane(config: CellConfig, command: str = "cellcal handeye") -> Plane:
     """The configured base-frame plane (``[reference]``), the estimate's start.
+
+    Args:
+        config: The cell.
+        command: Who needs it, for the message.
 
     Raises:
         ConfigError: Without a ``[reference]`` table.
     """
     ref = config.reference
     if ref is None:
-        raise ConfigError("cellcal handeye needs a [reference] plane (the start of the plane estimate)",
+        raise ConfigError(f"{command} needs a [reference] plane (the start of the plane estimate)",
                           source=config.source, key="reference")
     return Plane.from_point_normal(ref.plane_point_m, ref.plane_normal)
 

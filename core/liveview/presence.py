@@ -58,19 +58,20 @@ def linger(view: LiveView, seconds: float) -> None:
 
 
 @contextmanager
-def live_view_session(port: int | None, *, drift: bool = False, wait_s: float | None = None,
+def live_view_session(port: int | None, *, drift: bool = False, track: bool = False, wait_s: float | None = None,
                       ) -> Iterator[LiveView | None]:
     """The live view of ``--viz-port`` for the block (None: no live view), stopped when the block ends.
 
     Args:
         port: ``--viz-port``, or None.
         drift: Also advertise the drift channel (the monitor).
+        track: Also advertise the track channel (``cellcal track``).
         wait_s: ``--viz-wait``: first wait (at most this long) for a viewer to subscribe.
 
     Raises:
         ConfigError: If foxglove-sdk is not installed or the port cannot be listened on.
     """
-    view = open_live_view(port, drift=drift)
+    view = open_live_view(port, drift=drift, track=track)
     if view is None:
         yield None
         return

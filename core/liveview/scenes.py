@@ -1,8 +1,9 @@
-"""The scenes of a calibration pose and of a monitored frame: core results in the viewers' plain form."""
+"""The scenes of a calibration pose, a monitored frame and a tracked one: core results in the viewers' plain form."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.recording.scene import CAMERA_FRAME_ID, Scene
 from cellcal.devices.types import Frame
 
-__all__ = ["calibration_scenes", "monitor_scene", "pose_plane"]
+__all__ = ["calibration_scenes", "monitor_scene", "pose_plane", "track_scene"]
 
 
 def pose_plane(record: PoseRecord, result: FullFrameResult | None) -> Plane | None:
@@ -46,6 +47,22 @@ def calibration_scenes(record: PoseRecord, frames: Sequence[Frame], result: Full
                                                            float(plane.offset_m))
     return [Scene(frame, base_flange=record.reported, flange_camera=mount, plane_normal=normal,
                   plane_offset_m=offset, inlier_mask=_mask(result, frame)) for frame in frames]
+
+
+def track_scene(frame: Frame, result: FullFrameResult, flange: Pose, mount: Pose, values: Mapping[str, Any]
+                ) -> Scene:
+    """The scene of one tracked frame: its cloud and plane at the read flange pose, the tracked mount.
+
+    Args:
+        frame: The frame.
+        result: Its plane fit (camera frame).
+        flange: ``T_base_flange`` paired with the frame.
+        mount: The tracked ``T_flange_camera`` after the frame.
+        values: The ``cellcal.Track`` message's values (outcome, chi2, mount, event).
+    """
+    return Scene(frame, base_flange=flange, flange_camera=mount,
+                 plane_normal=np.asarray(result.plane.normal, dtype=np.float64),
+                 plane_offset_m=float(result.plane.offset_m), inlier_mask=_mask(result, frame), track=values)
 
 
 def monitor_scene(frame: Frame, result: FullFrameResult, status: MonitorStatus, *,

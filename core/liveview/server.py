@@ -17,7 +17,7 @@ from cellcal.devices.errors import ConfigError
 from cellcal.devices.recording.codec import dumps, seconds_to_ns
 from cellcal.devices.recording.foxglove import scene_messages
 from cellcal.devices.recording.scene import Scene
-from cellcal.devices.recording.schema import DRIFT_CHANNELS, SCENE_CHANNELS, SCENE_SCHEMAS
+from cellcal.devices.recording.schema import DRIFT_CHANNELS, SCENE_CHANNELS, SCENE_SCHEMAS, TRACK_CHANNELS
 
 if TYPE_CHECKING:
     from cellcal.core.calibration.calibrator import PoseRecord
@@ -75,7 +75,8 @@ class LiveView:
     Channels (JSON, schemas by Foxglove's names): ``/camera/points`` (``foxglove.PointCloud``,
     inliers green, outliers red), ``/cellcal/plane`` (``foxglove.SceneUpdate``: the fitted
     plane and its normal), ``/tf`` (``foxglove.FrameTransforms``: base, flange, camera) and,
-    with ``drift=True``, ``/cellcal/drift`` (``cellcal.Drift``). A message reaches the clients
+    with ``drift=True``, ``/cellcal/drift`` (``cellcal.Drift``), with ``track=True`` ``/cellcal/track``
+    (``cellcal.Track``). A message reaches the clients
     subscribed at the time it is published; the last scene of each camera is kept, so
     :meth:`republish` can show it to a client that subscribes later (ADR 0035).
 
@@ -88,16 +89,17 @@ class LiveView:
     Args:
         port: TCP port (0: any free port; see :attr:`port`).
         drift: Also advertise the drift channel (the monitor).
+        track: Also advertise the track channel (``cellcal track``).
 
     Raises:
         ConfigError: If foxglove-sdk is not installed or the port cannot be listened on.
     """
 
-    def __init__(self, port: int, *, drift: bool = False) -> None:
+    def __init__(self, port: int, *, drift: bool = False, track: bool = False) -> None:
         foxglove = import_foxglove()
         route_sdk_logging()
         self._context = foxglove.Context()
-        topics = {**SCENE_CHANNELS, **(DRIFT_CHANNELS if drift else {})}
+        topics = {**SCENE_CHANNELS, **(DRIFT_CHANNELS if drift else {}), **(TRACK_CHANNELS if track else {})}
         self._subscriptions = _Subscriptions()
         self._last: dict[str, Scene] = {}
         self._channels = {topic: foxglove.Channel(topic, schema=foxglove.Schema(
@@ -214,7 +216,7 @@ def _wait_until_released(port: int, deadline: float) -> None:
         time.sleep(0.002)
 
 
-def open_live_view(port: int | None, *, drift: bool = False) -> LiveView | None:
+def open_live_view(port: int | None, *, drift: bool = False, track: bool = False) -> LiveView | None:
     """Start the live view of ``--viz-port`` (None: no live view) and say on stderr where to connect.
 
     Raises:
@@ -222,7 +224,7 @@ def open_live_view(port: int | None, *, drift: bool = False) -> LiveView | None:
     """
     if port is None:
         return None
-    view = LiveView(port, drift=drift)
+    view = LiveView(port, drift=drift, track=track)
     print(f"live view: {view.url} (in Foxglove: Open connection, Foxglove WebSocket, this URL)",
           file=sys.stderr, flush=True)
     return view

@@ -234,6 +234,9 @@ class Tracker:
         self._nis_sum = np.zeros(3)
         self._normals: deque[FloatArray] = deque(maxlen=s.normals_kept)  # plane normals in the flange frame
         self._events: list[ChangeEvent] = []
+        #: The estimate before the last classified change and its kind: its size is re-measured as the
+        #: frames after it show more (the first fit after a change sees one or two poses only).
+        self._before_change: tuple[FloatArray, str] | None = None
         self._seen_before: BoolArray | None = None  # parameters seen when the open change was detected
         self.frames_used = 0
 
@@ -333,6 +336,9 @@ class Tracker:
         self._x = x
         self._info = self._prior_info + j2.T @ j2
         self._parts = self._prior_parts + _split(jac)
+        if self._before_change is not None and self._events and self._after is None:
+            old, kind = self._before_change  # the size of the last change, as the estimate now sees it
+            self._events[-1] = replace(self._events[-1], size=self._size(old, x, kind))
 
     def _remember_normal(self, obs: PlaneObservation) -> None:
         """Keep the plane normal in the flange frame when it differs from the last kept one."""
@@ -449,6 +455,7 @@ class Tracker:
         self._recent.clear()
         event = replace(self._events[-1], kind=kind, size=self._size(old_x, self._x, kind))
         self._events[-1] = event
+        self._before_change = (old_x, kind)
         resolved = self._check_resolved(t_s)
         return resolved or event
 

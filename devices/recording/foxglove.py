@@ -34,7 +34,7 @@ from .scene import (
     packed_points,
     plane_patch,
 )
-from .schema import TOPIC_DRIFT, TOPIC_PLANE, TOPIC_POINTS, TOPIC_TF
+from .schema import TOPIC_DRIFT, TOPIC_PLANE, TOPIC_POINTS, TOPIC_TF, TOPIC_TRACK
 
 #: ``foxglove.NumericType`` values used in point-cloud fields.
 UINT8, FLOAT32 = 1, 7
@@ -150,4 +150,6 @@ def scene_messages(scene: Scene) -> dict[str, dict[str, Any]]:
         del out[TOPIC_TF]
     if scene.drift is not None:
         out[TOPIC_DRIFT] = drift(scene)
+    if scene.track is not None:
+        out[TOPIC_TRACK] = {"timestamp": stamp(scene.timestamp), "frame_id": scene.camera_frame_id, **scene.track}
     return out

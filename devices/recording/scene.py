@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +53,7 @@ class Scene:
         plane_offset_m: Its offset: ``normal · x + offset_m = 0`` on the plane, metres.
         inlier_mask: (H, W) bool, pixels the fit kept as inliers (None: not known).
         drift: Drift values of a monitored camera (names with SI units), or None.
+        track: ``cellcal track``'s values for the frame (``cellcal.Track`` without time and frame id), or None.
         camera_frame_id: Frame id of the camera (distinct per camera in a multi-camera monitor).
     """
 
@@ -62,6 +64,7 @@ class Scene:
     plane_offset_m: float | None = None
     inlier_mask: NDArray[np.bool_] | None = None
     drift: Mapping[str, float | str | None] | None = field(default=None)
+    track: Mapping[str, Any] | None = field(default=None)
     camera_frame_id: str = CAMERA_FRAME_ID
 
     @property

@@ -138,6 +138,7 @@ TOPIC_POINTS = "/camera/points"
 TOPIC_PLANE = "/cellcal/plane"
 TOPIC_TF = "/tf"
 TOPIC_DRIFT = "/cellcal/drift"
+TOPIC_TRACK = "/cellcal/track"
 
 _POSE = {"type": "object", "properties": {
     "position": _XYZ, "orientation": {"type": "object", "properties": {k: {"type": "number"} for k in "xyzw"}}}}
@@ -181,6 +182,16 @@ SCENE_SCHEMAS: dict[str, dict[str, Any]] = {
                        "height_threshold_m": {"type": ["number", "null"]},
                        "tilt_x_rad": _NUM, "tilt_y_rad": _NUM, "height_m": _NUM},
     },
+    "cellcal.Track": {
+        "title": "cellcal.Track", "type": "object",
+        "description": "cellcal track: one frame's outcome, the tracked mount (flange frame, metres, degrees) and "
+                       "the change event of that frame, if any",
+        "properties": {"timestamp": _TIME, "frame_id": {"type": "string"}, "t_s": _NUM,
+                       "outcome": {"type": "string"}, "chi2": {"type": ["number", "null"]},
+                       "mount_translation_m": _XYZ, "mount_rpy_deg": _XYZ,
+                       "change_open": {"type": "boolean"},
+                       "event": {"type": ["object", "null"]}},
+    },
 }
 #: Scene topics of a recording (registered when the first scene is logged) and of the live view.
 SCENE_CHANNELS: dict[str, str] = {
@@ -190,6 +201,8 @@ SCENE_CHANNELS: dict[str, str] = {
 }
 #: What the live view of a monitor adds: the drift values.
 DRIFT_CHANNELS: dict[str, str] = {TOPIC_DRIFT: "cellcal.Drift"}
+#: What the live view of ``cellcal track`` adds: each frame's outcome, the mount and the change events.
+TRACK_CHANNELS: dict[str, str] = {TOPIC_TRACK: "cellcal.Track"}
 
 
 def import_mcap() -> tuple[Any, Any]:

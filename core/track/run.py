@@ -1,0 +1,288 @@
+"""``cellcal track``'s loop: read the arm (never move it), pair each frame, fit, feed the tracker, write.
+
+Design: docs/adr/0041-track-command.md.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from cellcal.core.calibration.config import CellConfig
+from cellcal.core.handeye.model import PlaneObservation
+from cellcal.core.handeye.run import reference_plane
+from cellcal.core.methods.fullframe import FullFrameResult, check_gates, fit_full_frame
+from cellcal.core.track.decimate import decimated
+from cellcal.core.track.estimator import Tracker, TrackSettings, TrackState, TrackStep
+from cellcal.core.track.pairing import PoseHistory, Skip
+from cellcal.core.track.result import FRAMES_FILENAME, frame_row, track_document, write_track_json
+from cellcal.devices.arm import RobotArm
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.errors import CalibrationError, CalibrationQualityError, SafetyError
+from cellcal.devices.forwarding import ForwardingArm, ForwardingCamera
+from cellcal.devices.jsonsafe import json_safe
+from cellcal.devices.pose import Pose
+from cellcal.devices.types import Frame
+from cellcal.devices.version import cellcal_version
+
+#: A frame stamped more than this outside the arm reads around it is on another clock: the reads' midpoint is used, s.
+CLOCK_MISMATCH_S = 0.5
+#: Rows written to ``track.jsonl`` between flushes.
+FLUSH_EVERY = 30
+
+StepCallback = Callable[["TrackProgress"], None]
+
+
+@dataclass
+class TrackProgress:
+    """What one frame did, for a printer or a live view.
+
+    Attributes:
+        index: Frame number from 0.
+        t_s: Frame time since the first frame, s.
+        outcome: ``"accepted"``, ``"held out"``, ``"skipped: <reason>"``, ``"refused: <gate>"``, ``"no plane"``.
+        step: The tracker's step for fitted frames, else None.
+        flange: The frame's flange pose (paired), or None.
+        fit: The plane fit, or None.
+        frame: The frame (for a live view), or None.
+    """
+
+    index: int
+    t_s: float
+    outcome: str
+    step: TrackStep | None = None
+    flange: Pose | None = None
+    fit: FullFrameResult | None = None
+    frame: Frame | None = None
+
+
+@dataclass
+class TrackOutcome:
+    """The end of a run: the ``track.json`` document and how the run ended."""
+
+    document: dict[str, Any]
+    state: TrackState
+    counters: dict[str, int] = field(default_factory=dict)
+    interrupted: bool = False
+
+
+def track_settings(config: CellConfig) -> TrackSettings:
+    """The tracker's settings: the arm's read-back noise from ``[handeye]``, the rest as documented."""
+    he = config.handeye
+    return TrackSettings(arm_translation_sigma_m=he.arm_translation_sigma_m,
+                         arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence)
+
+
+def observation(fit: FullFrameResult, flange: Pose) -> PlaneObservation:
+    """The tracker's observation of a plane fit (camera frame) made at ``flange`` (base frame)."""
+    cov = np.zeros((4, 4))
+    cov[:3, :3] = fit.normal_covariance                     # the unit normal's covariance (tangent)
+    cov[3, 3] = fit.offset_sigma_m ** 2                     # the offset's variance, m^2
+    cov[:3, 3] = cov[3, :3] = fit.normal_offset_covariance  # their correlation
+    return PlaneObservation(flange, np.asarray(fit.plane.normal, dtype=np.float64), float(fit.plane.offset_m), cov)
+
+
+class ReadOnlyArm(ForwardingArm):
+    """The cell's arm as ``cellcal track`` sees it: poses, joints and status read; every command refused.
+
+    The cell's own program moves the arm; a move, a stop or an error reset from cellcal
+    would fight it, so each is a :class:`SafetyError` and nothing is sent.
+    """
+
+    def _refuse(self, what: str) -> SafetyError:
+        return SafetyError(f"cellcal track reads the arm and never commands it: {what} refused, nothing sent")
+
+    def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
+        raise self._refuse("move_linear")
+
+    def _stop(self, timeout: float) -> None:
+        raise self._refuse("stop")
+
+    def _clear_errors(self, timeout: float) -> None:
+        raise self._refuse("clear_errors")
+
+
+class FrameClock(ForwardingCamera):
+    """A camera whose frames' own stamps are the clock (:meth:`now`): a recorded session's time.
+
+    Before the first frame :meth:`now` is NaN (:class:`TrackRun` reads the arm only after the
+    first capture); after a capture it is that frame's time. On a simulated cell this is the simulated clock
+    itself, so a replayed session pairs its frames exactly as it did live.
+    """
+
+    def __init__(self, inner: Camera3D) -> None:
+        super().__init__(inner)
+        self._last = math.nan
+
+    def _capture(self, timeout: float) -> Frame:
+        frame = self.inner.capture(timeout)
+        self._last = float(frame.timestamp)
+        return frame
+
+    def now(self) -> float:
+        """The last frame's time, s since the epoch."""
+        return self._last
+
+
+def device_clock(camera: Camera3D) -> Callable[[], float]:
+    """The clock the frames are stamped with: a simulated camera's world clock, else the host's (epoch s)."""
+    world = getattr(camera, "world", None)
+    clock = getattr(world, "clock", None)
+    now = getattr(clock, "now", None)
+    return now if callable(now) else time.time
+
+
+class TrackRun:
+    """One ``cellcal track`` session over connected devices.
+
+    Args:
+        config: The cell (``[mount]``, ``[reference]``, ``[full_frame]``, ``[handeye]`` noise).
+        camera: A connected camera.
+        arm: A connected arm: only ``get_pose`` is called.
+        out_dir: Where ``track.json`` / ``track.jsonl`` go (None: nowhere).
+        now: The clock frames are stamped with (:func:`device_clock`).
+        on_progress: Called after every frame.
+        settings: The tracker's settings (default :func:`track_settings`).
+        decimation: Fit every k-th pixel in each direction (:func:`~.decimate.decimated`; 1: all).
+    """
+
+    def __init__(self, config: CellConfig, camera: Camera3D, arm: RobotArm, *, out_dir: str | Path | None,
+                 now: Callable[[], float], on_progress: StepCallback | None = None,
+                 settings: TrackSettings | None = None, decimation: int = 1) -> None:
+        self.config = config
+        self.camera = camera
+        self.arm = arm
+        self.out_dir = None if out_dir is None else Path(out_dir)
+        self.now = now
+        self.on_progress = on_progress
+        self.decimation = int(decimation)
+        self.tracker = Tracker(config.mount.pose(), reference_plane(config, "cellcal track"),
+                               settings or track_settings(config))
+        self.history = PoseHistory()
+        self.counters: collections.Counter[str] = collections.Counter()
+        self._t0: float | None = None
+        self._rows: IO[str] | None = None
+        self._written = 0
+
+    # ------------------------------------------------------------------ the loop
+    def run(self, duration_s: float | None = None, max_frames: int | None = None) -> TrackOutcome:
+        """Track until ``duration_s`` seconds of frames, ``max_frames`` frames, or Ctrl-C; then write.
+
+        Raises:
+            CellcalError: A device failed (the files written so far stay valid).
+        """
+        interrupted = False
+        self._open_rows()
+        try:
+            index = 0
+            while max_frames is None or index < max_frames:
+                t_s = self._frame(index)
+                index += 1
+                if duration_s is not None and t_s >= duration_s:
+                    break
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            self._close_rows()
+        return self._finish(interrupted)
+
+    def _frame(self, index: int) -> float:
+        """Read the arm, capture, read the arm, pair, fit, update; returns the frame's time, s."""
+        timeout = self.camera.default_timeout_s
+        t_before = self.now()
+        if index > 0:  # before the first frame the clock may not run yet (a replay's is the frames' own)
+            self.history.add(t_before, self.arm.get_pose())
+        frame = self.camera.capture(timeout)
+        t_after = self.now()
+        self.history.add(t_after, self.arm.get_pose())
+        t_frame = self._frame_time(frame, t_before, t_after)
+        if self._t0 is None:
+            self._t0 = t_frame
+        t_s = t_frame - self._t0
+        paired = self.history.at(t_frame)
+        if isinstance(paired, Skip):
+            return self._skip(index, t_s, f"skipped: {paired.reason}")
+        started = time.perf_counter()
+        try:
+            fit = fit_full_frame(decimated(frame, self.decimation), self.config.full_frame)
+            check_gates(fit)
+        except CalibrationQualityError as exc:
+            return self._skip(index, t_s, f"refused: gate {exc.gate}", flange=paired)
+        except CalibrationError:
+            return self._skip(index, t_s, "no plane", flange=paired)
+        step = self.tracker.update(t_s, observation(fit, paired))
+        outcome = "accepted" if step.accepted else "held out"
+        self._row(frame_row(step, t_s, index=index, fit_ms=round((time.perf_counter() - started) * 1e3, 2)), outcome)
+        if self.on_progress is not None:
+            self.on_progress(TrackProgress(index, t_s, outcome, step, paired, fit, frame))
+        return t_s
+
+    def _frame_time(self, frame: Frame, t_before: float, t_after: float) -> float:
+        """The frame's own stamp when it lies between the two arm reads (one clock), else their midpoint."""
+        stamp = float(frame.timestamp)
+        first = t_before if math.isfinite(t_before) else t_after
+        if math.isfinite(stamp) and first - CLOCK_MISMATCH_S <= stamp <= t_after + CLOCK_MISMATCH_S:
+            return stamp
+        self.counters["frame time from the host clock"] += 1
+        return 0.5 * (first + t_after)
+
+    def _skip(self, index: int, t_s: float, outcome: str, *, flange: Pose | None = None) -> float:
+        self._row({"t_s": t_s, "index": index, "accepted": False, "note": outcome}, outcome)
+        if self.on_progress is not None:
+            self.on_progress(TrackProgress(index, t_s, outcome, flange=flange))
+        return t_s
+
+    # ------------------------------------------------------------------ files
+    def _open_rows(self) -> None:
+        """``track.jsonl`` is written as ``track.jsonl.partial`` and renamed at the end: an earlier one stays whole."""
+        if self.out_dir is None:
+            return
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self._rows = (self.out_dir / (FRAMES_FILENAME + ".partial")).open("w", encoding="utf-8")
+
+    def _row(self, row: dict[str, Any], outcome: str) -> None:
+        """Count the frame and its outcome and write its row: the counters and the rows always agree."""
+        self.counters["frames"] += 1
+        self.counters[outcome] += 1
+        if self._rows is None:
+            return
+        self._rows.write(json.dumps(json_safe(row), allow_nan=False) + "\n")
+        self._written += 1
+        if self._written % FLUSH_EVERY == 0:
+            self._rows.flush()
+
+    def _close_rows(self) -> None:
+        rows, self._rows = self._rows, None
+        if rows is None or self.out_dir is None:
+            return
+        rows.flush()
+        os.fsync(rows.fileno())
+        rows.close()
+        os.replace(self.out_dir / (FRAMES_FILENAME + ".partial"), self.out_dir / FRAMES_FILENAME)
+
+    def _finish(self, interrupted: bool) -> TrackOutcome:
+        state = self.tracker.state
+        meta = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                "config_source": self.config.source, "camera": self.config.camera_section.get("backend"),
+                "arm": self.config.arm_section.get("backend"), "interrupted": interrupted,
+                "decimation": self.decimation,
+                "duration_s": None if self._t0 is None else round(self.now() - self._t0, 6)}
+        counters = dict(self.counters)
+        document = track_document(state, counters, meta)
+        if self.out_dir is not None:
+            write_track_json(self.out_dir, document)
+        return TrackOutcome(document, state, counters, interrupted)
+
+
+__all__ = ["FrameClock", "ReadOnlyArm", "TrackOutcome", "TrackProgress", "TrackRun", "device_clock", "observation",
+           "track_settings"]
