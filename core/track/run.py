@@ -28,7 +28,7 @@ from cellcal.core.track.pairing import PoseHistory, Skip
 from cellcal.core.track.result import FRAMES_FILENAME, frame_row, track_document, write_track_json
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import CalibrationError, CalibrationQualityError, SafetyError
+from cellcal.devices.errors import CalibrationError, CalibrationQualityError, OutputError, SafetyError
 from cellcal.devices.forwarding import ForwardingArm, ForwardingCamera
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
@@ -247,8 +247,12 @@ class TrackRun:
         """``track.jsonl`` is written as ``track.jsonl.partial`` and renamed at the end: an earlier one stays whole."""
         if self.out_dir is None:
             return
-        self.out_dir.mkdir(parents=True, exist_ok=True)
-        self._rows = (self.out_dir / (FRAMES_FILENAME + ".partial")).open("w", encoding="utf-8")
+        path = self.out_dir / (FRAMES_FILENAME + ".partial")
+        try:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            self._rows = path.open("w", encoding="utf-8")
+        except OSError as exc:
+            raise OutputError(f"cannot write {path}: {exc.strerror or exc}", errno=exc.errno) from None
 
     def _row(self, row: dict[str, Any], outcome: str) -> None:
         """Count the frame and its outcome and write its row: the counters and the rows always agree."""
@@ -256,7 +260,10 @@ class TrackRun:
         self.counters[outcome] += 1
         if self._rows is None:
             return
-        self._rows.write(json.dumps(json_safe(row), allow_nan=False) + "\n")
+        try:
+            self._rows.write(json.dumps(json_safe(row), allow_nan=False) + "\n")
+        except OSError as exc:
+            raise OutputError(f"cannot write {self._rows.name}: {exc.strerror or exc}", errno=exc.errno) from None
         self._written += 1
         if self._written % FLUSH_EVERY == 0:
             self._rows.flush()
@@ -265,10 +272,15 @@ class TrackRun:
         rows, self._rows = self._rows, None
         if rows is None or self.out_dir is None:
             return
-        rows.flush()
-        os.fsync(rows.fileno())
-        rows.close()
-        os.replace(self.out_dir / (FRAMES_FILENAME + ".partial"), self.out_dir / FRAMES_FILENAME)
+        try:
+            rows.flush()
+            os.fsync(rows.fileno())
+            rows.close()
+            os.replace(self.out_dir / (FRAMES_FILENAME + ".partial"), self.out_dir / FRAMES_FILENAME)
+        except OSError as exc:
+            rows.close()
+            raise OutputError(f"cannot write {self.out_dir / FRAMES_FILENAME}: {exc.strerror or exc}",
+                              errno=exc.errno) from None
 
     def _finish(self, interrupted: bool) -> TrackOutcome:
         state = self.tracker.state

@@ -226,3 +226,12 @@ def test_ctrl_c_writes_both_files_whole_and_exits_130(tmp_path: Path) -> None:
     doc = json.loads((out / "track.json").read_text())
     rows = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
     assert doc["meta"]["interrupted"] is True and doc["counters"]["frames"] == len(rows) > 0
+
+
+def test_an_output_directory_that_cannot_be_written_is_one_line(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["track", "--duration", "1", "--out", str(blocker / "out")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith(f"cellcal: error: cannot write {blocker / 'out'}")
