@@ -8,13 +8,10 @@ then never read a byte.
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import json
 import logging
-import os
 import socket
-import struct
 import subprocess
 import sys
 import time
@@ -25,84 +22,12 @@ import pytest
 
 pytest.importorskip("foxglove")
 
+from hostile_viewer import WAIT_S, channels, connect, frame, rss_mb, send_text, subscribe_all_and_stop_reading
+
 from cellcal.core.liveview import LiveView
 from cellcal.core.liveview.sdklog import MAX_RECORDS_PER_S
 from cellcal.core.liveview.server import MAX_CLIENTS
 from tests.support.ports import free_port, port_free
-
-#: Longest wait for a line the command prints or a client's handshake, s (a bound, not a timing assertion).
-WAIT_S = 60.0
-
-
-def _recv_exact(sock: socket.socket, n: int) -> bytes:
-    data = b""
-    while len(data) < n:
-        chunk = sock.recv(n - len(data))
-        if not chunk:
-            raise ConnectionError("closed")
-        data += chunk
-    return data
-
-
-def _frame(sock: socket.socket) -> tuple[int, bytes]:
-    """One server frame (servers do not mask): its opcode and payload."""
-    head = _recv_exact(sock, 2)
-    length = head[1] & 0x7F
-    if length == 126:
-        length = struct.unpack(">H", _recv_exact(sock, 2))[0]
-    elif length == 127:
-        length = struct.unpack(">Q", _recv_exact(sock, 8))[0]
-    return head[0] & 0x0F, _recv_exact(sock, length)
-
-
-def _send_text(sock: socket.socket, text: str) -> None:
-    """One masked text frame, as a client must send it."""
-    payload, mask = text.encode(), os.urandom(4)
-    n = len(payload)
-    head = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n)
-                            if n < 65536 else bytes([0x80 | 127]) + struct.pack(">Q", n))
-    sock.sendall(head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload)))
-
-
-def _connect(port: int, subprotocol: str = "foxglove.websocket.v1") -> socket.socket:
-    """A raw WebSocket connection to the live view, its handshake done."""
-    sock = socket.create_connection(("127.0.0.1", port), timeout=WAIT_S)
-    key = base64.b64encode(os.urandom(16)).decode()
-    sock.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                  f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
-                  f"Sec-WebSocket-Protocol: {subprotocol}\r\n\r\n").encode())
-    reply = b""
-    while b"\r\n\r\n" not in reply:
-        chunk = sock.recv(1)
-        if not chunk:
-            raise ConnectionError(f"closed during the handshake: {reply!r}")
-        reply += chunk
-    assert reply.startswith(b"HTTP/1.1 101"), reply
-    return sock
-
-
-def _channels(sock: socket.socket) -> list[int]:
-    """Read control messages until the channels are advertised; their ids."""
-    while True:
-        opcode, payload = _frame(sock)
-        if opcode == 1 and (msg := json.loads(payload)).get("op") == "advertise":
-            return [int(ch["id"]) for ch in msg["channels"]]
-
-
-def _subscribe_all_and_stop_reading(port: int) -> socket.socket:
-    sock = _connect(port)
-    ids = _channels(sock)
-    _send_text(sock, json.dumps({"op": "subscribe",
-                                 "subscriptions": [{"id": i, "channelId": i} for i in ids]}))
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # and read nothing from now on
-    return sock
-
-
-def _rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
 
 
 @pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="reads the child's memory from /proc")
@@ -117,13 +42,13 @@ def test_four_viewers_that_never_read_and_200_idle_connections_cost_bounded_memo
         assert proc.stderr is not None
         assert "live view:" in proc.stderr.readline()
         started = time.monotonic()
-        sockets += [_subscribe_all_and_stop_reading(port) for _ in range(4)]
+        sockets += [subscribe_all_and_stop_reading(port) for _ in range(4)]
         for _ in range(200):  # idle connections: no handshake at all
             with_idle = socket.create_connection(("127.0.0.1", port), timeout=WAIT_S)
             sockets.append(with_idle)
         samples = []
         while proc.poll() is None and time.monotonic() - started < duration_s + WAIT_S:
-            samples.append((time.monotonic() - started, _rss_mb(proc.pid)))
+            samples.append((time.monotonic() - started, rss_mb(proc.pid)))
             time.sleep(0.25)
         out, err = proc.communicate(timeout=WAIT_S)
         ended_after_s = time.monotonic() - started
@@ -148,13 +73,13 @@ def test_four_viewers_that_never_read_and_200_idle_connections_cost_bounded_memo
 
 def test_more_viewers_than_the_cap_are_closed_as_they_connect_and_the_others_are_served() -> None:
     with LiveView(0) as view:
-        admitted = [_connect(view.port) for _ in range(MAX_CLIENTS)]
+        admitted = [connect(view.port) for _ in range(MAX_CLIENTS)]
         try:
-            assert all(_channels(sock) for sock in admitted)
+            assert all(channels(sock) for sock in admitted)
             extra = socket.create_connection(("127.0.0.1", view.port), timeout=WAIT_S)
             with extra:
                 assert extra.recv(1) == b""  # closed at accept
-            assert _channels(_connect_after_one_leaves(admitted, view.port))
+            assert channels(_connect_after_one_leaves(admitted, view.port))
         finally:
             for sock in admitted:
                 sock.close()
@@ -166,7 +91,7 @@ def _connect_after_one_leaves(admitted: list[socket.socket], port: int) -> socke
     deadline = time.monotonic() + WAIT_S
     while True:
         try:
-            sock = _connect(port)
+            sock = connect(port)
             admitted.append(sock)
             return sock
         except (ConnectionError, AssertionError):
@@ -178,9 +103,9 @@ def test_a_thousand_unknown_channel_ids_in_one_message_make_a_bounded_number_of_
         caplog: pytest.LogCaptureFixture, capfd: pytest.CaptureFixture[str]) -> None:
     caplog.set_level(logging.INFO, logger="cellcal.liveview")
     with LiveView(0) as view:
-        sock = _connect(view.port)
-        _channels(sock)
-        _send_text(sock, json.dumps({"op": "subscribe",
+        sock = connect(view.port)
+        channels(sock)
+        send_text(sock, json.dumps({"op": "subscribe",
                                      "subscriptions": [{"id": 10_000 + i, "channelId": 50_000 + i}
                                                        for i in range(1000)]}))
         # the SDK answers each unknown id with a status message (and logs it), then drops the client, whose
@@ -188,7 +113,7 @@ def test_a_thousand_unknown_channel_ids_in_one_message_make_a_bounded_number_of_
         statuses = 0
         with contextlib.suppress(ConnectionError):
             while statuses < 1000:
-                opcode, payload = _frame(sock)
+                opcode, payload = frame(sock)
                 statuses += opcode == 1 and json.loads(payload).get("op") == "status"
         sock.close()
     ours = _records(caplog)  # closing the view reported what was held back
