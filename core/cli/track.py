@@ -137,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
     check_viz_options(args)
     if args.replay and args.config:
         raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
+    if args.replay and args.record:
+        raise ConfigError("--record records a live run; a --replay is one already")
     duration = args.duration
     if args.replay:
         from cellcal.core.calibration.replay import replay_session
@@ -148,7 +150,13 @@ def run(args: argparse.Namespace) -> int:
             duration = DEFAULT_SIM_DURATION_S
         config = load_config(path)
         camera, arm = build_devices(config)
-    now = _clock(args, camera)  # of the backend camera itself, before any recording wrapper
+    from cellcal.core.track.run import FrameClock, device_clock
+
+    if args.replay:  # a replay's clock is its frames' own stamps
+        camera = FrameClock(camera)
+        now = camera.now
+    else:  # the backend camera's clock, taken before any recording wrapper hides it
+        now = device_clock(camera)
     with contextlib.ExitStack() as stack:
         if args.record:
             from cellcal.core.cli.record import open_recorder
@@ -162,29 +170,20 @@ def run(args: argparse.Namespace) -> int:
     return _report(args, outcome)
 
 
-def _clock(args: argparse.Namespace, camera: Any) -> Any:
-    """The clock the frames are paired on: the recorded frames' own (``--replay``), else the camera's."""
-    from cellcal.core.track.run import FrameClock, device_clock
-
-    return FrameClock(camera) if args.replay else device_clock(camera)
-
-
 def _track(args: argparse.Namespace, config: Any, camera: Any, arm: Any, duration: float | None,
            now: Any) -> TrackOutcome:
     """Connect, track until the end of the run, close; the outcome (files written)."""
     from cellcal.core.liveview import live_view_session
-    from cellcal.core.track.run import FrameClock, ReadOnlyArm, TrackRun
+    from cellcal.core.track.run import ReadOnlyArm, TrackRun
 
     reader = ReadOnlyArm(arm)
-    clock_camera: Any = now if isinstance(now, FrameClock) else camera
-    now = now.now if isinstance(now, FrameClock) else now
     with live_view_session(args.viz_port, track=True, wait_s=args.viz_wait) as view:
         printer = _Printer(args.quiet, view)
-        with clock_camera, reader:
+        with camera, reader:
             if not args.quiet:
                 print(f"tracking {config.camera_section.get('backend')} camera, {config.arm_section.get('backend')} "
                       f"arm ({config.source}); the arm is read, never moved; Ctrl-C to stop", flush=True)
-            session = TrackRun(config, clock_camera, reader, out_dir=args.out, now=now, on_progress=printer,
+            session = TrackRun(config, camera, reader, out_dir=args.out, now=now, on_progress=printer,
                                decimation=args.decimate)
             printer.tracker = session.tracker
             outcome = session.run(duration, args.frames)

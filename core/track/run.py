@@ -6,6 +6,7 @@ Design: docs/adr/0041-track-command.md.
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
 import math
 import os
@@ -192,8 +193,10 @@ class TrackRun:
                     break
         except KeyboardInterrupt:
             interrupted = True
-        finally:
-            self._close_rows()
+        except BaseException:
+            self._abandon_rows()  # a failed run: the earlier track.json / track.jsonl stay as they were
+            raise
+        self._close_rows()
         return self._finish(interrupted)
 
     def _frame(self, index: int) -> float:
@@ -267,6 +270,13 @@ class TrackRun:
         self._written += 1
         if self._written % FLUSH_EVERY == 0:
             self._rows.flush()
+
+    def _abandon_rows(self) -> None:
+        """Close ``track.jsonl.partial`` without renaming it (what the failed run saw, for a look)."""
+        rows, self._rows = self._rows, None
+        if rows is not None:
+            with contextlib.suppress(OSError):
+                rows.close()
 
     def _close_rows(self) -> None:
         rows, self._rows = self._rows, None

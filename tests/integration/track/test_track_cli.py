@@ -235,3 +235,29 @@ def test_an_output_directory_that_cannot_be_written_is_one_line(tmp_path: Path,
     assert main(["track", "--duration", "1", "--out", str(blocker / "out")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert line.startswith(f"cellcal: error: cannot write {blocker / 'out'}")
+
+
+def test_a_device_failure_mid_run_leaves_the_earlier_files_as_they_were(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.track.run import ReadOnlyArm, TrackRun, device_clock
+    from cellcal.devices.errors import DeviceTimeoutError
+
+    config_path = _variant(tmp_path, "")
+    code, _printed, first = _run(tmp_path, capsys, "--config", str(config_path), "--duration", "5")
+    out = tmp_path / "out"
+    before = {name: (out / name).read_bytes() for name in ("track.json", "track.jsonl")}
+    assert code == 0 and first["counters"]["frames"] == 51
+
+    def fail_after_20(what: str, n: int) -> None:     # the camera stops answering at its 21st frame
+        if what == "capture" and n > 20:
+            raise DeviceTimeoutError("sim camera: no frame within 2 s")
+
+    config = load_config(config_path)
+    camera, arm = build_devices(config)
+    camera.fault_hook = fail_after_20
+    with camera, ReadOnlyArm(arm) as reader, pytest.raises(DeviceTimeoutError):
+        TrackRun(config, camera, reader, out_dir=out, now=device_clock(camera)).run(duration_s=5.0)
+    assert {name: (out / name).read_bytes() for name in before} == before      # the earlier pair, untouched
+    partial = (out / "track.jsonl.partial").read_text().splitlines()
+    assert len(partial) == 20                                                   # what the failed run saw
