@@ -1,8 +1,10 @@
-"""Long seeded fuzz run of the PCIC, xArm, O3R XML-RPC/JSON and TOML-config parsers, outside pytest.
+"""Long seeded fuzz run of the PCIC, xArm, O3R XML-RPC/JSON, TOML-config, UR RTDE and live-view handshake parsers.
 
 The same targets and mutators as ``tests/integration/faults/test_fuzz_parsers.py`` (``tests/support/fuzz_targets.py``):
 every input must parse or raise the parser's documented error (``ProtocolError``;
-``ProtocolError``/``VendorError``/``ConfigError`` for the O3R configuration; ``ConfigError``).
+``ProtocolError``/``VendorError``/``ConfigError`` for the O3R configuration; ``ConfigError``;
+``ProtocolError``/``DeviceConnectionError``/``DeviceTimeoutError`` for RTDE, whose probe reads
+from a socket pair; none for the live-view subprotocol renames, which must take any bytes).
 Prints, per parser, how many inputs it got, how many parsed, how many were rejected with
 the documented error, how many raised anything else (the first such input is saved to
 ``--out`` with its traceback) and how many emitted a Python warning (e.g. a numpy
@@ -11,6 +13,7 @@ exception.
 
     python benchmarks/fuzz_parsers.py --seconds 60 [--seed 1] [--out fuzz-failures]
     python benchmarks/fuzz_parsers.py --count 100000 --targets pcic xarm xmlrpc
+    python benchmarks/fuzz_parsers.py --count 100000 --targets rtde liveview
 """
 
 from __future__ import annotations
@@ -26,9 +29,18 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "support"))
 
-from fuzz_targets import Target, config_target, pcic_target, xarm_target, xmlrpc_target
+from fuzz_targets import (
+    Target,
+    config_target,
+    liveview_target,
+    pcic_target,
+    rtde_target,
+    xarm_target,
+    xmlrpc_target,
+)
 
-FACTORIES = {"pcic": pcic_target, "xarm": xarm_target, "xmlrpc": xmlrpc_target, "config": config_target}
+FACTORIES = {"pcic": pcic_target, "xarm": xarm_target, "xmlrpc": xmlrpc_target, "config": config_target,
+             "rtde": rtde_target, "liveview": liveview_target}
 
 
 @dataclass
@@ -93,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     per_target = None if args.count is not None else args.seconds / len(args.targets)
     print(f"fuzz: seed {args.seed}, " + (f"{args.count} inputs per parser" if args.count is not None
                                         else f"{per_target:.1f} s per parser"))
-    print(f"{'parser':<8} {'documented error':<38} {'inputs':>9} {'parsed':>8} {'rejected':>9} {'other':>6} "
+    print(f"{'parser':<8} {'documented error':<54} {'inputs':>9} {'parsed':>8} {'rejected':>9} {'other':>6} "
           f"{'warned':>7} {'inputs/s':>9}")
     failed = False
     for i, name in enumerate(args.targets):
@@ -104,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             target.close()
         failed |= t.other > 0
-        print(f"{name:<8} {target.documented_names:<38} {t.inputs:>9} {t.parsed:>8} {t.rejected:>9} "
+        print(f"{name:<8} {target.documented_names:<54} {t.inputs:>9} {t.parsed:>8} {t.rejected:>9} "
               f"{t.other:>6} {t.warned:>7} {t.inputs / t.seconds:>9.0f}")
     print("FAIL: undocumented exceptions (inputs saved)" if failed else "OK: 0 undocumented exceptions")
     return 1 if failed else 0

@@ -74,7 +74,9 @@ INPUT_TYPES: dict[str, str] = {
     "external_force_torque": _V6,
 }
 
-_REGISTER = re.compile(r"(input|output)_(int|double|bit)_register_(\d+)\Z")
+#: The index is at most three digits without a leading zero (the banks end at 127): a name with thousands of
+#: digits is no field, never an int() of unbounded length (found by the fuzzer; Python refuses > 4300 digits).
+_REGISTER = re.compile(r"(input|output)_(int|double|bit)_register_(0|[1-9][0-9]{0,2})\Z")
 #: Register banks: (kind -> (RTDE type, first index, last index)).
 REGISTER_BANKS: dict[str, tuple[str, int, int]] = {"int": ("INT32", 0, 47), "double": ("DOUBLE", 0, 47),
                                                    "bit": ("BOOL", 64, 127)}

@@ -1,10 +1,12 @@
-"""Bounded fuzz (hypothesis) of the four parsers fed by the outside world.
+"""Bounded fuzz (hypothesis) of the six parsers fed by the outside world.
 
 The PCIC stream parser and decoder, the xArm frame parser (both directions), the O3R
-XML-RPC/JSON configuration path and the TOML cell-configuration loader must answer any
-input with success or their documented error (:class:`ProtocolError`, for the O3R
-configuration also :class:`VendorError` and :class:`ConfigError`; :class:`ConfigError` for
-the TOML loader), never another exception. The
+XML-RPC/JSON configuration path, the TOML cell-configuration loader, the UR RTDE parsers
+(the emulated controller's and the driver's probe) and the live-view relay's handshake
+renames must answer any input with success or their documented error (:class:`ProtocolError`,
+for the O3R configuration also :class:`VendorError` and :class:`ConfigError`; :class:`ConfigError`
+for the TOML loader; for the RTDE probe also :class:`DeviceConnectionError` and
+:class:`DeviceTimeoutError`; none for the renames), never another exception. The
 targets and mutators live in ``tests/support/fuzz_targets.py`` and are shared with the long
 seeded run in ``benchmarks/fuzz_parsers.py``; here each gets a few hundred examples
 (the whole file runs in seconds).
@@ -15,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import random
+import struct
+import time
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,14 +26,24 @@ from pathlib import Path
 import pytest
 from fuzz_targets import (
     CONFIG_DIR,
+    LIVEVIEW_TOKENS,
     ODD_VALUES,
+    RTDE_ERRORS,
+    RTDE_FREQUENCIES,
+    RTDE_NAME_TOKENS,
+    RTDE_TYPES,
     Target,
     check_decoded,
     config_target,
     dump_toml,
+    liveview_target,
     mutate_document,
     o3r_tree,
     pcic_target,
+    probe_rtde_replies,
+    rtde_frames,
+    rtde_target,
+    split_rtde,
     xarm_target,
     xmlrpc_reply,
     xmlrpc_target,
@@ -38,10 +52,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from xarm_wire_helpers import encode_reply, parse_request
 
-from cellcal.devices.errors import CellcalError, ConfigError, ProtocolError, VendorError
+from cellcal.core.liveview.subprotocol import LEGACY, SDK, rename_offer
+from cellcal.devices.errors import (
+    CellcalError,
+    ConfigError,
+    DeviceConnectionError,
+    DeviceTimeoutError,
+    ProtocolError,
+    VendorError,
+)
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.pcic import iter_messages, walk_chunks
 from cellcal.drivers.xarm.protocol import encode_request, parse_reply
+from cellcal.sims.ur import rtde_wire
 
 BOUNDED = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                           HealthCheck.function_scoped_fixture])
@@ -49,6 +72,8 @@ BOUNDED = settings(max_examples=150, deadline=None, suppress_health_check=[Healt
 PCIC = pcic_target()
 XARM = xarm_target()
 XMLRPC = xmlrpc_target()
+RTDE = rtde_target()
+LIVEVIEW = liveview_target()
 
 
 @pytest.fixture(scope="module")
@@ -197,6 +222,8 @@ def test_structural_mutation_changes_the_document() -> None:
 def test_documented_errors() -> None:
     assert PCIC.documented is ProtocolError and XARM.documented is ProtocolError
     assert XMLRPC.documented == (ProtocolError, VendorError, ConfigError)
+    assert RTDE.documented == RTDE_ERRORS == (ProtocolError, DeviceConnectionError, DeviceTimeoutError)
+    assert LIVEVIEW.documented == () and LIVEVIEW.documented_names == "-"
 
 
 def test_the_pcic_oracle_refuses_a_frame_that_disagrees_with_its_declared_sizes() -> None:
@@ -217,3 +244,121 @@ def test_the_pcic_oracle_refuses_a_frame_that_disagrees_with_its_declared_sizes(
                                                  (chunks, frame, 8)):
         with pytest.raises(AssertionError):
             check_decoded(bytes(msg.payload), spoiled_chunks, spoiled_frame, count)
+
+
+def test_rtde_seeds_are_read_one_way_or_the_other() -> None:
+    """The client streams by the controller's parsers, the reply streams by the probe (which returns their time)."""
+    assert all(RTDE.check(seed) for seed in RTDE.seeds)
+    assert all(issubclass(k, CellcalError) for k in RTDE.documented)  # type: ignore[union-attr]
+    client, stream, probe, chatty = RTDE.seeds
+    assert len(rtde_frames(client)) == 8 and len(rtde_frames(stream)) == 4
+    assert probe_rtde_replies(probe) == probe_rtde_replies(chatty) == 12.5
+    with pytest.raises(ProtocolError, match="refused RTDE protocol version 2"):
+        probe_rtde_replies(client)  # its V request (version 00 02) read as a reply: a refusal
+    with pytest.raises(DeviceConnectionError, match="closed"):
+        probe_rtde_replies(b"")  # the peer closes before answering
+
+
+@pytest.mark.parametrize("name", [b"output_int_register_" + b"1" * 4301, b"input_double_register_" + b"0" * 5000,
+                                  b"input_int_register_03", b"output_bit_register_1270"])
+def test_rtde_register_name_of_thousands_of_digits_is_no_field(name: bytes) -> None:
+    """Regression (found by the fuzzer): such a name is NOT_FOUND in a setup, not a ValueError from int()."""
+    w = rtde_wire
+    assert w.input_type(name.decode()) is None and w.output_type(name.decode()) is None
+    assert RTDE.check(w.message(w.CONTROL_PACKAGE_SETUP_INPUTS, name))
+    assert RTDE.check(w.message(w.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", 125.0) + b"timestamp," + name))
+
+
+@pytest.mark.parametrize("size", [0, 1, 2])
+def test_rtde_size_field_below_the_header_is_a_protocol_error(size: int) -> None:
+    """Regression: a u16 size field (1, say) smaller than the 3-byte header, alone or after a valid message."""
+    bad = struct.pack(">HB", size, rtde_wire.DATA_PACKAGE) + b"\x01" + bytes(8)
+    valid = rtde_wire.protocol_reply(True)
+    for stream in (bad, valid + bad):
+        with pytest.raises(ProtocolError, match="smaller than"):
+            rtde_wire.FrameReader().feed(stream)
+        with pytest.raises(ProtocolError, match="smaller than its header"):
+            probe_rtde_replies(stream)
+        with pytest.raises(ProtocolError):
+            RTDE.run(stream)
+    reader = rtde_wire.FrameReader()
+    assert reader.feed(valid + bad[:1]) == [(rtde_wire.REQUEST_PROTOCOL_VERSION, b"\x01")]
+    with pytest.raises(ProtocolError, match=f"message size {size} is smaller"):
+        reader.feed(bad[1:])  # the rest of the header in the next read
+
+
+def test_rtde_a_silent_peer_is_a_timeout() -> None:
+    t0 = time.monotonic()
+    with pytest.raises(DeviceTimeoutError, match="sent no data"):
+        probe_rtde_replies(RTDE.seeds[2][:-3], timeout=0.05, close=False)
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_rtde_mutations_edit_size_fields_and_messages() -> None:
+    rnd = random.Random(5)
+    seed = RTDE.seeds[0]
+    mutated = [RTDE.mutate(seed, rnd) for _ in range(200)]
+    assert sum(m != seed for m in mutated) >= 190
+    sizes = {struct.unpack_from(">H", m)[0] for mut in mutated for m in split_rtde(mut) if len(m) >= 3}
+    assert {0, 1, 2, 3, 0xFFFF} <= sizes
+
+
+@BOUNDED
+@given(index=st.integers(0, 10), rnd=st.randoms(use_true_random=False))
+def test_fuzz_rtde_mutated_streams_raise_only_documented_errors(index: int, rnd: random.Random) -> None:
+    RTDE.check(RTDE.mutate(RTDE.seeds[index % len(RTDE.seeds)], rnd))
+
+
+@settings(max_examples=200, deadline=None)
+@given(raw=st.binary(max_size=300), msg_type=st.sampled_from(RTDE_TYPES))
+def test_fuzz_rtde_random_bytes_raise_only_documented_errors(raw: bytes, msg_type: int) -> None:
+    RTDE.check(raw)
+    RTDE.check(rtde_wire.message(msg_type, raw))
+
+
+@settings(max_examples=200, deadline=None)
+@given(names=st.lists(st.sampled_from([t for t in RTDE_NAME_TOKENS if len(t) < 100]), min_size=1, max_size=8),
+       freq=st.sampled_from(RTDE_FREQUENCIES) | st.floats(), body=st.binary(max_size=120), inputs=st.booleans())
+def test_fuzz_rtde_any_setup_then_data(names: list[bytes], freq: float, body: bytes, inputs: bool) -> None:
+    """A setup of any names (and rate), then a data package: a recipe of valid names unpacks a body of its size."""
+    w = rtde_wire
+    text = b",".join(names)
+    setup = (w.message(w.CONTROL_PACKAGE_SETUP_INPUTS, text) if inputs
+             else w.message(w.CONTROL_PACKAGE_SETUP_OUTPUTS, struct.pack(">d", freq) + text))
+    lookup = w.input_type if inputs else w.output_type
+    parts = [n.decode("latin-1").strip() for n in names]
+    valid = all(lookup(n) for n in parts)
+    if valid:
+        recipe = w.Recipe(1, tuple(parts), tuple(lookup(n) or "" for n in parts))
+        body = (body * (recipe.size // max(1, len(body)) + 1))[:recipe.size] if body else bytes(recipe.size)
+    assert RTDE.check(setup + w.data_package(1, body)) or not valid
+
+
+def test_liveview_seeds() -> None:
+    """Requests offering only the legacy name are renamed, the others (and the replies) forwarded unchanged."""
+    assert all(LIVEVIEW.check(seed) for seed in LIVEVIEW.seeds)
+    renamed = [rename_offer(seed)[1] for seed in LIVEVIEW.seeds]
+    assert renamed == [True, False, False, False, True, True, True, False, False]
+    for seed, was in zip(LIVEVIEW.seeds, renamed, strict=True):
+        assert (LEGACY in rename_offer(seed)[0]) == (LEGACY in seed and not was)
+        assert was <= (SDK in rename_offer(seed)[0])
+
+
+@BOUNDED
+@given(index=st.integers(0, 10), rnd=st.randoms(use_true_random=False))
+def test_fuzz_liveview_mutated_handshakes_keep_the_promises(index: int, rnd: random.Random) -> None:
+    assert LIVEVIEW.check(LIVEVIEW.mutate(LIVEVIEW.seeds[index % len(LIVEVIEW.seeds)], rnd))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=600))
+def test_fuzz_liveview_random_bytes_keep_the_promises(raw: bytes) -> None:
+    assert LIVEVIEW.check(raw)
+
+
+@settings(max_examples=200, deadline=None)
+@given(lines=st.lists(st.lists(st.sampled_from((*LIVEVIEW_TOKENS, b"x.v2", b"Host: h", b"")), max_size=6)
+                      .map(b"".join), max_size=8))
+def test_fuzz_liveview_handshakes_of_tokens_keep_the_promises(lines: list[bytes]) -> None:
+    """Header lines made of protocol names, header names, separators and odd bytes."""
+    assert LIVEVIEW.check(b"GET / HTTP/1.1\r\n" + b"\r\n".join(lines) + b"\r\n\r\n")
