@@ -45,9 +45,11 @@ def register(sub: Any) -> None:
                    help="stop after S seconds of frames (default: until Ctrl-C; the built-in cell: "
                    f"{DEFAULT_SIM_DURATION_S:g})")
     p.add_argument("--frames", metavar="N", type=integer(ge=1), help="stop after N frames")
-    p.add_argument("--decimate", metavar="K", type=integer(ge=1, le=8), default=1,
-                   help="fit every K-th pixel in each direction (K^2 fewer points), to keep up with a large image "
-                   "at a high frame rate; its accuracy cost is stated in benchmarks/track_cell.py (default: 1)")
+    p.add_argument("--decimate", metavar="K", type=_decimation, default=None,
+                   help="fit every K-th pixel in each direction (K^2 fewer points) to keep up with a large image at "
+                   "a high frame rate; default auto: at most 115 000 pixels for a stereo camera's fit, 300 000 for "
+                   "a ToF camera's (640x400 stereo: K=2; 1280x800: K=3); its cost is stated in "
+                   "benchmarks/track_cell.py")
     p.add_argument("--out", metavar="DIR", default="cellcal-out", type=path_arg,
                    help="output directory: track.json, track.jsonl (default: %(default)s)")
     p.add_argument("--apply", action="store_true",
@@ -61,6 +63,17 @@ def register(sub: Any) -> None:
     p.add_argument("--quiet", action="store_true", help="print only change events and the summary")
     add_viz_port_option(p)
     p.set_defaults(func=run)
+
+
+def _decimation(text: str) -> int | None:
+    """``--decimate``: ``auto`` (None) or an integer 1-8."""
+    if text == "auto":
+        return None
+    try:
+        value: int = integer(ge=1, le=8)(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer from 1 to 8, got {text!r}") from None
+    return value
 
 
 # ---------------------------------------------------------------------- words

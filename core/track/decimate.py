@@ -11,8 +11,21 @@ those of the coarser pixel grid (``u' = u / k``: focal lengths and principal poi
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from cellcal.devices.types import Frame
+
+#: Most pixels a fit gets with ``--decimate auto``: a disparity-space fit (stereo, structured light) and a
+#: range fit (ToF). Both keep a 30 fps camera within one core's 33 ms (benchmarks/track_cell.py): about
+#: 16 ms at 640x400 stereo with k = 2, 27 ms at 1280x800 with k = 3, 20 ms at 640x400 ToF with k = 1.
+AUTO_PIXELS = {"disparity": 115_000, "range": 300_000}
+
+
+def auto_decimation(frame: Frame) -> int:
+    """The smallest k that leaves at most :data:`AUTO_PIXELS` pixels of ``frame`` for its kind of fit."""
+    budget = AUTO_PIXELS["disparity" if frame.measurement.triangulating else "range"]
+    pixels = frame.valid.shape[0] * frame.valid.shape[1]
+    return max(1, math.ceil(math.sqrt(pixels / budget)))
 
 
 def decimated(frame: Frame, k: int) -> Frame:
@@ -36,4 +49,4 @@ def decimated(frame: Frame, k: int) -> Frame:
         confidence=None if frame.confidence is None else frame.confidence[::k, ::k].copy())
 
 
-__all__ = ["decimated"]
+__all__ = ["AUTO_PIXELS", "auto_decimation", "decimated"]

@@ -23,7 +23,7 @@ from cellcal.core.calibration.config import CellConfig
 from cellcal.core.handeye.model import PlaneObservation
 from cellcal.core.handeye.run import reference_plane
 from cellcal.core.methods.fullframe import FullFrameResult, check_gates, fit_full_frame
-from cellcal.core.track.decimate import decimated
+from cellcal.core.track.decimate import auto_decimation, decimated
 from cellcal.core.track.estimator import Tracker, TrackSettings, TrackState, TrackStep
 from cellcal.core.track.pairing import PoseHistory, Skip
 from cellcal.core.track.result import FRAMES_FILENAME, frame_row, track_document, write_track_json
@@ -154,19 +154,20 @@ class TrackRun:
         now: The clock frames are stamped with (:func:`device_clock`).
         on_progress: Called after every frame.
         settings: The tracker's settings (default :func:`track_settings`).
-        decimation: Fit every k-th pixel in each direction (:func:`~.decimate.decimated`; 1: all).
+        decimation: Fit every k-th pixel in each direction (:func:`~.decimate.decimated`; 1: all; None: chosen
+            from the first frame by :func:`~.decimate.auto_decimation`, then kept).
     """
 
     def __init__(self, config: CellConfig, camera: Camera3D, arm: RobotArm, *, out_dir: str | Path | None,
                  now: Callable[[], float], on_progress: StepCallback | None = None,
-                 settings: TrackSettings | None = None, decimation: int = 1) -> None:
+                 settings: TrackSettings | None = None, decimation: int | None = None) -> None:
         self.config = config
         self.camera = camera
         self.arm = arm
         self.out_dir = None if out_dir is None else Path(out_dir)
         self.now = now
         self.on_progress = on_progress
-        self.decimation = int(decimation)
+        self.decimation = decimation
         self.tracker = Tracker(config.mount.pose(), reference_plane(config, "cellcal track"),
                                settings or track_settings(config))
         self.history = PoseHistory()
@@ -217,6 +218,8 @@ class TrackRun:
             return self._skip(index, t_s, f"skipped: {paired.reason}")
         started = time.perf_counter()
         try:
+            if self.decimation is None:
+                self.decimation = auto_decimation(frame)
             fit = fit_full_frame(decimated(frame, self.decimation), self.config.full_frame)
             check_gates(fit)
         except CalibrationQualityError as exc:
