@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from statistics import NormalDist
 
 import numpy as np
 import pytest
@@ -123,15 +124,18 @@ def test_fifty_percent_inliers_pass_exactly_at_the_threshold() -> None:
 
 def test_per_point_sigmas_are_the_unit_of_the_residual_gates() -> None:
     """Sigmas 0.5 to 2 mm along the rays: the expected RMS is theirs projected across the plane (cos of the
-    incidence, 1/range on the plane z = 1 m), not the default noise law; the gates are in units of it."""
+    incidence, 1/range on the plane z = 1 m), cut at 3 sigma like the inliers, not the default noise law; the
+    gates are in units of it."""
     sig = np.random.default_rng(7).uniform(0.0005, 0.002, 500)
     res = plane_cloud(500, 0, sig)
     assert res.sigma_given and res.sigma_stated and res.native_space == "range"
     u, v = np.meshgrid(np.linspace(-0.4, 0.4, 25), np.linspace(-0.3, 0.3, 20))
     across = sig / np.sqrt(1.0 + u.ravel() ** 2 + v.ravel() ** 2)
-    independent = float(np.sqrt(np.mean(across[res.inlier_mask] ** 2)))
+    c = DEFAULTS.inlier_threshold_sigma                 # variance of a unit normal kept within +-c: 0.9733
+    kept_var = 1.0 - 2.0 * c * NormalDist().pdf(c) / (2.0 * NormalDist().cdf(c) - 1.0)
+    independent = math.sqrt(kept_var * float(np.mean(across[res.inlier_mask] ** 2)))
     assert expected_rms_m(res, DEFAULTS) == res.residual_expected_m
-    assert res.residual_expected_m == pytest.approx(independent, rel=0.03)
+    assert res.residual_expected_m == pytest.approx(independent, rel=1e-3)
     assert floor_reference_m(res, DEFAULTS) == res.residual_expected_m      # stated, above a floor of 0
     assert residual_threshold_m(res, DEFAULTS) == 4.0 * res.residual_expected_m
     assert res.gates["residual_floor"] == (res.residual_rms_m / res.residual_expected_m, 0.25, True)
@@ -369,6 +373,16 @@ def test_the_floor_message_names_the_floor_and_the_noise_stated(stated: bool, te
     assert str(failure(res)) == text
 
 
+def test_the_floor_message_rounds_each_length_to_three_digits() -> None:
+    """RMS 0.2354 mm and floor 1.234 mm sit just below a rounding step: 0.235 and 1.23 mm, ratio 0.190762."""
+    res = result(residual_floor_m=1.234 * MM, sigma_stated=False, residual_rms_m=0.2354 * MM)
+    assert str(failure(res)) == (
+        "quality gate 'residual_floor' failed: 0.190762 vs threshold 0.25; inlier residual RMS 0.235 mm is 0.191 x "
+        "the 1.23 mm the sensor can deliver for these pixels (quantisation floor 1.23 mm), 0.0592 x below the "
+        "minimum of 0.25 x: too good to be a measurement of this sensor (a fit on one quantisation level, or the "
+        "wrong model)")
+
+
 # ---------------------------------------------------------------------- the other texts, whole
 @pytest.mark.parametrize(("fields", "text"), [
     ({"valid_fraction": 0.49},
@@ -388,6 +402,10 @@ def test_the_floor_message_names_the_floor_and_the_noise_stated(stated: bool, te
     ({"residual_rms_m": 5 * MM},
      "quality gate 'residual_rms_m' failed: 0.005 vs threshold 0.004; inlier residual RMS 5 mm, 1 mm above the "
      "maximum of 4 mm (5 x the 1 mm the noise model expects for these pixels)"),
+    # an expected 1.234 mm just below a rounding step: 1.23 mm, the threshold 4 x 1.234 = 4.936 mm
+    ({"residual_rms_m": 5 * MM, "residual_expected_m": 1.234 * MM},
+     "quality gate 'residual_rms_m' failed: 0.005 vs threshold 0.004936; inlier residual RMS 5 mm, 0.064 mm above "
+     "the maximum of 4.94 mm (4.05 x the 1.23 mm the noise model expects for these pixels)"),
     # nothing expected (no noise, no floor): a multipath allowance of 2 mm is the whole threshold
     ({"residual_rms_m": 3 * MM, "sigma_given": False, "sigma_stated": False, "residual_unit_rms_m": 0.0,
       "multipath_allowance_m": 2 * MM},

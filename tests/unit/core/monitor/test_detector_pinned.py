@@ -158,8 +158,8 @@ def test_the_window_holds_the_last_warm_up_frames_so_a_median_comes_as_soon_as_i
         baseline_frames: int, window: int, first_median: int) -> None:
     """Warm-up heights 440, 441, ... mm: the window starts with the last ``window`` of them (or all, if fewer).
 
-    With 6 warm-up frames and a window of 5 (shorter than twice the window) the first frame after the
-    warm-up already has a median; with 3 frames, two more frames are needed.
+    With a warm-up of 6 frames, shorter than twice the window of 5, the first frame after the warm-up
+    already has a median (its window: the last 4 warm-up frames and itself); after 3 frames, two more are needed.
     """
     heights = [0.440 + 0.001 * i for i in range(baseline_frames)]
     mean = sum(heights) / baseline_frames
