@@ -48,6 +48,7 @@ from cellcal.core.calibration.config import TOP_LEVEL_TABLES, CellConfig, load_c
 from cellcal.core.cli import build_parser, main
 from cellcal.devices.config import DEFAULT_LIMITS, INT_MAX, parse_section, schema_of
 from cellcal.devices.registry import default_registry
+from cellcal.sims.work import EventConfig
 from cellcal.sims.world import SimConfig
 
 DEFAULT_BASE = "sim.toml"
@@ -93,6 +94,11 @@ def _in_range(v: Any, meta: typing.Mapping[str, Any]) -> bool:
                 or ("lt" in meta and not v < meta["lt"]) or ("le" in meta and not v <= meta["le"]))
 
 
+#: Valid tables of the schemas whose required keys alone are not valid.
+EXAMPLES: dict[type, dict[str, Any]] = {
+    EventConfig: {"at_s": 1.0, "plane_point_m": [0.0, 0.0, 0.0], "plane_normal": [0.0, 0.0, 1.0]}}
+
+
 def valid_value(tp: Any, meta: typing.Mapping[str, Any] = {}) -> Any:
     """Some value the schema accepts (to build nested tables with required keys)."""
     tp = _unwrap(tp)
@@ -114,6 +120,8 @@ def valid_value(tp: Any, meta: typing.Mapping[str, Any] = {}) -> Any:
         return [valid_value(_item(tp), meta)] * max(1, int(meta.get("min_items", 1)))
     if tp is dict or get_origin(tp) is dict:
         return {}
+    if tp in EXAMPLES:  # a table whose validity spans its keys (e.g. an event must change something)
+        return dict(EXAMPLES[tp])
     if _is_dataclass_type(tp):
         return {k: valid_value(t, m) for k, (t, d, m) in schema_of(tp).items() if d is dataclasses.MISSING}
     if tp is Any:

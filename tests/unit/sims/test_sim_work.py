@@ -79,7 +79,8 @@ def test_a_commanded_motion_ends_the_work() -> None:
 
 
 @pytest.mark.parametrize(("sim", "says"), [
-    ({"work": {}}, "needs at least one pose"),
+    ({"work": {}}, "poses"),
+    ({"work": {"poses": []}}, "needs at least 1 items"),
     ({"work": {"poses": [{"translation_m": A}], "speed": 1}}, "speed"),
     ({"work": {"poses": [{"translation_m": A}], "speed_m_s": 2.0}}, "speed_m_s"),
     ({"events": [{"at_s": 1.0}]}, "changes nothing"),
