@@ -56,7 +56,8 @@ class WorkPose:
 class WorkConfig:
     """``[sim.work]``: the arm's own program, from the initial flange pose through ``poses``, repeated."""
 
-    poses: list[WorkPose] = field(metadata={"min_items": 1, "max_items": 1024, "doc": "the work poses, visited in order"})
+    poses: list[WorkPose] = field(metadata={"min_items": 1, "max_items": 1024,
+                                            "doc": "the work poses, visited in order"})
     speed_m_s: float = field(default=0.1, metadata={"gt": 0.0, "le": 1.0, "doc": "tool speed, m/s"})
     acceleration_m_s2: float = field(default=0.5, metadata={"gt": 0.0, "le": 50.0, "doc": "tool acceleration, m/s²"})
     dwell_s: float = field(default=1.0, metadata={"ge": 0.0, "le": 3600.0, "doc": "time at rest at each pose, s"})
