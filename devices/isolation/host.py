@@ -101,6 +101,10 @@ class NativeHost:
     def start(self, timeout: float) -> None:
         """Start the worker and wait (at most ``timeout`` s) until it answers."""
         parent, child = socket.socketpair()
+        # blocking whatever socket.setdefaulttimeout() says (xarm-python-sdk sets 1 s for the whole process):
+        # a timeout makes the descriptors non-blocking, and the worker would read EAGAIN as the end
+        parent.setblocking(True)
+        child.setblocking(True)
         try:
             self._proc = subprocess.Popen(
                 [sys.executable, "-m", "cellcal.devices.isolation.worker", str(child.fileno())],

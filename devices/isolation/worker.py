@@ -125,7 +125,9 @@ def main(argv: list[str]) -> int:
     """Serve on the inherited socket whose descriptor is ``argv[0]``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent()
-    conn = Connection(int(argv[0]))
+    fd = int(argv[0])
+    os.set_blocking(fd, True)  # whatever the parent's socket defaults were
+    conn = Connection(fd)
     Worker(conn).serve()
     sys.stdout.flush()
     sys.stderr.flush()

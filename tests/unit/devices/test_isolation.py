@@ -45,6 +45,25 @@ def test_values_come_back_by_value_objects_stay_in_the_worker(host: NativeHost) 
     assert host.module("os").getpid() == host.pid != os.getpid()
 
 
+def test_a_process_wide_socket_timeout_does_not_break_the_pipe() -> None:
+    # xarm-python-sdk calls socket.setdefaulttimeout(1) for the whole process; sockets made after it are
+    # non-blocking, and a worker reading EAGAIN took it for its parent gone (found by the full suite)
+    import socket
+
+    previous = socket.getdefaulttimeout()
+    socket.setdefaulttimeout(1.0)
+    try:
+        h = NativeHost("test", library="libtest", backend="test")
+        h.start(10.0)
+        try:
+            time.sleep(1.5)                                  # longer than the default timeout, idle
+            assert h.module("operator").add(20, 22) == 42
+        finally:
+            h.close(2.0)
+    finally:
+        socket.setdefaulttimeout(previous)
+
+
 def test_errors_keep_their_type_and_message(host: NativeHost) -> None:
     with pytest.raises(ImportError, match="No module named 'no_such_vendor_sdk'"):
         host.module("no_such_vendor_sdk")
