@@ -21,7 +21,7 @@ from cellcal.devices.registry import Registry
 from cellcal.devices.safety import SafeArm
 
 __all__ = ["REPLAY_BACKEND", "VOLATILE_KEYS", "VOLATILE_POSE_KEYS", "compare_with_recording", "exact_part",
-           "record", "replay_session", "run_recorded"]
+           "record", "recorded_devices", "replay_session", "run_recorded"]
 
 #: Backend name of the replay camera and arm.
 REPLAY_BACKEND = "replay"
@@ -67,6 +67,11 @@ def record(config: CellConfig, out: str | Path, *, config_text: str | None = Non
     return document, recorder
 
 
+def recorded_devices(recorder: SessionRecorder, camera: Camera3D, safe_arm: SafeArm) -> tuple[Camera3D, SafeArm]:
+    """``camera`` and ``safe_arm`` behind ``recorder``: the backend arm recorded inside the safety wrapper."""
+    return recorder.camera(camera), SafeArm(recorder.arm(safe_arm.inner), safe_arm.limits)
+
+
 def run_recorded(config: CellConfig, recorder: SessionRecorder, camera: Camera3D, safe_arm: SafeArm, *,
                  progress: ProgressFactory | None = None, observer: PoseObserver | None = None) -> dict[str, Any]:
     """Run the plan of ``config`` on ``camera`` and ``safe_arm`` (:func:`build_devices`) behind ``recorder``.
@@ -78,8 +83,8 @@ def run_recorded(config: CellConfig, recorder: SessionRecorder, camera: Camera3D
     Raises:
         CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`.
     """
-    arm = SafeArm(recorder.arm(safe_arm.inner), safe_arm.limits)
-    document = Calibrator(config, recorder.camera(camera), arm, progress=progress, observer=observer).run()
+    camera, arm = recorded_devices(recorder, camera, safe_arm)
+    document = Calibrator(config, camera, arm, progress=progress, observer=observer).run()
     recorder.log_result(document)
     return document
 

@@ -103,16 +103,16 @@ def _run_plane(args: argparse.Namespace, config: Any, camera: Any, arm: Any, pos
                report: Any) -> int:
     """``--method plane``: the journaled plan run (with ``--record`` / ``--replay``)."""
     from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.calibration.replay import recorded_devices
     from cellcal.core.cli.progress import progress_factory
     from cellcal.core.handeye.run import plan_calibrator
-    from cellcal.devices.safety import SafeArm
 
     if not args.replay:
         camera, arm = build_devices(config)
     with contextlib.ExitStack() as stack:
         if args.record:  # the backend arm is recorded inside the safety wrapper, as by 'cellcal record'
             recorder = _recorder(stack, args, config)
-            camera, arm = recorder.camera(camera), SafeArm(recorder.arm(arm.inner), arm.limits)
+            camera, arm = recorded_devices(recorder, camera, arm)
         calibrator = plan_calibrator(config, camera, arm, poses, progress_factory("poses", "pose", args.quiet))
         document = _run(args, calibrator, len(poses))
         if args.record and isinstance(document, dict):

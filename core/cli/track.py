@@ -172,11 +172,11 @@ def run(args: argparse.Namespace) -> int:
         now = device_clock(camera)
     with contextlib.ExitStack() as stack:
         if args.record:
+            from cellcal.core.calibration.replay import recorded_devices
             from cellcal.core.cli.record import open_recorder
-            from cellcal.devices.safety import SafeArm
 
             recorder = open_recorder(stack, args.record, config, args.config)
-            camera, arm = recorder.camera(camera), SafeArm(recorder.arm(arm.inner), arm.limits)
+            camera, arm = recorded_devices(recorder, camera, arm)
         outcome = _track(args, config, camera, arm, duration, now)
         if args.record:
             recorder.log_result(outcome.document)

@@ -143,14 +143,28 @@ def observation_from_pose(record: dict[str, object]) -> PlaneObservation:
     if not isinstance(ff, dict):
         raise CalibrationError(f"plan pose {int(record.get('index', -1)) + 1} has no full-frame plane")  # type: ignore[call-overload]
     plane = ff["plane_cam"]
-    cov = np.zeros((4, 4))
-    cov[:3, :3] = np.asarray(ff["normal_covariance"], dtype=np.float64)
-    cov[3, 3] = float(plane["offset_sigma_m"]) ** 2
-    cross = np.asarray(ff.get("normal_offset_covariance", np.zeros(3)), dtype=np.float64)
-    cov[:3, 3] = cov[3, :3] = cross  # normal-offset correlation (zero when the document lacks it)
+    cov = plane_covariance(np.asarray(ff["normal_covariance"], dtype=np.float64), float(plane["offset_sigma_m"]),
+                           # normal-offset correlation (zero when the document lacks it)
+                           np.asarray(ff.get("normal_offset_covariance", np.zeros(3)), dtype=np.float64))
     flange = Pose.from_dict(record["reported_flange_pose"])  # type: ignore[arg-type]
     return PlaneObservation(flange, np.asarray(plane["normal"], dtype=np.float64), float(plane["offset_m"]), cov)
 
 
+def plane_covariance(normal_covariance: FloatArray, offset_sigma_m: float, normal_offset_covariance: FloatArray
+                     ) -> FloatArray:
+    """The 4x4 covariance of a plane observation (unit normal, offset) from a fit's parts.
+
+    Args:
+        normal_covariance: 3x3 covariance of the unit normal (tangent to the sphere).
+        offset_sigma_m: 1-sigma of the offset, m.
+        normal_offset_covariance: Their cross-covariance, shape (3,), m.
+    """
+    cov = np.zeros((4, 4))
+    cov[:3, :3] = normal_covariance                       # the normal's block
+    cov[3, 3] = offset_sigma_m ** 2                       # the offset's variance, m^2
+    cov[:3, 3] = cov[3, :3] = normal_offset_covariance    # their correlation
+    return cov
+
+
 __all__ = ["MOUNT_ROTATION", "MOUNT_TRANSLATION", "PARAMETERS", "PLANE_OFFSET", "PLANE_TILT", "PlaneModel",
-           "PlaneObservation", "observation_from_pose", "stack_poses", "tangent_basis", "whitening"]
+           "PlaneObservation", "observation_from_pose", "plane_covariance", "stack_poses", "tangent_basis", "whitening"]

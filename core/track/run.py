@@ -20,7 +20,7 @@ from typing import IO, Any
 import numpy as np
 
 from cellcal.core.calibration.config import CellConfig
-from cellcal.core.handeye.model import PlaneObservation
+from cellcal.core.handeye.model import PlaneObservation, plane_covariance
 from cellcal.core.handeye.run import reference_plane
 from cellcal.core.methods.fullframe import FullFrameResult, check_gates, fit_full_frame
 from cellcal.core.track.decimate import auto_decimation, decimated
@@ -86,10 +86,7 @@ def track_settings(config: CellConfig) -> TrackSettings:
 
 def observation(fit: FullFrameResult, flange: Pose) -> PlaneObservation:
     """The tracker's observation of a plane fit (camera frame) made at ``flange`` (base frame)."""
-    cov = np.zeros((4, 4))
-    cov[:3, :3] = fit.normal_covariance                     # the unit normal's covariance (tangent)
-    cov[3, 3] = fit.offset_sigma_m ** 2                     # the offset's variance, m^2
-    cov[:3, 3] = cov[3, :3] = fit.normal_offset_covariance  # their correlation
+    cov = plane_covariance(fit.normal_covariance, fit.offset_sigma_m, fit.normal_offset_covariance)
     return PlaneObservation(flange, np.asarray(fit.plane.normal, dtype=np.float64), float(fit.plane.offset_m), cov)
 
 
