@@ -10,6 +10,10 @@ import json
 import os
 import socket
 import struct
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
 from pathlib import Path
 
 #: Longest wait for a line the command prints or a client's handshake, s (a bound, not a timing assertion).
@@ -80,8 +84,66 @@ def subscribe_all_and_stop_reading(port: int) -> socket.socket:
     return sock
 
 
-def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+def rss_mb(pid: int) -> float | None:
+    """Resident memory of process ``pid``, MB; None once it has exited (a zombie's status has no VmRSS)."""
+    try:
+        lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+    except FileNotFoundError:
+        return None
+    for line in lines:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
+    return None
+
+
+@dataclass
+class SlowViewerRun:
+    """What ``cellcal monitor --viz-port`` did with four viewers that never read and 200 idle connections.
+
+    Attributes:
+        returncode, out, err: The command's exit status and output.
+        samples: ``(seconds since the live view started, resident MB)`` every 0.25 s.
+        ended_after_s: When the command had ended, seconds since the live view started.
+    """
+
+    returncode: int
+    out: str
+    err: str
+    samples: list[tuple[float, float]]
+    ended_after_s: float
+
+    def peaks_mb(self, duration_s: float) -> tuple[float, float]:
+        """The largest resident memory in the first half of the run (after its first second) and the second."""
+        early = max(mb for t, mb in self.samples if 1.0 < t <= duration_s / 2)
+        late = max(mb for t, mb in self.samples if t > duration_s / 2)
+        return early, late
+
+
+def monitor_with_slow_viewers(port: int, duration_s: float) -> SlowViewerRun:
+    """Run ``cellcal monitor --duration duration_s --viz-port port`` against hostile viewers; sample its memory."""
+    proc = subprocess.Popen([sys.executable, "-m", "cellcal.core.cli", "monitor", "--duration", str(duration_s),
+                             "--quiet", "--viz-port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    sockets: list[socket.socket] = []
+    samples: list[tuple[float, float]] = []
+    try:
+        assert proc.stderr is not None
+        assert "live view:" in proc.stderr.readline()
+        started = time.monotonic()
+        sockets += [subscribe_all_and_stop_reading(port) for _ in range(4)]
+        # idle connections: no handshake at all
+        sockets += [socket.create_connection(("127.0.0.1", port), timeout=WAIT_S) for _ in range(200)]
+        while proc.poll() is None and time.monotonic() - started < duration_s + WAIT_S:
+            mb = rss_mb(proc.pid)
+            if mb is not None:  # the command may end between the poll and the read
+                samples.append((time.monotonic() - started, mb))
+            time.sleep(0.25)
+        out, err = proc.communicate(timeout=WAIT_S)
+        ended_after_s = time.monotonic() - started
+    finally:
+        for sock in sockets:
+            sock.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return SlowViewerRun(proc.returncode, out, err, samples, ended_after_s)

@@ -12,8 +12,6 @@ import contextlib
 import json
 import logging
 import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,7 @@ import pytest
 
 pytest.importorskip("foxglove")
 
-from hostile_viewer import WAIT_S, channels, connect, frame, rss_mb, send_text, subscribe_all_and_stop_reading
+from hostile_viewer import WAIT_S, channels, connect, frame, monitor_with_slow_viewers, send_text
 
 from cellcal.core.liveview import LiveView
 from cellcal.core.liveview.sdklog import MAX_RECORDS_PER_S
@@ -34,40 +32,15 @@ from tests.support.ports import free_port, port_free
 def test_four_viewers_that_never_read_and_200_idle_connections_cost_bounded_memory_and_the_run_ends_on_time(
         tmp_path: Path) -> None:
     port, duration_s = free_port(), 12.0
-    proc = subprocess.Popen([sys.executable, "-m", "cellcal.core.cli", "monitor", "--duration", str(duration_s),
-                             "--quiet", "--viz-port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-    sockets: list[socket.socket] = []
-    try:
-        assert proc.stderr is not None
-        assert "live view:" in proc.stderr.readline()
-        started = time.monotonic()
-        sockets += [subscribe_all_and_stop_reading(port) for _ in range(4)]
-        for _ in range(200):  # idle connections: no handshake at all
-            with_idle = socket.create_connection(("127.0.0.1", port), timeout=WAIT_S)
-            sockets.append(with_idle)
-        samples = []
-        while proc.poll() is None and time.monotonic() - started < duration_s + WAIT_S:
-            samples.append((time.monotonic() - started, rss_mb(proc.pid)))
-            time.sleep(0.25)
-        out, err = proc.communicate(timeout=WAIT_S)
-        ended_after_s = time.monotonic() - started
-    finally:
-        for sock in sockets:
-            sock.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0, err
-    assert "monitor finished" in out
+    run = monitor_with_slow_viewers(port, duration_s)
+    assert run.returncode == 0, run.err
+    assert "monitor finished" in run.out
     # the run ends when --duration is over (plus its start-up and the close's bounded wait), not when the viewers go
-    assert ended_after_s < duration_s + 15.0, ended_after_s
+    assert run.ended_after_s < duration_s + 15.0, run.ended_after_s
     # memory: what the second half of the run adds is small (no growth with the frames published)
-    late = [mb for t, mb in samples if t > duration_s / 2]
-    early = [mb for t, mb in samples if 1.0 < t <= duration_s / 2]
-    assert late and early, samples
-    assert max(late) - max(early) < 20.0, samples  # flat at ~135 MB here; unbounded queues grew ~30 MB/s
-    assert max(mb for _, mb in samples) < 600.0, samples
+    early, late = run.peaks_mb(duration_s)
+    assert late - early < 20.0, run.samples  # flat at ~135 MB here; unbounded queues grew ~30 MB/s
+    assert max(mb for _, mb in run.samples) < 600.0, run.samples
     assert port_free(port)
 
 
