@@ -242,7 +242,8 @@ class NativeHost:
                                             f"{what} ({exc}); it was stopped") from None
             if got != seq:
                 if kind == p.REF:  # a late object nobody will use: let the worker free it
-                    conn.send_bytes(pickle.dumps((0, p.DROP, payload[0], "", (), {})))
+                    with contextlib.suppress(OSError):  # a worker gone by now is found by the next read
+                        conn.send_bytes(pickle.dumps((0, p.DROP, payload[0], "", (), {})))
                 continue
             if kind == p.VALUE:
                 return payload
