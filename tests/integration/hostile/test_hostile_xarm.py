@@ -217,6 +217,20 @@ class HostileXArm:
         with contextlib.suppress(BlockingIOError):
             self.flooded += os.write(self._master, _NOISE)
 
+    def _write_all(self, data: bytes) -> None:
+        """A reply goes out whole even once the flood made the line non-blocking and full.
+
+        The driver drains the noise, so the line has room again within milliseconds; a reply
+        that cannot go out within a second is dropped (the driver's own timeouts then decide).
+        """
+        deadline = time.monotonic() + 1.0
+        view = memoryview(data)
+        while view and time.monotonic() < deadline and not self._stop.is_set():
+            try:
+                view = view[os.write(self._master, view):]
+            except BlockingIOError:
+                select.select([], [self._master], [], 0.01)
+
     def _requests(self, buf: bytearray) -> Iterator[tuple[int, bytes]]:
         while True:
             start = buf.find(b"\xaa\x55")
@@ -239,7 +253,7 @@ class HostileXArm:
             due = [f for t, f in self._later if t <= time.monotonic()]
             self._later = [(t, f) for t, f in self._later if t > time.monotonic()]
             for frame in due:
-                os.write(self._master, frame)
+                self._write_all(frame)
             if self.flooding and time.monotonic() < self.flood_until:
                 self._flood()
             ready, _, _ = select.select([self._master], [], [], 0.01)
@@ -250,7 +264,7 @@ class HostileXArm:
                 self.requests.append((reg, params))
                 out = self._misbehave(reg, self._answer(reg, params))
                 if out:
-                    os.write(self._master, out)
+                    self._write_all(out)
 
 
 # ---------------------------------------------------------------------- the cases
