@@ -113,9 +113,17 @@ def _floor_message(value: float, threshold: float, result: FullFrameResult, sett
 def _expected_message(value: float, threshold: float, result: FullFrameResult) -> str:
     angle, offset = result.expected_departure or (math.nan, math.nan)
     tol_a, tol_o = result.expected_tolerance or (math.nan, math.nan)
-    return (f"the fitted plane is {math.degrees(angle):.3g} deg and {offset * 1000:.4g} mm from the expected one; "
-            f"tolerances {math.degrees(tol_a):.3g} deg (by {math.degrees(angle - tol_a):+.3g} deg) and "
-            f"{tol_o * 1000:.4g} mm (by {(offset - tol_o) * 1000:+.4g} mm)")
+    # each part as the user reads it: degrees and millimetres
+    a, o, ta, to = math.degrees(angle), offset * 1000, math.degrees(tol_a), tol_o * 1000
+    angle_bad, offset_bad = not angle <= tol_a, not offset <= tol_o
+    if angle_bad and offset_bad:
+        return (f"the fitted plane is {a:.3g} deg and {o:.4g} mm from the expected one, {a - ta:.3g} deg and "
+                f"{o - to:.4g} mm beyond the tolerances of {ta:.3g} deg and {to:.4g} mm")
+    if offset_bad:
+        return (f"the fitted plane is {o:.4g} mm from the expected one, {o - to:.4g} mm beyond the tolerance of "
+                f"{to:.4g} mm (its angle, {a:.3g} deg, is within {ta:.3g} deg)")
+    return (f"the fitted plane is {a:.3g} deg from the expected one, {a - ta:.3g} deg beyond the tolerance of "
+            f"{ta:.3g} deg (its offset, {o:.4g} mm, is within {to:.4g} mm)")
 
 
 def _message(name: str, value: float, threshold: float, result: FullFrameResult,

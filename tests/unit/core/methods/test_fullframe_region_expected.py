@@ -91,12 +91,13 @@ def test_expected_plane_gate_pinned_at_its_tolerances(desk: tuple[Frame, Plane, 
     with pytest.raises(CalibrationQualityError) as info:
         check_gates(at, cfg)
     assert info.value.gate == "flatness"                            # the desk beside the floor: the next gate
-    for tol in ((np.nextafter(angle, 0.0), offset), (angle, np.nextafter(offset, 0.0))):
+    for tol, failed, held in (((np.nextafter(angle, 0.0), offset), " deg beyond the tolerance of ", "its offset"),
+                              ((angle, np.nextafter(offset, 0.0)), " mm beyond the tolerance of ", "its angle")):
         with pytest.raises(CalibrationQualityError) as info:
             check_gates(dataclasses.replace(res, expected_tolerance=tol), cfg)
         assert info.value.gate == "expected_plane" and info.value.value == angle
         text = _one_line(info)
-        assert "from the expected one; tolerances" in text and " deg (by " in text and " mm (by " in text
+        assert "from the expected one, " in text and failed in text and f"({held}, " in text
     assert gate_table(cfg, dataclasses.replace(res, expected_departure=None))["valid_fraction"][2]
 
 

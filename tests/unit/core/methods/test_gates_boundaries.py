@@ -412,11 +412,15 @@ def test_the_floor_message_rounds_each_length_to_three_digits() -> None:
      "quality gate 'residual_rms_m' failed: 0.003 vs threshold 0.002; inlier residual RMS 3 mm, 1 mm above the "
      "maximum of 2 mm"),
     ({"expected_departure": (math.radians(2.0), 3 * MM)},
-     "quality gate 'expected_plane' failed: 0.0349066 vs threshold 0.0174533; the fitted plane is 2 deg and 3 mm "
-     "from the expected one; tolerances 1 deg (by +1 deg) and 5 mm (by -2 mm)"),
+     "quality gate 'expected_plane' failed: 0.0349066 vs threshold 0.0174533; the fitted plane is 2 deg from the "
+     "expected one, 1 deg beyond the tolerance of 1 deg (its offset, 3 mm, is within 5 mm)"),
     ({"expected_departure": (math.radians(0.5), 7.5 * MM)},
-     "quality gate 'expected_plane' failed: 0.00872665 vs threshold 0.0174533; the fitted plane is 0.5 deg and "
-     "7.5 mm from the expected one; tolerances 1 deg (by -0.5 deg) and 5 mm (by +2.5 mm)"),
+     "quality gate 'expected_plane' failed: 0.00872665 vs threshold 0.0174533; the fitted plane is 7.5 mm from the "
+     "expected one, 2.5 mm beyond the tolerance of 5 mm (its angle, 0.5 deg, is within 1 deg)"),
+    # both beyond: both named, with their excesses
+    ({"expected_departure": (math.radians(1.5), 6 * MM)},
+     "quality gate 'expected_plane' failed: 0.0261799 vs threshold 0.0174533; the fitted plane is 1.5 deg and 6 mm "
+     "from the expected one, 0.5 deg and 1 mm beyond the tolerances of 1 deg and 5 mm"),
 ])
 def test_each_gate_says_what_failed_by_how_much_in_one_line(fields: dict[str, object], text: str) -> None:
     err = failure(result(**fields))
