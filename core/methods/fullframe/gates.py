@@ -186,8 +186,8 @@ def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings,
 class CoverageCells(NamedTuple):
     """The coverage grid of one image: inliers and counted pixels per cell, and the cells' first rows / columns."""
 
-    counts: NDArray[np.int32]   # (rows, cols) inliers per cell
-    area: NDArray[np.int32]     # (rows, cols) pixels counted per cell (region pixels with a region)
+    counts: NDArray[np.integer]  # (rows, cols) inliers per cell
+    area: NDArray[np.integer]    # (rows, cols) pixels counted per cell (region pixels with a region)
     row_edges: NDArray[np.int_]  # (rows,) first image row of each cell
     col_edges: NDArray[np.int_]  # (cols,) first image column of each cell
 
