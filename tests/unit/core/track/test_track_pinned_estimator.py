@@ -292,12 +292,15 @@ def test_a_knock_with_a_shift_reports_its_size_in_every_key() -> None:
     first = next(i for i, (_, s) in enumerate(run) if s.event is not None)
     detected = run[first][1]
     assert notes[:first] == ["residual far beyond the noise model"] * first and first == 3  # the 4th frame alarms
-    assert detected.note == "change detected" and detected.event is not None and not detected.accepted
+    assert detected.note == "change detected" and detected.event is not None and detected.accepted is False
+    assert detected.t_s == 484 / 30 and detected.residual.shape == (3,)
+    assert detected.chi2 == pytest.approx(float(detected.residual @ detected.residual), rel=1e-12)
     assert detected.event.kind == "mount or plane" and detected.event.size == {"innovation_chi2": detected.chi2}
     assert detected.event.started_at_s == 481 / 30 and detected.event.detected_at_s == 484 / 30
     told = next(i for i, (_, s) in enumerate(run) if i > first and s.event is not None)
     assert set(notes[first + 1:told]) == {"change not told apart yet: frames kept for the re-estimate"}
-    step = run[told][1]  # the arm moved to the next view: told apart there
+    step = run[told][1]
+    assert told == 490 - 481  # the first frame at the next view (the arm moved): told apart there
     assert step.accepted and step.note == "" and step.event is not None and step.event.kind == "mount"
     at_restart = dict(step.event.size)
     assert set(at_restart) == {"rotation_deg", "translation_m"}
@@ -334,6 +337,20 @@ def test_a_knock_seen_from_four_views_at_once_is_told_and_resolved_at_its_alarm(
     assert all(s.event is None for _, s in run[4:]) and tracker.frames_used == 520
 
 
+def test_a_second_knock_right_after_a_restart_starts_at_its_own_first_frame() -> None:
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    feed(tracker, SC, 41, 480, dwell=1)
+    once = dataclasses.replace(SC, true_mount=knocked_mount(SC.true_mount, 0.5, (0.0, 1.0, 0.0)))
+    run = feed(tracker, once, 42, 4, start=480, dwell=1)  # told and resolved at its 4th frame
+    twice = dataclasses.replace(SC, true_mount=knocked_mount(once.true_mount, 0.5, (1.0, 0.0, 0.0)))
+    run += feed(tracker, twice, 43, 40, start=484, dwell=1)  # the very next frame: knocked again
+    assert [k for k, (_, s) in enumerate(run) if s.event is not None] == [3, 7]
+    first, second = tracker.state.events
+    assert first.started_at_s == 480 / 30 and second.started_at_s == 484 / 30 and second.detected_at_s == 487 / 30
+    assert second.kind == "mount" and second.size["rotation_deg"] == pytest.approx(0.5, abs=0.01)
+    assert tracker.frames_used == 524
+
+
 def test_a_change_left_undecided_until_the_window_is_full_restarts_both_blocks() -> None:
     tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(change_window=20))
     feed(tracker, SC, 43, 480)
@@ -359,6 +376,11 @@ def test_a_small_change_starts_after_the_last_frame_at_or_below_the_reference() 
     assert all(8.0 < s.chi2 <= 40.0 for _, s in run[:k + 1])  # every frame since the change: reference < chi2 <= clip
     assert step.note == "change detected" and step.event is not None
     assert step.event.started_at_s == 481 / 30 and step.event.detected_at_s == (481 + k) / 30
+    assert step.event.size == {"innovation_chi2": step.chi2}
+    # the frames since the change were used before the alarm: taken back until the change is told apart
+    assert tracker.frames_used == 480 and tracker.state.change_unresolved
+    assert all(s.note == "change not told apart yet: frames kept for the re-estimate" for _, s in run[k + 1:])
+    assert np.all(np.isnan(tracker.state.covariance)) and np.all(np.isnan(tracker.state.mount_rpy_sigma_deg))
 
 
 def test_a_tilted_table_reports_tilt_offset_and_shift() -> None:
