@@ -167,8 +167,8 @@ class MeasurementModel:
         """
         if data is None:
             return UNKNOWN_MODEL
-        try:
-            return parse_section(cls, data, where=where, source=source)
+        try:  # parsed under the name __post_init__ reports (camera.model), then renamed to ``where``
+            return parse_section(cls, data, where="camera.model", source=source)
         except ConfigError as exc:
             key = exc.key.replace("camera.model", where, 1) if exc.key else where
             raise ConfigError(exc.reason, source=exc.source or source, key=key) from None
