@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -42,26 +43,35 @@ def feed(tracker: Tracker, scenario: Scenario, seed: int, frames: int, dwell: in
     return out
 
 
-def batch(obs: list[PlaneObservation], plane: Plane = SC.nominal_plane) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares fit of all frames with the weak prior: the parameters and the Jacobian (N, 3, 9) at them.
+def residuals_of(obs: list[PlaneObservation], plane: Plane = SC.nominal_plane, rotation_sigma_rad: float = 0.0
+                 ) -> Callable[[np.ndarray], np.ndarray]:
+    """The whitened residuals (N, 3) of the frames as a function of the nine parameters, from the hand-eye model.
 
-    The residuals are the hand-eye model's: the predicted normal's error across the measured one (2) and
-    the offset's, whitened by ``whitening`` of each observation.
+    The predicted normal's error across the measured one (2) and the offset's, whitened by ``whitening`` of
+    each observation (the arm's turn noise acting through the configured mount's lever).
     """
     model = PlaneModel(SC.nominal_mount, plane)
     flanges = [o.flange for o in obs]
-    pairs = [whitening(o, ARM_SIGMA_M, 0.0, LEVER_M) for o in obs]
+    pairs = [whitening(o, ARM_SIGMA_M, rotation_sigma_rad, LEVER_M) for o in obs]
     bases, whites = np.array([b for b, _ in pairs]), np.array([w for _, w in pairs])
     normals = np.array([o.normal for o in obs])
     offsets = np.array([o.offset_m for o in obs])
-    root = math.sqrt(WEAK)
 
     def fun(x: np.ndarray) -> np.ndarray:
         n, c = model.predict(x, flanges)
         raw = np.concatenate([np.einsum("nij,ni->nj", bases, n - normals), (c - offsets)[:, None]], axis=1)
-        return np.r_[np.einsum("nij,nj->ni", whites, raw).ravel(), root * x]
+        return np.einsum("nij,nj->ni", whites, raw)
 
-    sol = least_squares(fun, np.zeros(9), xtol=1e-15, ftol=1e-15, gtol=1e-15, x_scale=1e-3)
+    return fun
+
+
+def batch(obs: list[PlaneObservation], plane: Plane = SC.nominal_plane, rotation_sigma_rad: float = 0.0
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares fit of all frames with the weak prior: the parameters and the Jacobian (N, 3, 9) at them."""
+    fun = residuals_of(obs, plane, rotation_sigma_rad)
+    root = math.sqrt(WEAK)
+    sol = least_squares(lambda x: np.r_[fun(x).ravel(), root * x], np.zeros(9), xtol=1e-15, ftol=1e-15,
+                        gtol=1e-15, x_scale=1e-3)
     return sol.x, sol.jac[:-9].reshape(len(obs), 3, 9)
 
 
@@ -423,3 +433,109 @@ def test_the_state_before_any_frame_and_after_one() -> None:
     state = tracker.state
     assert state.frames_used == 1 and state.noise is not None and state.noise.dof == 1
     assert len(state.unseen) >= 1 and all(": not shown by the work so far (would need " in u for u in state.unseen)
+
+
+# ------------------------------------------------------------------ the prior, the windows, the arm's turn noise
+def test_the_first_frame_is_judged_against_the_weak_prior_and_stepped_to_its_fit() -> None:
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    (obs, step), = feed(tracker, SC, 50, 1)
+    fun = residuals_of([obs])
+    h = 1e-6
+    jac = np.column_stack([(fun(h * e) - fun(-h * e)).ravel() / (2 * h) for e in np.eye(9)])  # (3, 9)
+    r = fun(np.zeros(9)).ravel()
+    innov = np.eye(3) + jac @ jac.T / WEAK  # the residual's covariance with the prior's (0.05 rad / m) spread
+    assert step.chi2 == pytest.approx(float(r @ np.linalg.solve(innov, r)), rel=1e-6)
+    assert step.accepted and step.note == ""
+    x_ref, _ = batch([obs])  # one frame and the weak prior, minimised
+    np.testing.assert_allclose(tracker._x, x_ref, rtol=0, atol=1e-7)  # two Gauss-Newton steps: converged to 2e-6 sigma
+    # one frame shows three directions (the rows of its Jacobian): the others keep the configured values
+    at = np.column_stack([(fun(x_ref + h * e) - fun(x_ref - h * e)).ravel() / (2 * h) for e in np.eye(9)])
+    seen = np.linalg.pinv(at) @ at  # projector on the row space of the Jacobian at the estimate
+    np.testing.assert_allclose(tracker.state.parameters, seen @ x_ref, rtol=0, atol=1e-7)
+    assert not any(tracker.state.observable.values())  # no single parameter lies in three directions
+
+
+def test_a_window_shorter_than_the_work_gives_the_batch_fit_of_every_frame() -> None:
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(window=60, relinearise_every=20))
+    run = feed(tracker, SC, 52, 300)
+    x_ref, jac = batch([o for o, _ in run])
+    sigma = np.sqrt(np.diag(np.linalg.inv(np.einsum("nki,nkj->ij", jac, jac))))
+    state = tracker.state
+    assert state.frames_used == 300 and len(tracker._window) == 60
+    assert np.all(np.abs(state.parameters - x_ref) < 0.02 * sigma)  # frames left the window as a quadratic prior
+    np.testing.assert_allclose(np.sqrt(np.diag(state.covariance)), sigma, rtol=2e-3)
+
+
+def test_the_arm_turn_noise_acts_through_the_mount_lever() -> None:
+    turn_sigma = 2e-5  # rad: 9 um at the 72 mm lever, comparable to the offset noise
+    noisy = SC.with_arm_noise(ARM_SIGMA_M, turn_sigma)
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(arm_rotation_sigma_rad=turn_sigma))
+    run = feed(tracker, noisy, 53, 240)
+    obs = [o for o, _ in run]
+    _, jac = batch(obs, rotation_sigma_rad=turn_sigma)
+    sigma = np.sqrt(np.diag(np.linalg.inv(np.einsum("nki,nkj->ij", jac, jac))))
+    state = tracker.state
+    assert state.noise is not None and state.noise.verdict == "consistent"
+    np.testing.assert_allclose(np.sqrt(np.diag(state.covariance)), sigma, rtol=2e-3)
+    _, plain = batch(obs)  # the same frames without the turn noise: narrower, so the lever matters
+    plain_sigma = np.sqrt(np.diag(np.linalg.inv(np.einsum("nki,nkj->ij", plain, plain))))
+    assert np.all(sigma[:3] > 1.05 * plain_sigma[:3])
+
+
+def test_the_noise_test_reads_the_last_noise_window_frames() -> None:
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(noise_window=40))
+    run = feed(tracker, SC, 54, 100)
+    nis = np.array([np.asarray(s.residual) ** 2 for _, s in run[-40:]]).sum(axis=0)
+    state = tracker.state
+    assert state.noise is not None and state.noise.dof == 40
+    assert state.noise.chi2 == pytest.approx(nis.max(), rel=1e-9)
+
+
+def test_the_change_test_divides_by_the_measured_noise_after_30_frames_capped_at_the_largest_scale() -> None:
+    noisy = SC.with_arm_noise(1e-4, 0.0)
+    for cap, seed in ((1.5, 55), (10.0, 56)):
+        tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(max_interval_scale=cap))
+        used: list[np.ndarray] = []
+        for t_s, obs in work(noisy, np.random.default_rng(seed), 60, dwell=10):
+            step = tracker.update(t_s, obs)
+            if step.accepted:
+                used.append(np.asarray(step.residual) ** 2)
+            if len(used) < 30:
+                assert tracker._noise_scale2() == 1.0  # fewer than 30 frames: the stated noise
+            else:
+                worst = float(np.mean(used[-900:], axis=0).max())  # the worst component's mean chi2
+                assert tracker._noise_scale2() == pytest.approx(min(max(1.0, worst), cap**2), rel=1e-12)
+        assert len(used) >= 40 and float(np.mean(used, axis=0).max()) > 2.25  # the cap of 1.5 was reached
+
+
+def alternating(turn_deg: float) -> Scenario:
+    """View 0 and view 0 turned about base x by ``turn_deg`` (the plane normal seen from the flange turns as much)."""
+    from scipy.spatial.transform import Rotation
+
+    turn = Pose(Rotation.from_euler("x", math.radians(turn_deg)), np.zeros(3))
+    return dataclasses.replace(SC, flanges=(SC.flanges[0], turn @ SC.flanges[0]))
+
+
+@pytest.mark.parametrize(("turn_deg", "kept"), [(0.9, 1), (1.1, 6)])
+def test_a_plane_normal_is_kept_when_it_differs_by_more_than_1_degree(turn_deg: float, kept: int) -> None:
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    feed(tracker, alternating(turn_deg), 57, 30, dwell=5)  # 6 dwells, alternating
+    assert len(tracker._normals) == kept
+
+
+def test_a_mount_shift_with_a_table_tilt_restarts_both_after_10_frames() -> None:
+    from scipy.spatial.transform import Rotation
+
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    feed(tracker, SC, 41, 480, dwell=1)
+    mount = Pose(SC.true_mount.rotation, SC.true_mount.translation + np.array([0.003, 0.0, 0.0]))
+    normal = Rotation.from_rotvec([0.0, math.radians(0.5), 0.0]).apply(np.array(SC.true_plane.normal))
+    both = dataclasses.replace(SC, true_mount=mount, true_plane=Plane(normal, SC.true_plane.offset_m))
+    run = feed(tracker, both, 42, 30, start=480, dwell=1)
+    events = [(k, s.event) for k, (_, s) in enumerate(run) if s.event is not None]
+    assert [k for k, _ in events] == [3, 9]  # neither block alone fits: both restart with the 10th frame
+    event = events[1][1]
+    assert event.kind == "mount or plane" and event.started_at_s == 480 / 30
+    assert event.size["plane_tilt_deg"] == pytest.approx(0.5, abs=0.02)
+    assert event.size["translation_m"] == pytest.approx(0.003, abs=3e-4)
+    assert tracker.frames_used == 510
