@@ -309,6 +309,10 @@ def test_a_knock_with_a_shift_reports_its_size_in_every_key() -> None:
     assert detected.event.started_at_s == 481 / 30 and detected.event.detected_at_s == 484 / 30
     told = next(i for i, (_, s) in enumerate(run) if i > first and s.event is not None)
     assert set(notes[first + 1:told]) == {"change not told apart yet: frames kept for the re-estimate"}
+    for k in range(first + 1, told):  # the frames kept while the change is open: not used, no event
+        _, waiting = run[k]
+        assert waiting.t_s == (481 + k) / 30 and waiting.accepted is False and waiting.event is None
+        assert waiting.chi2 == pytest.approx(float(waiting.residual @ waiting.residual), rel=1e-12)
     step = run[told][1]
     assert told == 490 - 481  # the first frame at the next view (the arm moved): told apart there
     assert step.accepted and step.note == "" and step.event is not None and step.event.kind == "mount"
@@ -536,6 +540,34 @@ def test_a_mount_shift_with_a_table_tilt_restarts_both_after_10_frames() -> None
     assert [k for k, _ in events] == [3, 9]  # neither block alone fits: both restart with the 10th frame
     event = events[1][1]
     assert event.kind == "mount or plane" and event.started_at_s == 480 / 30
+    assert event.resolved_at_s == 489 / 30  # ten frames at ten views show every parameter again
+    assert run[9][1].accepted and run[9][1].note == "" and run[9][1].t_s == 489 / 30
+    assert all(not s.accepted and s.event is None for _, s in run[4:9])
     assert event.size["plane_tilt_deg"] == pytest.approx(0.5, abs=0.02)
     assert event.size["translation_m"] == pytest.approx(0.003, abs=3e-4)
     assert tracker.frames_used == 510
+
+
+def innovation_chi2(previous: list[PlaneObservation], new: PlaneObservation) -> float:
+    """A new frame's chi2 against the batch fit of the previous frames: ``r' S^-1 r``, ``S = I + J Λ⁻¹ J'``."""
+    x, jac = batch(previous)
+    info = np.einsum("nki,nkj->ij", jac, jac) + WEAK * np.eye(9)  # with the weak prior
+    fun = residuals_of([new])
+    h = 1e-6
+    r = fun(x).ravel()
+    j = np.column_stack([(fun(x + h * e) - fun(x - h * e)).ravel() / (2 * h) for e in np.eye(9)])
+    return float(r @ np.linalg.solve(np.eye(3) + j @ np.linalg.solve(info, j.T), r))
+
+
+@pytest.mark.parametrize("frames", [245, 250])
+def test_a_surprising_frame_is_judged_after_relinearising_every_frame(frames: int) -> None:
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    previous = [o for o, _ in feed(tracker, SC, 70, frames)]
+    odd = dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 1.6e-4))  # 5 sigma off: above the reference
+    (obs, step), = feed(tracker, odd, 71, 1, start=frames)
+    assert 8.0 < step.chi2 < 40.0 and step.accepted
+    assert step.chi2 == pytest.approx(innovation_chi2(previous, obs), rel=1e-6)  # as after a batch fit
+    plain = Tracker(SC.nominal_mount, SC.nominal_plane)
+    feed(plain, SC, 70, frames)
+    (obs, step), = feed(plain, SC, 72, 1, start=frames)  # an ordinary frame: judged at the running estimate
+    assert step.chi2 < 8.0 and step.chi2 == pytest.approx(innovation_chi2(previous, obs), rel=1e-3)
