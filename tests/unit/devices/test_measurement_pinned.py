@@ -288,6 +288,34 @@ def test_from_dict_names_the_key_where_it_is(where: str, source: str | None) -> 
         assert err.value.key == f"{where}.{key}" and err.value.source == source and "\n" not in message
 
 
+def test_from_dict_names_the_camera_model_table_by_default() -> None:
+    with pytest.raises(ConfigError) as err:
+        MeasurementModel.from_dict({"kind": "stereo", "focal_px": 440.0})
+    assert str(err.value) == "key 'camera.model.baseline_m': a stereo model needs baseline_m (> 0)"
+    with pytest.raises(ConfigError) as err:
+        MeasurementModel.from_dict({"focal_px": 0})
+    assert str(err.value) == "key 'camera.model.focal_px': must be > 0.0, got 0.0"
+
+
+def test_from_dict_renames_only_the_table_not_a_key_that_repeats_its_name() -> None:
+    """An unknown key spelt ``camera.model`` inside a recording's model: the table is renamed, the key is not."""
+    with pytest.raises(ConfigError) as err:
+        MeasurementModel.from_dict({"camera.model": 1}, where="frame.measurement")
+    assert err.value.key == "frame.measurement.camera.model"
+    assert str(err.value).startswith("key 'frame.measurement.camera.model': unknown key;")
+
+
+def test_sigmas_of_float32_depths_are_float64() -> None:
+    """Frames hold float32 depths; the sigmas (and steps) come back in float64 as the API states."""
+    z = np.array([0.7, 1.3], dtype=np.float32)
+    for m in (stereo(3, 0.1), MeasurementModel(kind="tof", sigma_at_1m_m=0.004, range_step_m=0.001)):
+        sigma = m.range_sigma_m(z)
+        assert sigma is not None and sigma.dtype == np.float64
+        assert m.depth_step_m(z).dtype == np.float64
+    exact = stereo(3, 0.1).range_sigma_m(z.astype(np.float64))
+    assert np.array_equal(stereo(3, 0.1).range_sigma_m(z), exact)  # type: ignore[arg-type]
+
+
 # ---------------------------------------------------------------- what a user reads
 def test_describe_in_millimetres_and_pixels() -> None:
     oak = MeasurementModel(kind="stereo", baseline_m=0.075, focal_px=441.25, subpixel_bits=3, disparity_sigma_px=0.1,
@@ -297,9 +325,9 @@ def test_describe_in_millimetres_and_pixels() -> None:
     sl = MeasurementModel(kind="structured_light", baseline_m=0.12345, focal_px=580.0)
     assert sl.describe() == ("structured_light: baseline 123.5 mm, focal 580 px, 0 subpixel bits, disparity sigma "
                              "unstated (unstated)")
-    tof = MeasurementModel(kind="tof", sigma_at_1m_m=0.0045, distance_exponent=1.25, multipath_m=0.002,
+    tof = MeasurementModel(kind="tof", sigma_at_1m_m=0.0045, distance_exponent=1.25, multipath_m=0.0995,
                            source="config")
-    assert tof.describe() == "tof: range sigma 4.5 mm at 1 m, exponent 1.25, multipath allowance 2 mm (config)"
+    assert tof.describe() == "tof: range sigma 4.5 mm at 1 m, exponent 1.25, multipath allowance 99.5 mm (config)"
     assert MeasurementModel(kind="tof").describe() == ("tof: range sigma unstated, exponent 1.5, multipath allowance "
                                                        "0 mm (unstated)")
     assert UNKNOWN_MODEL.describe() == "unknown (the camera states no model; [full_frame] defaults apply)"
