@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import IO, Any, TypeVar
 
-from ..errors import DeviceConnectionError, DeviceTimeoutError, NativeCrashError
+from ..errors import DeviceConnectionError, DeviceError, DeviceTimeoutError, NativeCrashError
 from . import protocol as p
 
 log = logging.getLogger(__name__)
@@ -89,6 +89,7 @@ class NativeHost:
         self._lock = threading.Lock()
         self._seq = 0
         self._until: float | None = None
+        self._budget = 0.0
         self._what = ""
         self._dead: NativeCrashError | None = None
 
@@ -119,8 +120,8 @@ class NativeHost:
         assert self._proc.stdout is not None
         threading.Thread(target=self._log_output, args=(self._proc.stdout,), daemon=True,
                          name=f"{self.name}: {self.library} output").start()
-        with self.deadline(timeout, f"start the {self.library} worker process"):
-            self._wait_reply(0)
+        budget = max(0.0, timeout)
+        self._wait_reply(0, time.monotonic() + budget, budget, f"start the {self.library} worker process")
 
     def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
         """Ask the worker to tear down and exit; kill it if it has not within ``timeout`` s. Never raises."""
@@ -160,12 +161,13 @@ class NativeHost:
     @contextlib.contextmanager
     def deadline(self, timeout: float, what: str) -> Iterator[None]:
         """Calls inside share one deadline ``timeout`` s from now; an overrun names ``what``."""
-        outer = self._until, self._what
-        self._until, self._what = time.monotonic() + max(0.0, timeout), what
+        outer = self._until, self._budget, self._what
+        budget = max(0.0, timeout)
+        self._until, self._budget, self._what = time.monotonic() + budget, budget, what
         try:
             yield
         finally:
-            self._until, self._what = outer
+            self._until, self._budget, self._what = outer
 
     def bounded(self, fn: Callable[[], T], timeout: float, what: str,
                 on_late: Callable[[T], None] | None = None) -> T:
@@ -198,28 +200,36 @@ class NativeHost:
                                    backend=self.backend, signal_name=self._dead.signal_name)
         if self._conn is None:
             raise DeviceConnectionError(f"{self.name}: the {self.library} worker process is not running")
-        until = self._until if self._until is not None else time.monotonic() + self.default_timeout_s
+        budget = self._budget if self._until is not None else self.default_timeout_s
+        until = self._until if self._until is not None else time.monotonic() + budget
         label = f"{self._what} ({what})" if self._what and self._what != what else what
         if not self._lock.acquire(timeout=max(0.0, until - time.monotonic())):
             raise DeviceTimeoutError(f"{self.name}: {label}: another call into {self.library} has not returned")
         try:
             self._seq += 1
             seq = self._seq
+            # the caller's mistakes (an argument that does not pickle, or one too big for the worker to read) are
+            # raised here, before anything is sent: sent, the worker would end, and that would read as a crash
+            data = pickle.dumps((seq, op, handle, name, args, kwargs))
+            if len(data) > p.MAX_MESSAGE_BYTES:
+                raise DeviceError(f"{self.name}: {label}: the request is {len(data)} bytes, over the "
+                                  f"{p.MAX_MESSAGE_BYTES} the {self.library} worker reads; nothing was sent")
             try:
-                self._conn.send_bytes(pickle.dumps((seq, op, handle, name, args, kwargs)))
-            except (OSError, ValueError):
+                self._conn.send_bytes(data)
+            except OSError:  # the worker is gone
                 self._crashed(label)
             self.calls += 1
-            return self._wait_reply(seq, until, label)
+            return self._wait_reply(seq, until, budget, label)
         finally:
             self._lock.release()
 
-    def _wait_reply(self, seq: int, until: float | None = None, what: str = "") -> Any:
-        """The reply to ``seq``; older replies (of calls that overran) are discarded, their objects dropped."""
+    def _wait_reply(self, seq: int, until: float, budget: float, what: str) -> Any:
+        """The reply to ``seq`` by ``until`` (``budget`` s, for the message); older replies are discarded.
+
+        Older replies are those of calls that overran; an object among them is dropped.
+        """
         conn = self._conn
         assert conn is not None
-        until = until if until is not None else (self._until or time.monotonic() + self.default_timeout_s)
-        what = what or self._what
         while True:
             left = until - time.monotonic()
             try:
@@ -227,8 +237,7 @@ class NativeHost:
             except (OSError, EOFError):
                 self._crashed(what)
             if not ready:
-                raise DeviceTimeoutError(f"{self.name}: {what} did not finish within "
-                                         f"{max(0.0, until - time.monotonic() + left):.3g} s")
+                raise DeviceTimeoutError(f"{self.name}: {what} did not finish within {budget:.3g} s")
             try:
                 got, kind, payload = pickle.loads(conn.recv_bytes(p.MAX_MESSAGE_BYTES))
             except (EOFError, ConnectionError):  # closed, reset: the worker is gone
