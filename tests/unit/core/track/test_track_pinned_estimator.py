@@ -571,3 +571,18 @@ def test_a_surprising_frame_is_judged_after_relinearising_every_frame(frames: in
     feed(plain, SC, 70, frames)
     (obs, step), = feed(plain, SC, 72, 1, start=frames)  # an ordinary frame: judged at the running estimate
     assert step.chi2 < 8.0 and step.chi2 == pytest.approx(innovation_chi2(previous, obs), rel=1e-3)
+
+
+def test_an_open_change_is_tried_again_when_the_arm_has_moved() -> None:
+    """A 1 mm table shift: told apart once a view at the second inclination has shown enough, at a view's first frame.
+
+    The hypotheses are tried at the alarm, then when the arm has turned 0.5 deg / moved 5 mm (every 10 frames
+    here) or after 30 frames: the mount's p-value falls below the reject level within a dwell, and the verdict
+    comes at the next view's first frame.
+    """
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    feed(tracker, SC, 80, 480)
+    run = feed(tracker, dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 1e-3)), 81, 120, start=481)
+    events = [(481 + k, s.event) for k, (_, s) in enumerate(run) if s.event is not None]
+    assert [(frame, e.kind) for frame, e in events] == [(484, "mount or plane"), (560, "plane")]
+    assert events[1][1].size["plane_shift_m"] == pytest.approx(1e-3, abs=1e-4)
