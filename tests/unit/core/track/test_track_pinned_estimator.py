@@ -381,13 +381,18 @@ def test_a_change_left_undecided_until_the_window_is_full_restarts_both_blocks()
     assert state.change_unresolved and not all(state.observable.values())  # one pose cannot show everything
 
 
-def test_a_small_change_starts_after_the_last_frame_at_or_below_the_reference() -> None:
-    """A 150 um table shift: every frame after it above the reference, the alarm's frame below the clip."""
+@pytest.mark.parametrize(("shift_m", "seed"), [(1.5e-4, 160), (1.8e-4, 215)])
+def test_a_small_change_starts_after_the_last_frame_at_or_below_the_reference(shift_m: float, seed: int) -> None:
+    """A 150 / 180 um table shift: every frame after it above the reference, the alarm's frame below the clip.
+
+    With 180 um the frame before the alarm is beyond the clip: the alarm's own frame decides the bound.
+    """
     tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
     feed(tracker, SC, 60, 480)
-    run = feed(tracker, dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 1.5e-4)), 160, 60, start=481)
+    run = feed(tracker, dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, shift_m)), seed, 60, start=481)
     k, step = next((k, s) for k, (_, s) in enumerate(run) if s.event is not None)
-    assert all(8.0 < s.chi2 <= 40.0 for _, s in run[:k + 1])  # every frame since the change: reference < chi2 <= clip
+    assert all(s.chi2 > 8.0 for _, s in run[:k + 1]) and step.chi2 <= 40.0  # reference < chi2, the alarm's <= clip
+    assert (max(s.chi2 for _, s in run[:k]) > 40.0) is (seed == 215)
     assert step.note == "change detected" and step.event is not None
     assert step.event.started_at_s == 481 / 30 and step.event.detected_at_s == (481 + k) / 30
     assert step.event.size == {"innovation_chi2": step.chi2}
