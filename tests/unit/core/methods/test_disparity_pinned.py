@@ -226,10 +226,29 @@ def test_unstated_noise_is_never_below_the_rounding() -> None:
     pix = np.arange(H * W)[::7]
     x, y = normalised(pix)
     d = np.round((V_TRUE[0] * x + V_TRUE[1] * y + V_TRUE[2]) * 4.0) / 4.0
-    fit = fit_disparity(cloud(pix, d), pix, (H, W), model(2, None), FullFrameSettings())
+    p = cloud(pix, d)
+    fit = fit_disparity(p, pix, (H, W), model(2, None), FullFrameSettings())
     assert fit.residual_rms_px < 0.25 / math.sqrt(12.0)
     assert fit.sigma_used_px == pytest.approx(0.25 / math.sqrt(12.0), rel=1e-12)
     assert fit.band_px == 0.25                                   # 3 sigma is below one step: the band is the step
+    # by hand: one pass on every point, cut at one step from a sigma that starts at q/sqrt(12) ...
+    q, n = 0.25, pix.size
+    a, dm = measured(p)
+    assert fit.inliers.all()
+    v = np.linalg.lstsq(a, dm, rcond=None)[0]
+    r = dm - a @ v
+    prob, m2 = truncated(math.sqrt(12.0))
+    sigma = max(math.sqrt(float(r @ r) / (n - 3) / (m2 / prob)), q / math.sqrt(12.0))
+    assert q / math.sqrt(12.0) < sigma < q / 3.0                 # above the rounding alone, below a third of a step
+    # ... whose excess over the rounding is the noise that dithers it: the mean rounding error removed at that
+    # sigma (rounding_mean_px is checked against the exact mean above), three passes
+    sigma_d = math.sqrt(sigma * sigma - q * q / 12.0)
+    for _ in range(3):
+        mu = rounding_mean_px(a @ v, sigma_d, q)
+        v = np.linalg.lstsq(a, dm - mu, rcond=None)[0]
+    r = dm - mu - a @ v
+    assert np.allclose(fit.disparity, v, rtol=1e-9, atol=1e-9)
+    assert fit.residual_rms_px == pytest.approx(math.sqrt(float(np.mean(r * r))), rel=1e-7)
 
 
 # ---------------------------------------------------------------------- the rounding of a weakly dithered disparity
