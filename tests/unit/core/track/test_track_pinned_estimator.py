@@ -591,3 +591,26 @@ def test_an_open_change_is_tried_again_when_the_arm_has_moved() -> None:
     events = [(481 + k, s.event) for k, (_, s) in enumerate(run) if s.event is not None]
     assert [(frame, e.kind) for frame, e in events] == [(484, "mount or plane"), (560, "plane")]
     assert events[1][1].size["plane_shift_m"] == pytest.approx(1e-3, abs=1e-4)
+
+
+def test_a_change_is_resolved_when_what_was_seen_before_it_is_seen_again() -> None:
+    """Rolls at one inclination leave mount z / the plane height unseen; after a knock the other seven count."""
+    views = camera_views(SC.true_mount, [0.3, 0.0, 0.0], 0.45, (70.0,), (0.0, 90.0, 180.0, 270.0))
+    scenario = dataclasses.replace(SC, flanges=views)
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    feed(tracker, scenario, 4, 240)
+    before = tracker.state.observable
+    assert [k for k, v in before.items() if not v] == ["mount_z", "plane_offset"]
+    knocked = dataclasses.replace(scenario, true_mount=knocked_mount(scenario.true_mount, 0.5, (0.0, 1.0, 0.0)))
+    seen_again = None
+    for t_s, obs in work(knocked, np.random.default_rng(14), 60, dwell=10, start_frame=241):
+        step = tracker.update(t_s, obs)
+        state = tracker.state
+        if seen_again is None and state.events and state.events[0].kind != "mount or plane" and all(
+                state.observable[k] for k, v in before.items() if v):
+            seen_again = t_s  # the first frame after the restart at which the seven are observable again
+        if step.event is not None and step.event.resolved_at_s is not None:
+            break
+    (event,) = tracker.state.events
+    assert event.kind == "mount" and seen_again is not None and event.resolved_at_s == seen_again
+    assert event.resolved_at_s > event.detected_at_s + 5 / 30  # not at the restart: a later view showed them
