@@ -397,7 +397,8 @@ class Tracker:
             return True
         count, last = self._classified_at
         new = self._after[-1]
-        turned = float(np.linalg.norm(new.rot_a[0] - last.rot_a[0]))  # ~ the turn in rad (Frobenius / sqrt 2)
+        # the turn in rad: |R1 - R2|_F = 2 sqrt(2) sin(turn / 2), so the Frobenius norm over sqrt 2 is ~ the turn
+        turned = float(np.linalg.norm(new.rot_a[0] - last.rot_a[0])) / math.sqrt(2.0)
         moved = float(np.linalg.norm(new.t_a[0] - last.t_a[0]))
         return turned > CLASSIFY_TURN_RAD or moved > CLASSIFY_MOVE_M or len(self._after) - count >= CLASSIFY_EVERY
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -23,8 +24,9 @@ from scipy.stats import t as student_t
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.handeye.model import PARAMETERS, PlaneModel, PlaneObservation, whitening
 from cellcal.core.handeye.observability import UNOBSERVABLE_SIGMA
-from cellcal.core.handeye.synthetic import Scenario, camera_views, sim_scenario
+from cellcal.core.handeye.synthetic import Scenario, camera_views, observations, sim_scenario
 from cellcal.core.track import ChangeEvent, Tracker, TrackSettings
+from cellcal.core.track.linear import Frames
 from cellcal.core.track.synthetic import knocked_mount, shifted_plane, work
 from cellcal.devices.pose import Pose
 
@@ -614,3 +616,30 @@ def test_a_change_is_resolved_when_what_was_seen_before_it_is_seen_again() -> No
     (event,) = tracker.state.events
     assert event.kind == "mount" and seen_again is not None and event.resolved_at_s == seen_again
     assert event.resolved_at_s > event.detected_at_s + 5 / 30  # not at the restart: a later view showed them
+
+
+def worth(turn_deg: float, shift_m: float, since: int, count: int = 10, window: int = 900) -> bool:
+    """Whether an open change is tried again: the last try at ``count`` frames, ``since`` frames after it, and the
+    arm turned by ``turn_deg`` about base z and moved by ``shift_m`` along base x since that try."""
+    from scipy.spatial.transform import Rotation
+
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(change_window=window))
+    obs = observations(dataclasses.replace(SC, flanges=(SC.flanges[0],)), None)[0]
+    last = Frames.of(0.0, obs, ARM_SIGMA_M, 0.0, LEVER_M)
+    turn = Rotation.from_rotvec([0.0, 0.0, math.radians(turn_deg)]).as_matrix()
+    new = dataclasses.replace(last, rot_a=(turn @ last.rot_a[0])[None], t_a=last.t_a + np.array([[shift_m, 0.0, 0.0]]))
+    tracker._after = deque([last] * (count + since - 1) + [new], maxlen=window)
+    tracker._classified_at = (count, last)
+    return tracker._worth_classifying()
+
+
+def test_an_open_change_is_tried_again_after_a_half_degree_turn_5_mm_or_30_frames() -> None:
+    assert not worth(0.0, 0.0, 1)  # the arm at the same pose, one frame later
+    assert not worth(0.49, 0.0, 1) and worth(0.51, 0.0, 1)  # the turn (about base z), either side of 0.5 deg
+    assert not worth(0.0, 0.0049, 1) and worth(0.0, 0.0051, 1)  # the move, either side of 5 mm
+    assert not worth(0.0, 0.0, 29) and worth(0.0, 0.0, 30)  # at the same pose: every 30 frames
+    assert worth(0.0, 0.0, 1, count=39, window=40)  # the kept frames are full: decide now
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    tracker._after = deque([Frames.of(0.0, observations(SC, None)[0], ARM_SIGMA_M, 0.0, LEVER_M)])
+    assert tracker._classified_at is None and tracker._worth_classifying()  # never tried yet
+
