@@ -251,6 +251,25 @@ def test_unstated_noise_is_never_below_the_rounding() -> None:
     assert fit.residual_rms_px == pytest.approx(math.sqrt(float(np.mean(r * r))), rel=1e-7)
 
 
+def test_a_stated_noise_of_zero_removes_the_bare_sawtooth() -> None:
+    """σ_d = 0 stated, data rounded to 1/4 px without noise: the undamped sawtooth (4 harmonics) is removed."""
+    q = 0.25
+    pix = np.arange(H * W)[::7]
+    x, y = normalised(pix)
+    p = cloud(pix, np.round((V_TRUE[0] * x + V_TRUE[1] * y + V_TRUE[2]) / q) * q)
+    fit = fit_disparity(p, pix, (H, W), model(2, 0.0), FullFrameSettings())
+    a, d = measured(p)
+    assert fit.inliers.all()
+    v = np.linalg.lstsq(a, d, rcond=None)[0]
+    for _ in range(3):
+        mu = rounding_mean_px(a @ v, 0.0, q)
+        v = np.linalg.lstsq(a, d - mu, rcond=None)[0]
+    assert np.allclose(fit.disparity, v, rtol=1e-9, atol=1e-9)
+    assert fit.residual_rms_px == pytest.approx(math.sqrt(float(np.mean((d - mu - a @ v) ** 2))), rel=1e-7)
+    plain = np.linalg.lstsq(a, d, rcond=None)[0]
+    assert np.max(np.abs(v - plain)) > 1e-4                     # the correction is not a no-op here
+
+
 # ---------------------------------------------------------------------- the rounding of a weakly dithered disparity
 def sys_var_by_phase(a_in: np.ndarray, v: np.ndarray, b: float, q: float) -> np.ndarray:
     """Mean square over the phase φ of the least-squares response to ``b·sin(2π d/q + φ)`` (px²)."""
