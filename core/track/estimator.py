@@ -277,9 +277,16 @@ class Tracker:
         return nu
 
     def _start(self, obs: PlaneObservation) -> LinearModel:
-        """The linear model with the configured plane turned toward the first frame's camera."""
+        """The linear model with the configured plane turned toward the first frame's camera.
+
+        The side is the measured normal's (toward the camera), seen in the base frame through the configured
+        mount's rotation: not the camera's configured position, which is on the wrong side of a plane configured
+        off by more than the camera's distance, and the residual (the normal's error across itself) cannot tell a
+        normal from its opposite, so a wrong side would converge to the mirrored mount.
+        """
         camera = obs.flange @ self.nominal_mount
-        if self.nominal_plane.signed_distance(camera.translation[None])[0] < 0:
+        measured = camera.rotation_matrix @ np.asarray(obs.normal, dtype=np.float64)  # the measured normal, base frame
+        if float(measured @ self.nominal_plane.normal) < 0:
             self.nominal_plane = Plane(-self.nominal_plane.normal, -self.nominal_plane.offset_m)
         return LinearModel(self.nominal_mount, self.nominal_plane)
 
