@@ -682,3 +682,13 @@ def test_every_30_accepted_frames_the_estimate_is_the_batch_fit() -> None:
             x_ref, jac = batch(obs)
             sigma = np.sqrt(np.diag(np.linalg.inv(np.einsum("nki,nkj->ij", jac, jac) + WEAK * np.eye(9))))
             assert np.all(np.abs(tracker._x - x_ref) < 1e-4 * sigma), k  # the estimate, unseen directions too
+
+
+def test_without_iterations_nothing_is_estimated_and_nothing_fails() -> None:
+    """``iterations = 0``: no Gauss-Newton step, so the frames are judged and counted but add no information."""
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(iterations=0, relinearise_every=5))
+    run = feed(tracker, SC, 92, 12)
+    assert all(s.accepted for _, s in run) and tracker.frames_used == 12
+    state = tracker.state
+    assert not any(state.observable.values()) and np.all(state.parameters == 0.0)
+    assert np.all(tracker._info == 0.0) and state.mount.is_close(SC.nominal_mount)
