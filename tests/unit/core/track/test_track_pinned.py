@@ -282,7 +282,7 @@ def test_classify_at_one_pose_both_fit_and_nothing_is_concluded(anchor: tuple[np
     assert min(p_mount, p_plane) > 1e-3
     assert kind_at(frames, anchor, 1e-3, 1e-6) is None
     assert kind_at(frames, anchor, 1e-3, min(p_mount, p_plane)) is None
-    assert p_mount < p_plane  # one pose: the plane's three parameters fit as well with fewer taken
+    assert p_mount < p_plane  # one pose: both fit, the plane with three more degrees of freedom
     high = up(p_plane)
     assert kind_at(frames, anchor, high, p_plane) is None  # the plane's p at the reject level: not ruled out
     assert kind_at(frames, anchor, high, high) == KIND_EITHER  # both below both levels: neither fits alone
