@@ -692,3 +692,14 @@ def test_without_iterations_nothing_is_estimated_and_nothing_fails() -> None:
     state = tracker.state
     assert not any(state.observable.values()) and np.all(state.parameters == 0.0)
     assert np.all(tracker._info == 0.0) and state.mount.is_close(SC.nominal_mount)
+
+
+def test_with_two_frames_per_view_a_change_is_told_apart_at_a_views_first_frame() -> None:
+    """The arm moves every 2nd (even) frame: an open change is tried at those frames only, so the verdict on a
+    1 mm table shift comes at an even frame (here 592; tried at every frame it would come at 591)."""
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
+    feed(tracker, SC, 80, 480)
+    run = feed(tracker, dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 1e-3)), 83, 150, start=480,
+               dwell=2)
+    events = [(480 + k, s.event.kind) for k, (_, s) in enumerate(run) if s.event is not None]
+    assert events == [(483, "mount or plane"), (592, "plane")] and events[1][0] % 2 == 0
