@@ -647,6 +647,20 @@ def test_sixteen_points_within_the_band_are_enough_and_fifteen_are_not(n_plane: 
                                   "no plane is defined")
 
 
+def test_a_plane_fifty_metres_away_with_disparities_below_one_pixel_is_fitted() -> None:
+    """|(α, β, γ)| < 1 px (a plane beyond f·B = 32 m): still a plane, fitted within its interval."""
+    v_far = np.array([0.05, -0.03, 0.64])
+    q = 1.0 / 32
+    pix = np.arange(H * W)[::5]
+    x, y = normalised(pix)
+    rng = np.random.default_rng(90)
+    d = np.round((v_far[0] * x + v_far[1] * y + v_far[2] + 0.02 * rng.standard_normal(pix.size)) / q) * q
+    fit = fit_disparity(cloud(pix, d), pix, (H, W), model(5, 0.02), FullFrameSettings())
+    assert fit.inliers.mean() > 0.99
+    assert np.all(np.abs(fit.disparity - v_far) < 4.0 * np.sqrt(np.diag(fit.disparity_cov)))
+    assert fit.plane.offset_m == pytest.approx(FB / np.linalg.norm(v_far), rel=0.01)   # about 50 m
+
+
 def test_a_tof_or_unknown_camera_is_refused_in_one_line() -> None:
     p = small_cloud(0.0)
     for m, kind in ((MeasurementModel(kind="tof", sigma_at_1m_m=0.003), "tof"), (MeasurementModel(), "unknown")):
