@@ -677,6 +677,7 @@ def test_every_30_accepted_frames_the_estimate_is_the_batch_fit() -> None:
     obs: list[PlaneObservation] = []
     for k, (t_s, o) in enumerate(work(SC, np.random.default_rng(91), 60, dwell=10), start=1):
         assert tracker.update(t_s, o).accepted
+        assert tracker._since_batch == k % 30  # accepted frames since the last batch step
         obs.append(o)
         if k in (30, 60):
             x_ref, jac = batch(obs)
