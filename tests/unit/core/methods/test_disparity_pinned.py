@@ -659,6 +659,10 @@ def test_a_plane_fifty_metres_away_with_disparities_below_one_pixel_is_fitted() 
     assert fit.inliers.mean() > 0.99
     assert np.all(np.abs(fit.disparity - v_far) < 4.0 * np.sqrt(np.diag(fit.disparity_cov)))
     assert fit.plane.offset_m == pytest.approx(FB / np.linalg.norm(v_far), rel=0.01)   # about 50 m
+    # without noise every triplet is that plane itself, |v| = 0.64 px: recovered exactly
+    exact = fit_disparity(cloud(pix, v_far[0] * x + v_far[1] * y + v_far[2]), pix, (H, W), model(5, 0.02),
+                          FullFrameSettings())
+    assert np.allclose(exact.disparity, v_far, atol=1e-6)
 
 
 def test_a_tof_or_unknown_camera_is_refused_in_one_line() -> None:
