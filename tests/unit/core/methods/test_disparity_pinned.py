@@ -12,6 +12,7 @@ exact boundary, and the texts a user reads are pinned whole.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -663,6 +664,38 @@ def test_a_plane_fifty_metres_away_with_disparities_below_one_pixel_is_fitted() 
     exact = fit_disparity(cloud(pix, v_far[0] * x + v_far[1] * y + v_far[2]), pix, (H, W), model(5, 0.02),
                           FullFrameSettings())
     assert np.allclose(exact.disparity, v_far, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_step_of_half_a_pixel_is_fitted_on_one_side_not_across_it(seed: int) -> None:
+    """A band 0.5 px nearer (60 % of the image) across a floor: the fit is the band's plane, not a blend.
+
+    The same scoring names the plane a refusal reports: the band's, not a blend.
+
+    The start scores a triplet by its squared residuals truncated at the band (a few hundredths of a
+    pixel here): the far side counts as a constant, so the plane of the most points wins.
+    """
+    pix = np.arange(H * W)[::7]
+    x, y = normalised(pix)
+    top = np.abs(y) < 0.15
+    rng = np.random.default_rng(seed)
+    d = 0.5 * x - 0.3 * y + 40.0 + np.where(top, 0.5, 0.0) + 0.014 * rng.standard_normal(x.size)
+    d = np.round(d * 32) / 32
+    p = cloud(pix, d)
+    fit = fit_disparity(p, pix, (H, W), model(5, 0.014), FullFrameSettings())
+    assert np.mean(fit.inliers == top) > 0.99
+    assert np.allclose(fit.disparity, [0.5, -0.3, 40.5], atol=0.01)
+    # and with an expected plane 30 degrees and 100 mm off the band: the refusal names the band's plane
+    truth = plane_from_disparity(np.array([0.5, -0.3, 40.5]), FB)
+    n0 = np.asarray(truth.normal)
+    tilt = np.array([1.0, 0.0, 0.0]) - n0[0] * n0
+    n_exp = n0 * math.cos(math.radians(30.0)) + tilt / np.linalg.norm(tilt) * math.sin(math.radians(30.0))
+    expected = ExpectedPlane(Plane(n_exp, truth.offset_m + 0.1), math.radians(5.0), 0.05)
+    with pytest.raises(CalibrationQualityError) as err:
+        fit_disparity(p, pix, (H, W), model(5, 0.014), FullFrameSettings(), expected=expected)
+    assert math.degrees(err.value.value) == pytest.approx(30.0, abs=0.2)    # a noisy triplet of the band's points
+    found_mm = re.search(r"the dominant plane found is [0-9.]+ deg and ([0-9.]+) mm away", str(err.value))
+    assert found_mm is not None and float(found_mm.group(1)) == pytest.approx(100.0, abs=1.0)
 
 
 def test_a_tof_or_unknown_camera_is_refused_in_one_line() -> None:
