@@ -473,7 +473,6 @@ def test_design_effect_of_block_patterns() -> None:
     # six 32 px blocks are too few to count, and a size after them is still tried
     assert design_effect(check, pix, (h, w), (32, 8)) == pytest.approx(64.0, rel=1e-12)
     # constant over 32 x 32 blocks with alternating sign: the largest size sees 1024
-    big = np.where(((rows // 32) + (cols // 32)) % 2 == 0, 1.0, -1.0).reshape(-1)
     tall, wide = 128, 128
     r2, c2 = np.mgrid[0:tall, 0:wide]
     big = np.where(((r2 // 32) + (c2 // 32)) % 2 == 0, 2.0, -2.0).reshape(-1)
