@@ -251,9 +251,9 @@ def test_unseen_directions_are_named_in_the_users_words() -> None:
 
 # -------------------------------------------------------------------------- the plane's orientation
 def test_a_plane_configured_with_its_normal_away_from_the_cameras_is_turned_toward_them() -> None:
-    toward = Tracker(SC.nominal_mount, SC.nominal_plane)
-    away_plane = Plane(-np.asarray(SC.nominal_plane.normal), -SC.nominal_plane.offset_m + 0.0)
-    away = Tracker(SC.nominal_mount, away_plane)
+    """The table configured at z = 1 mm, once with its normal up (toward the cameras), once down: the same."""
+    toward = Tracker(SC.nominal_mount, Plane(np.array([0.0, 0.0, 1.0]), -0.001))
+    away = Tracker(SC.nominal_mount, Plane(np.array([0.0, 0.0, -1.0]), 0.001))
     a = feed(toward, SC, 12, 120)
     b = feed(away, SC, 12, 120)
     assert [s.chi2 for _, s in a] == pytest.approx([s.chi2 for _, s in b], rel=1e-9)
@@ -262,6 +262,7 @@ def test_a_plane_configured_with_its_normal_away_from_the_cameras_is_turned_towa
     assert s2.plane.normal[2] > 0.99 and s2.plane.offset_m == pytest.approx(s1.plane.offset_m, abs=1e-12)
     np.testing.assert_allclose(s2.parameters, s1.parameters, atol=1e-12)
     assert not s2.events and s2.frames_used == 120
+    assert np.asarray(away.nominal_plane.normal).tolist() == [0.0, 0.0, 1.0] and away.nominal_plane.offset_m == -0.001
 
 
 @pytest.mark.parametrize("off_m", [0.46, 0.6])
@@ -346,6 +347,9 @@ def test_a_knock_with_a_shift_reports_its_size_in_every_key() -> None:
     at_restart = dict(step.event.size)
     assert set(at_restart) == {"rotation_deg", "translation_m"}
     assert notes[-1] == "" and tracker.frames_used == 780  # every frame used: the held-back ones at the restart
+    resolving = [s for _, s in run[told + 1:] if s.event is not None]  # an ordinary frame resolves it
+    assert len(resolving) == 1 and resolving[0].accepted is True and resolving[0].note == ""
+    assert resolving[0].event.resolved_at_s == resolving[0].t_s and resolving[0].t_s > step.t_s
     state = tracker.state
     (event,) = state.events
     assert isinstance(event, ChangeEvent) and event.kind == "mount" and not state.change_unresolved
@@ -450,11 +454,13 @@ def test_a_frame_far_off_the_model_is_held_back_with_a_note() -> None:
     feed(tracker, SC, 45, 240)
     moved = dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 0.005))
     (_, step), = feed(tracker, moved, 46, 1, start=240)
-    assert not step.accepted and step.event is None and step.note == "residual far beyond the noise model"
+    assert step.accepted is False and step.event is None and step.note == "residual far beyond the noise model"
+    assert step.t_s == 240 / 30
     assert step.chi2 > 40.0 and step.chi2 == pytest.approx(float(step.residual @ step.residual))
     assert tracker.frames_used == 240
     (_, good), = feed(tracker, SC, 47, 1, start=241)
-    assert good.accepted and good.note == "" and good.event is None and tracker.frames_used == 241
+    assert good.accepted is True and good.note == "" and good.event is None and tracker.frames_used == 241
+    assert good.t_s == 241 / 30
 
 
 def test_the_state_before_any_frame_and_after_one() -> None:
