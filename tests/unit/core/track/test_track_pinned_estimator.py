@@ -710,3 +710,13 @@ def test_with_two_frames_per_view_a_change_is_told_apart_at_a_views_first_frame(
                dwell=2)
     events = [(480 + k, s.event.kind) for k, (_, s) in enumerate(run) if s.event is not None]
     assert events == [(483, "mount or plane"), (592, "plane")] and events[1][0] % 2 == 0
+
+
+def test_the_detector_settings_reach_the_cusum() -> None:
+    """A threshold of 60 instead of 120: a knock (each frame adds 40 - 8 = 32) alarms at its 2nd frame, not its 4th."""
+    for threshold, frames in ((60.0, 2), (120.0, 4)):
+        tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(detector_threshold=threshold))
+        feed(tracker, SC, 41, 480, dwell=1)
+        knocked = dataclasses.replace(SC, true_mount=knocked_mount(SC.true_mount, 0.5, (0.0, 1.0, 0.0)))
+        run = feed(tracker, knocked, 42, 6, start=480, dwell=1)
+        assert next(k for k, (_, s) in enumerate(run) if s.event is not None) == frames - 1
