@@ -514,11 +514,11 @@ def test_nested_deadlines_bound_and_name_their_calls_and_restore_the_outer_one(h
         with pytest.raises(DeviceTimeoutError) as inner, host.deadline(0.2, "settle"):
             remote_time.sleep(0.4)
         assert str(inner.value) == "ur 10.0.0.2: settle (sleep) did not finish within 0.2 s"
-        assert 0.2 <= time.monotonic() - t0 < 0.4
+        assert 0.2 <= time.monotonic() - t0 < 0.6
         assert operator.add(1, 2) == 3                   # waits out the late reply, within the outer deadline
         with pytest.raises(DeviceTimeoutError) as outer:
             remote_time.sleep(1.0)
-        assert 1.0 <= time.monotonic() - t0 < 1.3         # the outer deadline, counted from its start
+        assert 1.0 <= time.monotonic() - t0 < 1.5         # the outer deadline, counted from its start
         assert str(outer.value) == "ur 10.0.0.2: calibrate (sleep) did not finish within 1 s"
         with pytest.raises(DeviceTimeoutError) as same, host.deadline(0.1, "sleep"):
             remote_time.sleep(1.0)                        # a deadline named as the call: named once
@@ -531,7 +531,7 @@ def test_a_deadline_already_past_fails_at_once_and_the_worker_serves_on(host: Na
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeoutError) as info, host.deadline(-2.0, "read"):
         getpid()
-    assert time.monotonic() - t0 < 0.1
+    assert time.monotonic() - t0 < 0.3
     assert str(info.value) == "ur 10.0.0.2: read (getpid) did not finish within 0 s"
     with host.deadline(0.5, "read"):
         assert getpid() == host.pid
@@ -553,7 +553,7 @@ def test_a_call_waiting_for_another_threads_call_times_out_naming_it(host: Nativ
         t0 = time.monotonic()
         with pytest.raises(DeviceTimeoutError) as info, host.deadline(0.2, "read pose"):
             operator.add(1, 2)
-        assert 0.2 <= time.monotonic() - t0 < 0.5
+        assert 0.2 <= time.monotonic() - t0 < 0.65
         assert str(info.value) == "ur 10.0.0.2: read pose (add): another call into ur_rtde has not returned"
     finally:
         other.join(3.0)
