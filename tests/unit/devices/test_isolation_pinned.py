@@ -304,7 +304,24 @@ def test_a_worker_that_exits_at_start_is_a_crash_naming_its_status(tmp_path: Pat
         h.close(1.0)
 
 
-def test_the_worker_reads_nothing_from_our_terminal_and_holds_none_of_our_descriptors(host: NativeHost) -> None:
+def test_the_worker_reads_nothing_from_our_terminal_and_holds_none_of_our_descriptors() -> None:
+    read_end, write_end = os.pipe()                       # our standard input, for the time of the start
+    saved = os.dup(0)
+    os.dup2(read_end, 0)
+    host = _new()
+    try:
+        host.start(10.0)
+    finally:
+        os.dup2(saved, 0)
+        for fd in (saved, read_end, write_end):
+            os.close(fd)
+    try:
+        _check_the_workers_descriptors(host)
+    finally:
+        host.close(1.0)
+
+
+def _check_the_workers_descriptors(host: NativeHost) -> None:
     os_ = host.module("os")
     stdin = os_.fstat(0)
     null = os.stat(os.devnull)
@@ -446,13 +463,14 @@ def test_a_worker_ended_by_a_signal_is_a_crash_naming_the_signal_and_the_arm_is_
     assert stops == ["stop"] and _state(pid) == ""
 
 
+@pytest.mark.parametrize("status", [0, 3])
 def test_a_worker_that_exits_mid_call_is_a_crash_told_once_in_the_debug_log(
-        host: NativeHost, caplog: pytest.LogCaptureFixture) -> None:
+        host: NativeHost, caplog: pytest.LogCaptureFixture, status: int) -> None:
     os_ = host.module("os")
     with caplog.at_level(logging.DEBUG, logger="cellcal.devices.isolation.host"), \
             pytest.raises(NativeCrashError) as info:
-        os_._exit(3)
-    message = f"ur 10.0.0.2: the ur_rtde worker process died during _exit (exit status 3); {GONE}"
+        os_._exit(status)
+    message = f"ur 10.0.0.2: the ur_rtde worker process died during _exit (exit status {status}); {GONE}"
     assert str(info.value) == message                    # no hook: nothing after the last clause
     assert (info.value.backend, info.value.signal_name) == ("ur", "")
     assert [r.getMessage() for r in caplog.records] == [message]
@@ -483,17 +501,22 @@ def test_a_failing_crash_hook_is_reported_and_does_not_mask_the_crash() -> None:
 
 
 def test_a_worker_that_closes_its_end_but_lives_on_is_reported_after_one_second(host: NativeHost) -> None:
-    code = "import os, sys, time; os.close(int(sys.argv[-1])); time.sleep(2)"
+    code = "import os, sys, time; os.close(int(sys.argv[-1])); time.sleep(3)"
     t0 = time.monotonic()
     with pytest.raises(NativeCrashError) as info:
         host.module("builtins").exec(code, {})
     assert 1.0 <= time.monotonic() - t0 < 2.0            # the exit status is waited for 1 s, no longer
     assert str(info.value) == f"ur 10.0.0.2: the ur_rtde worker process died during exec (its pipe closed); {GONE}"
     assert info.value.signal_name == ""
+    pid = host.pid
+    assert pid is not None
+    host.close(0.1)                                       # still there: killed
+    assert _state(pid) == ""
 
 
 # ---------------------------------------------------------------- host: deadlines
 def test_a_call_outside_any_deadline_is_bounded_by_the_default_timeout() -> None:
+    assert _new().default_timeout_s == 5.0
     h = _new(default_timeout_s=0.3)
     h.start(10.0)
     try:
@@ -608,6 +631,17 @@ def test_a_late_object_is_freed_without_a_disconnect_and_the_caller_gets_its_own
         probe.Device("late", 0.5)                         # overruns; its object comes back later
     assert probe.log() == []                              # this reply, not the late object
     assert _soon(lambda: probe.log() == [("freed", "late")])
+
+
+def test_a_late_object_from_a_worker_that_no_longer_reads_is_not_this_calls_error(host: NativeHost) -> None:
+    # within one call the worker stops reading and sends an older reply (an object): the parent's drop of that
+    # object fails (EPIPE) quietly, and the call still gets its own reply
+    code = ("import os, pickle, socket, struct, sys\n"
+            "s = socket.socket(fileno=os.dup(int(sys.argv[-1])))\n"
+            "s.shutdown(socket.SHUT_RD)\n"
+            "late = pickle.dumps((0, 'ref', (99, 'Ghost')))\n"
+            "s.sendall(struct.pack('!i', len(late)) + late)\n")
+    assert host.module("builtins").exec(code, {}) is None
 
 
 def test_a_late_value_is_discarded(host: NativeHost) -> None:
