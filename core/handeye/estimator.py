@@ -212,8 +212,13 @@ def _setup(observations: Sequence[PlaneObservation], nominal_mount: Pose, nomina
     unknown = sorted(set(given) - set(PARAMETERS))
     if unknown:
         raise CalibrationError(f"unknown given parameter(s) {unknown}; expected some of {', '.join(PARAMETERS)}")
-    camera = observations[0].flange @ nominal_mount
-    if nominal_plane.signed_distance(camera.translation[None])[0] < 0:
+    # the configured normal is turned toward the cameras by the first measured normal (toward its camera), seen in
+    # the base frame through the configured mount: not by the camera's configured position, which is on the wrong
+    # side of a plane configured off by more than the camera's distance; the residuals cannot tell a normal from
+    # its opposite, so a wrong side would converge to the mirrored mount
+    first = observations[0]
+    measured = (first.flange @ nominal_mount).rotation_matrix @ np.asarray(first.normal, dtype=np.float64)
+    if float(measured @ nominal_plane.normal) < 0:
         nominal_plane = Plane(-nominal_plane.normal, -nominal_plane.offset_m)  # normal toward the camera side
     model = PlaneModel(nominal_mount, nominal_plane)
     free = [i for i, name in enumerate(PARAMETERS) if name not in given]
