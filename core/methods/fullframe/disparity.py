@@ -351,7 +351,11 @@ def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int],
     n_in = int(r_in.size)
     rms_px = math.sqrt(float(r_in @ r_in) / n_in)
     # ---- the scale: the model's sigma, or the data's when it is larger (or when none is stated)
-    kept_var, cov_factor = truncation(band / max(sigma, 1e-12))
+    kept_var, sandwich_factor = truncation(band / max(sigma, 1e-12))
+    # the cut estimator's variance is σ²/(N (p - 2cφ)); (AᵀA)⁻¹ ≈ 1/(N p) is scaled below by the
+    # truncation-corrected σ², so its factor is p / (p - 2cφ): the square root of the sandwich's factor
+    # (which multiplies the uncorrected inlier meat)
+    cov_factor = math.sqrt(sandwich_factor)
     observed = math.sqrt(float(r_in @ r_in) / max(n_in - 3, 1) / kept_var)   # truncation-corrected
     notes: list[str] = []
     if stated:
