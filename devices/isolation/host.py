@@ -91,7 +91,8 @@ class NativeHost:
         self._until: float | None = None
         self._budget = 0.0
         self._what = ""
-        self._dead: NativeCrashError | None = None
+        #: Once the worker is dead or stopped: the signal that ended it ("" for an exit status), else None.
+        self._dead: str | None = None
 
     # ------------------------------------------------------------ life cycle
     @property
@@ -196,8 +197,8 @@ class NativeHost:
                  what: str) -> Any:
         if self._dead is not None:
             raise NativeCrashError(f"{self.name}: the {self.library} worker process died earlier "
-                                   f"({self._dead.signal_name or 'exited'}); connect again",
-                                   backend=self.backend, signal_name=self._dead.signal_name)
+                                   f"({self._dead or 'exited'}); connect again",
+                                   backend=self.backend, signal_name=self._dead)
         if self._conn is None:
             raise DeviceConnectionError(f"{self.name}: the {self.library} worker process is not running")
         budget = self._budget if self._until is not None else self.default_timeout_s
@@ -246,7 +247,7 @@ class NativeHost:
                 if self._proc is not None and self._proc.poll() is not None:
                     self._crashed(what)
                 self._kill()
-                self._dead = NativeCrashError(f"{self.name}: stopped", backend=self.backend, signal_name="")
+                self._dead = ""
                 raise DeviceConnectionError(f"{self.name}: the {self.library} worker sent an unreadable reply to "
                                             f"{what} ({exc}); it was stopped") from None
             if got != seq:
@@ -293,7 +294,7 @@ class NativeHost:
         message = (f"{self.name}: the {self.library} worker process died during {what} ({how}); "
                    f"cellcal is unaffected, the device's connections are gone"
                    f"{'; ' + stopped if stopped else ''}")
-        self._dead = NativeCrashError(message, backend=self.backend, signal_name=sig_name)
+        self._dead = sig_name
         log.debug("%s", message)  # the exception carries it to the user, once
         raise NativeCrashError(message, backend=self.backend, signal_name=sig_name)
 
