@@ -110,7 +110,7 @@ def _floor_message(value: float, threshold: float, result: FullFrameResult, sett
             "too good to be a measurement of this sensor (a fit on one quantisation level, or the wrong model)")
 
 
-def _expected_message(value: float, threshold: float, result: FullFrameResult) -> str:
+def _expected_message(result: FullFrameResult) -> str:
     angle, offset = result.expected_departure or (math.nan, math.nan)
     tol_a, tol_o = result.expected_tolerance or (math.nan, math.nan)
     # each part as the user reads it: degrees and millimetres
@@ -131,7 +131,7 @@ def _message(name: str, value: float, threshold: float, result: FullFrameResult,
     if name == "residual_floor":
         return _floor_message(value, threshold, result, settings)
     if name == "expected_plane":
-        return _expected_message(value, threshold, result)
+        return _expected_message(result)
     what, side, unit = _GATE_TEXT[name]
     k = 1000.0 if unit == "mm" else 100.0
     unit_s = " mm" if unit == "mm" else " %"

@@ -417,6 +417,13 @@ def test_the_floor_message_rounds_each_length_to_three_digits() -> None:
     ({"expected_departure": (math.radians(0.5), 7.5 * MM)},
      "quality gate 'expected_plane' failed: 0.00872665 vs threshold 0.0174533; the fitted plane is 7.5 mm from the "
      "expected one, 2.5 mm beyond the tolerance of 5 mm (its angle, 0.5 deg, is within 1 deg)"),
+    # one part exactly at its tolerance is within it: only the other is named
+    ({"expected_departure": (math.radians(1.0), 7.5 * MM)},
+     "quality gate 'expected_plane' failed: 0.0174533 vs threshold 0.0174533; the fitted plane is 7.5 mm from the "
+     "expected one, 2.5 mm beyond the tolerance of 5 mm (its angle, 1 deg, is within 1 deg)"),
+    ({"expected_departure": (math.radians(2.0), 5 * MM)},
+     "quality gate 'expected_plane' failed: 0.0349066 vs threshold 0.0174533; the fitted plane is 2 deg from the "
+     "expected one, 1 deg beyond the tolerance of 1 deg (its offset, 5 mm, is within 5 mm)"),
     # both beyond: both named, with their excesses
     ({"expected_departure": (math.radians(1.5), 6 * MM)},
      "quality gate 'expected_plane' failed: 0.0261799 vs threshold 0.0174533; the fitted plane is 1.5 deg and 6 mm "
