@@ -174,6 +174,14 @@ def _state(pid: int) -> str:
         return ""
 
 
+def _closed(pid: int) -> bool:
+    """Whether process ``pid`` has ended and let go of its descriptors (its last thread gone, not only the first)."""
+    try:
+        return _state(pid) in ("Z", "") and not os.listdir(f"/proc/{pid}/fd")
+    except OSError:
+        return True
+
+
 def _soon(predicate: Callable[[], bool], timeout_s: float = 3.0) -> bool:
     """Whether ``predicate()`` holds within ``timeout_s`` s (polled)."""
     deadline = time.monotonic() + timeout_s
@@ -616,7 +624,7 @@ def test_drop_never_raises_on_a_worker_dead_closed_or_already_found_dead(host: N
     pid = host.pid
     assert pid is not None
     os.kill(pid, signal.SIGKILL)
-    assert _soon(lambda: _state(pid) == "Z")
+    assert _soon(lambda: _closed(pid))
     host.drop(device)                                     # not known dead yet: the send fails quietly
     with pytest.raises(NativeCrashError, match=r"\(SIGKILL, killed from outside\)"):
         probe.log()
