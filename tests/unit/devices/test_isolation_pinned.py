@@ -624,7 +624,8 @@ def test_drop_never_raises_on_a_worker_dead_closed_or_already_found_dead(host: N
     pid = host.pid
     assert pid is not None
     os.kill(pid, signal.SIGKILL)
-    assert _soon(lambda: _closed(pid))
+    conn = host._conn
+    assert conn is not None and _soon(lambda: _closed(pid) and conn.poll(0))  # its end of the socket is closed
     host.drop(device)                                     # not known dead yet: the send fails quietly
     with pytest.raises(NativeCrashError, match=r"\(SIGKILL, killed from outside\)"):
         probe.log()
