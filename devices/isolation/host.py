@@ -248,8 +248,10 @@ class NativeHost:
                     self._crashed(what)
                 self._kill()
                 self._dead = ""
+                stopped = self._stop_device()  # the device's connections went with the worker
                 raise DeviceConnectionError(f"{self.name}: the {self.library} worker sent an unreadable reply to "
-                                            f"{what} ({exc}); it was stopped") from None
+                                            f"{what} ({exc}); it was stopped{'; ' + stopped if stopped else ''}"
+                                            ) from None
             if got != seq:
                 if kind == p.REF:  # a late object nobody will use: let the worker free it
                     with contextlib.suppress(OSError):  # a worker gone by now is found by the next read
@@ -266,6 +268,16 @@ class NativeHost:
         proc = self._proc
         if proc is not None and proc.poll() is None:
             proc.kill()
+
+    def _stop_device(self) -> str:
+        """Run ``on_crash`` once (the worker is gone, with the device's connections); its clause, or ""."""
+        if self.on_crash is None:
+            return ""
+        hook, self.on_crash = self.on_crash, None
+        try:
+            return hook()
+        except Exception as exc:  # the hook reports; it must not mask the crash
+            return f"stopping the arm failed ({exc})"
 
     def _crashed(self, what: str) -> Any:
         """Raise (and remember) the :class:`NativeCrashError` of a worker that went away during ``what``."""
@@ -284,13 +296,7 @@ class NativeHost:
             how = f"{sig_name}, {'a crash in native code' if crash else 'killed from outside'}"
         else:
             how = f"exit status {code}" if code is not None else "its pipe closed"
-        stopped = ""
-        if self.on_crash is not None:
-            hook, self.on_crash = self.on_crash, None
-            try:
-                stopped = hook()
-            except Exception as exc:  # the hook reports; it must not mask the crash
-                stopped = f"stopping the arm failed ({exc})"
+        stopped = self._stop_device()
         message = (f"{self.name}: the {self.library} worker process died during {what} ({how}); "
                    f"cellcal is unaffected, the device's connections are gone"
                    f"{'; ' + stopped if stopped else ''}")

@@ -30,14 +30,18 @@ _SCALARS = (type(None), bool, int, float, str, bytes)
 
 
 def is_plain(value: Any, depth: int = 0) -> bool:
-    """Whether ``value`` travels by value: scalars, and lists / tuples / dicts of them (bounded depth)."""
-    if isinstance(value, _SCALARS):
+    """Whether ``value`` travels by value: scalars, and lists / tuples / dicts of them (bounded depth).
+
+    Exact types only: a subclass (an ``IntEnum``, a vendor's tuple) would be unpickled in the parent
+    by importing its module, which may be the native library the worker is there to keep out.
+    """
+    if type(value) in _SCALARS:
         return True
     if depth >= MAX_PLAIN_DEPTH:
         return False
-    if isinstance(value, (list, tuple)):
+    if type(value) in (list, tuple):
         return all(is_plain(v, depth + 1) for v in value)
-    if isinstance(value, dict):
+    if type(value) is dict:
         return all(isinstance(k, str) and is_plain(v, depth + 1) for k, v in value.items())
     return False
 

@@ -117,8 +117,13 @@ class Worker:
         return seq, p.REF, (new, type(value).__name__)
 
     def _send(self, reply: tuple[int, str, Any]) -> None:
+        try:
+            data = pickle.dumps(reply)
+        except Exception as exc:  # a value that looked plain but does not pickle: an error reply, not an exit
+            text = f"the reply could not be pickled: {exc}"[:p.MAX_ERROR_CHARS]
+            data = pickle.dumps((reply[0], p.ERROR, (type(exc).__name__, text)))
         with contextlib.suppress(OSError):
-            self.conn.send_bytes(pickle.dumps(reply))
+            self.conn.send_bytes(data)
 
 
 def main(argv: list[str]) -> int:

@@ -84,8 +84,16 @@ def test_dicts_travel_only_with_string_keys() -> None:
     assert p.is_plain({"a": 1, 2: "b"}) is False
     assert p.is_plain({("a",): 1}) is False
     assert p.is_plain({"a": 1.5, "b": None}) is True
-    assert p.is_plain(collections.Counter("abracadabra")) is True      # a dict subclass (str keys)
-    assert p.is_plain(collections.OrderedDict(a=[1, 2])) is True
+
+
+
+def test_subclasses_of_plain_types_stay_in_the_worker() -> None:
+    """Unpickled in the parent, a subclass would import its module there: perhaps the native library itself."""
+    assert p.is_plain(collections.Counter("abracadabra")) is False      # a dict subclass (str keys)
+    assert p.is_plain(collections.OrderedDict(a=[1, 2])) is False
+    assert p.is_plain(signal.SIGINT) is False                          # an IntEnum
+    assert p.is_plain(collections.namedtuple("Point", "x y")(1, 2)) is False
+    assert p.is_plain([1, signal.SIGINT]) is False and p.is_plain({"a": (1, True)}) is True
 
 
 # ---------------------------------------------------------------- protocol: errors rebuilt in the parent
@@ -331,9 +339,7 @@ def test_the_worker_reads_nothing_from_our_terminal_and_holds_none_of_our_descri
 
 def _check_the_workers_descriptors(host: NativeHost) -> None:
     os_ = host.module("os")
-    stdin = os_.fstat(0)
-    null = os.stat(os.devnull)
-    assert (stdin.st_dev, stdin.st_ino) == (null.st_dev, null.st_ino)
+    assert os_.readlink("/proc/self/fd/0") == os.devnull
     assert os_.read(0, 10) == b""
     # 0, 1, 2, the socket to us, and the descriptor listdir itself opens
     assert len(os_.listdir("/proc/self/fd")) == 5
@@ -416,19 +422,31 @@ def test_a_reply_of_exactly_max_message_bytes_is_read_one_byte_more_stops_the_wo
     assert (later.value.backend, later.value.signal_name) == ("ur", "")
 
 
-def test_a_reply_the_parent_cannot_unpickle_stops_the_worker(guarded: NativeHost, stops: list[str]) -> None:
+def test_a_tuple_of_a_class_only_the_worker_has_stays_there(guarded: NativeHost, stops: list[str]) -> None:
+    """A vendor's namedtuple is not plain: it stays in the worker, and its module is never imported here."""
     probe = _probe(guarded)
+    point = probe.Point(1, 2)
+    assert isinstance(point, RemoteObject) and point.type_name == "Point"
+    assert point.count(2) == 1 and point.index(2) == 1     # its methods run in the worker
+    assert "probe" not in sys.modules
+    assert probe.log() == [] and stops == []              # the worker serves on
+
+
+def test_an_unreadable_reply_stops_the_arm_too(guarded: NativeHost, stops: list[str]) -> None:
+    """A reply over the size bound: the worker is killed with the device's connections, so the arm is stopped."""
+    builtins = guarded.module("builtins")
     pid = guarded.pid
     assert pid is not None
     with pytest.raises(DeviceConnectionError) as info:
-        probe.Point(1, 2)                                 # by value, of a class only the worker has
+        builtins.bytes(p.MAX_MESSAGE_BYTES + 1)
     assert type(info.value) is DeviceConnectionError
-    assert str(info.value) == ("ur 10.0.0.2: the ur_rtde worker sent an unreadable reply to Point (No module named "
-                               "'probe'); it was stopped")
+    assert str(info.value) == ("ur 10.0.0.2: the ur_rtde worker sent an unreadable reply to bytes (bad message "
+                               "length); it was stopped; the arm was told to stop")
+    assert stops == ["stop"]
     assert _soon(lambda: _state(pid) in ("Z", ""))
     with pytest.raises(NativeCrashError, match=r"died earlier \(exited\); connect again$"):
-        probe.log()
-    assert stops == []                                    # stopped by us: not a crash
+        builtins.len(b"")
+    assert stops == ["stop"]                              # once
 
 
 def test_garbage_from_a_worker_that_has_died_is_its_crash(guarded: NativeHost, stops: list[str]) -> None:
@@ -678,3 +696,22 @@ def test_the_libraries_output_is_logged_a_bounded_line_at_a_time(host: NativeHos
         prefix + "to stderr"]
     assert all(r.levelno == logging.DEBUG for r in caplog.records)
     assert capfd.readouterr() == ("", "")
+
+
+def test_a_reply_that_does_not_pickle_goes_out_as_an_error_not_as_the_workers_end() -> None:
+    """The worker's last guard: a reply pickle refuses becomes an error reply with the same sequence number."""
+    from multiprocessing.connection import Pipe
+    from types import SimpleNamespace
+
+    from cellcal.devices.isolation.worker import Worker
+
+    ours, theirs = Pipe()
+    try:
+        Worker._send(SimpleNamespace(conn=theirs), (7, p.VALUE, lambda: 0))  # type: ignore[arg-type]
+        seq, kind, (name, message) = pickle.loads(ours.recv_bytes(p.MAX_MESSAGE_BYTES))
+        assert (seq, kind) == (7, p.ERROR) and name in ("PicklingError", "AttributeError")  # by Python version
+        assert message.startswith("the reply could not be pickled: ") and len(message) <= p.MAX_ERROR_CHARS
+        assert str(p.rebuild_error(name, message)).startswith(("the reply could not be pickled", "PicklingError: the"))
+    finally:
+        ours.close()
+        theirs.close()
