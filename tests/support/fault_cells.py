@@ -186,6 +186,17 @@ class CellcalProcess:
         for reader in self._readers:
             reader.start()
 
+    def __enter__(self) -> CellcalProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """A process still running when the test leaves (a failed assertion) is killed and reaped."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5.0)
+        for reader in self._readers:
+            reader.join(5.0)
+
     @staticmethod
     def _drain(stream: Any, buf: bytearray) -> None:
         while chunk := stream.read1(65536):

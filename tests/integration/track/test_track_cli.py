@@ -200,28 +200,21 @@ def test_a_config_without_a_reference_plane_is_one_line(tmp_path: Path, capsys: 
 
 
 def test_ctrl_c_writes_both_files_whole_and_exits_130(tmp_path: Path) -> None:
-    import signal
-    import subprocess
-    import sys
     import time
 
+    from fault_cells import CellcalProcess
+
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "cellcal.core.cli", "track", "--duration", "100000", "--out",
-                             str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     partial = out / "track.jsonl.partial"
-    try:
+    with CellcalProcess(["track", "--duration", "100000", "--out", str(out), "--quiet"]) as run:
         deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline and proc.poll() is None:
+        while time.monotonic() < deadline and run.proc.poll() is None:
             if partial.exists() and partial.stat().st_size > 4096:     # a few flushes of rows
                 break
             time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        _stdout, err = proc.communicate(timeout=60.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert proc.returncode == 130, err
+        run.interrupt()
+        code, _stdout, err = run.finish(60.0)
+    assert code == 130, err
     assert "Traceback" not in err and not partial.exists()
     doc = json.loads((out / "track.json").read_text())
     rows = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
