@@ -1,4 +1,4 @@
-"""The stereo sim's noise and speckle defaults against real OAK frames (see ../shared/data/real/NOTICE.md).
+"""The stereo sim's noise and speckle defaults against real OAK frames (see tests/data/real/NOTICE.md).
 
 The frames have integer disparity (subpixel off). The disparity noise before rounding is
 read from how level boundaries blur: in 15 x 15 windows on smooth surfaces that cross a
@@ -17,15 +17,13 @@ from scipy.optimize import minimize_scalar
 from scipy.stats import norm
 
 from cellcal.sims.stereo import SimStereoConfig
-from tests.support.repo_paths import REPO_ROOT
+from tests.support.repo_paths import OAK_DATA
 
-FRAME = REPO_ROOT.parent / "shared" / "data" / "real" / "oak" / "19443010813B771300_1_depth.npy"
+FRAME = OAK_DATA / "19443010813B771300_1_depth.npy"  # committed with its NOTICE.md
 R = 7  # window half-width, px
 
 
 def real_z_m() -> np.ndarray:
-    if not FRAME.is_file():
-        pytest.skip(f"real OAK frame {FRAME.name} not found (it lives beside the repository)")
     return np.load(FRAME).astype(np.float64) / 1000.0
 
 

@@ -1,4 +1,4 @@
-"""The ToF sim's range noise against a real O3R frame (ifm's ifm3d test data, see ../shared/data/o3r/NOTICE.md).
+"""The ToF sim's range noise against a real O3R frame (ifm's ifm3d test data, see tests/data/o3r/NOTICE.md).
 
 The noise of one frame is measured the same way on both: robust second differences of the
 range image (MAD / sqrt 6 of ``r[i-1] - 2 r[i] + r[i+1]`` along rows and columns), which a
@@ -17,9 +17,9 @@ from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.scene import Scene
 from cellcal.sims.tof import DATASHEET_FIT_NOISE, O3R_MEASURED_NOISE, ArtefactsConfig
 from cellcal.sims.world import SimWorld
-from tests.support.repo_paths import REPO_ROOT
+from tests.support.repo_paths import O3R_DATA
 
-BUFFER = REPO_ROOT.parent / "shared" / "data" / "o3r" / "O3RBuffer.data"
+BUFFER = O3R_DATA / "O3RBuffer.data"  # committed with its NOTICE.md
 #: The flat box face of the real frame (rows, columns): 0.28 m away, incidence 50 deg.
 FACE = (slice(62, 110), slice(75, 107))
 
@@ -40,8 +40,6 @@ def scatter_m(distance: np.ndarray, mask: np.ndarray) -> float:
 
 
 def real_frame() -> tuple[np.ndarray, np.ndarray]:
-    if not BUFFER.is_file():
-        pytest.skip(f"real O3R capture {BUFFER.name} not found (it lives beside the repository)")
     frame = FrameDecoder().decode(BUFFER.read_bytes(), received_at=1.7e9).frame
     return frame.distance, frame.valid
 

@@ -1,4 +1,4 @@
-"""The driver against real O3R data: two captures from ifm's ifm3d test data (see ../shared/data/o3r/NOTICE.md).
+"""The driver against real O3R data: two captures from ifm's ifm3d test data (see tests/data/o3r/NOTICE.md).
 
 ``O3RBuffer.data`` is a whole 3D-port result payload of older firmware (chunk header
 versions 3 and 2 mixed, a 205-byte header, 8-bit confidence, TOF_INFO v1, the VPU's own
@@ -22,9 +22,9 @@ from cellcal.devices.types import Intrinsics
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.tofinfo import MIN_SIZE_V4, parse_tof_info
 from cellcal.sims.o3r.wire import models_from_intrinsics, tof_info
-from tests.support.repo_paths import REPO_ROOT
+from tests.support.repo_paths import O3R_DATA
 
-DATA = REPO_ROOT.parent / "shared" / "data" / "o3r"
+DATA = O3R_DATA
 BUFFER = DATA / "O3RBuffer.data"
 TOF_V4 = DATA / "tof_info.data"
 #: The real captures' distance resolution: 10 m over 16 bits.
@@ -32,10 +32,7 @@ RES = 10.0 / 65535.0
 
 
 def _read(path: Path) -> bytes:
-    if not path.is_file():
-        pytest.skip(f"real O3R capture {path.name} not found in {DATA} (it lives beside the repository, "
-                    f"not in an installed package)")
-    return path.read_bytes()
+    return path.read_bytes()  # committed under tests/data/o3r: a missing file is an error, not a skip
 
 
 def _chunk_table(payload: bytes) -> dict[int, tuple[int, int, int, int, int, int]]:
