@@ -26,6 +26,9 @@ from cellcal.devices.pose import Pose
 #: Version of the result document; bump on any incompatible change.
 RESULT_SCHEMA = "cellcal.calibration/2"
 RESULT_FILENAME = "result.json"
+#: What "above" means in the summaries, said once per output: heights in mm along a plane's normal (ADR 0042).
+ABOVE_NOTE = ("note: 'above' is the signed distance along the plane's normal, in mm (+ where the normal points); "
+              "the JSON files keep SI: a plane's offset_m is minus its height above the base origin, in m")
 
 
 def write_json_atomic(path: str | Path, document: Mapping[str, Any]) -> Path:
@@ -120,9 +123,17 @@ def summarize(rows: Iterable[Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def plane_height_mm(plane: Mapping[str, Any]) -> float:
+    """A plane's height above the origin of its frame along its normal, mm: ``-offset_m`` of ``n·x + offset_m = 0``.
+
+    The plane passes through ``height * normal``; with the normal up (+z) the height is the plane's z.
+    """
+    return -1000.0 * float(plane["offset_m"])
+
+
 def format_table(rows: list[Mapping[str, Any]]) -> str:
-    """A plain-text summary table: one line per pose x perimeter x method."""
-    header = (f"{'pose':>4} {'height_m':>8} {'per_px':>6} {'method':<18} {'angle_deg':>9} {'expect':>7} "
+    """A plain-text summary table: one line per pose x perimeter x method (heights in mm, angles in deg)."""
+    header = (f"{'pose':>4} {'height_mm':>9} {'per_px':>6} {'method':<18} {'angle_deg':>9} {'expect':>7} "
               f"{'err_%':>6} {'tilt_x':>7} {'tilt_y':>7} {'rms_mm':>7}")
     lines = [header, "-" * len(header)]
 
@@ -130,10 +141,11 @@ def format_table(rows: list[Mapping[str, Any]]) -> str:
         return f"{v:{width}{spec}}" if isinstance(v, (int, float)) else f"{'-':>{width}}"
 
     for r in rows:
-        rms = r.get("residual_rms_m")
+        rms, height = r.get("residual_rms_m"), r.get("height_m")
         per = "all" if r.get("perimeter_px") is None else r["perimeter_px"]
         lines.append(
-            f"{r['pose_index'] + 1:>4} {f(r.get('height_m'), '.4f', 8)} {per:>6} {r['method']:<18} "
+            f"{r['pose_index'] + 1:>4} {f(None if height is None else height * 1000, '.1f', 9)} {per:>6} "
+            f"{r['method']:<18} "
             f"{f(r['angle_deg'], '.3f', 9)} {f(r.get('expected_angle_deg'), '.2f', 7)} "
             f"{f(r.get('error_pct'), '.2f', 6)} {f(r.get('tilt_x_deg'), '.2f', 7)} {f(r.get('tilt_y_deg'), '.2f', 7)} "
             f"{f(None if rms is None else rms * 1000, '.2f', 7)}"
@@ -249,13 +261,27 @@ def _multipath(ff: Mapping[str, Any]) -> str:
     return text + " (a bias: not in the intervals)"
 
 
-def _vec(v: Iterable[float]) -> str:
-    return "[" + ", ".join(f"{x:+.5f}" for x in v) + "]"
+def _vec(v: Iterable[float], spec: str = "+.5f") -> str:
+    return "[" + ", ".join(f"{x:{spec}}" for x in v) + "]"
+
+
+def _mm(value_m: Any) -> Any:
+    """Metres to millimetres (None and a list of them as they come)."""
+    if value_m is None:
+        return None
+    if isinstance(value_m, (list, tuple)):
+        return [_mm(v) for v in value_m]
+    return float(value_m) * 1000.0
 
 
 def format_full_frame(document: Mapping[str, Any]) -> str:
-    """Human-readable full-frame results and the plane in the base frame ("" if neither is there)."""
+    """Human-readable full-frame results and the plane in the base frame ("" if neither is there).
+
+    Lengths in mm and angles in deg; a base-frame plane by its height above the base origin along its
+    normal (:func:`plane_height_mm`), what "above" means said once at the end (:data:`ABOVE_NOTE`).
+    """
     lines: list[str] = []
+    above = False
     poses = [p for p in document.get("poses", []) if p.get("full_frame")]
     if poses:
         conf = poses[0]["full_frame"].get("confidence", 0.95)
@@ -266,9 +292,9 @@ def format_full_frame(document: Mapping[str, Any]) -> str:
             lines.append(
                 f"  pose {p['index'] + 1}: tilt_x {_ci(ff['tilt_x_deg'], ff['tilt_x_ci_deg'], '.4f')} deg, "
                 f"tilt_y {_ci(ff['tilt_y_deg'], ff['tilt_y_ci_deg'], '.4f')} deg, "
-                f"height {_ci(ff['height_m'], ff['height_ci_m'], '.5f')} m"
+                f"height {_ci(_mm(ff['height_m']), _mm(ff['height_ci_m']), '.2f')} mm"
                 + (f" (expected tilt_x {exp['tilt_x_deg']:.4f}, tilt_y {exp['tilt_y_deg']:.4f} deg, "
-                   f"height {exp['height_m']:.5f} m)" if exp else ""))
+                   f"height {_mm(exp['height_m']):.2f} mm)" if exp else ""))
             mp = _multipath(ff)
             if mp:
                 lines.append(f"          {mp}")
@@ -276,14 +302,16 @@ def format_full_frame(document: Mapping[str, Any]) -> str:
             pb = ff.get("plane_base")
             if pb:
                 lines.append(f"          plane in base frame: normal {_vec(pb['normal'])}, "
-                             f"offset {pb['offset_m']:+.5f} m")
+                             f"{plane_height_mm(pb):+.3f} mm above the base origin")
+                above = True
     cons = (document.get("summary") or {}).get("plane_consistency")
     if cons and "consensus_plane_base" not in cons:
         lines.append(f"plane in the base frame: {cons['verdict']} - {cons['interpretation']}")
     elif cons:
         cp = cons["consensus_plane_base"]
         lines.append(f"plane in the base frame ({cons['source_method']}, {cons['n_poses']} poses): "
-                     f"normal {_vec(cp['normal'])}, offset {cp['offset_m']:+.5f} m")
+                     f"normal {_vec(cp['normal'])}, {plane_height_mm(cp):+.3f} mm above the base origin")
+        above = True
         exp_n, exp_h = cons.get("expected_normal_rms_deg"), cons.get("expected_height_rms_m")
         lines.append(f"  consistency: normal spread {cons['normal_spread_deg']:.4f} deg "
                      f"(rms {cons['normal_rms_deg']:.4f}"
@@ -297,5 +325,8 @@ def format_full_frame(document: Mapping[str, Any]) -> str:
         ref = cons.get("reference")
         if ref:
             lines.append(f"  vs [reference] plane: {ref['angle_deg']:.4f} deg apart, "
-                         f"{ref['height_m'] * 1000:+.3f} mm above it at {_vec(cons['reference_point_m'])} m")
+                         f"{ref['height_m'] * 1000:+.3f} mm above it at "
+                         f"{_vec(_mm(cons['reference_point_m']), '+.3f')} mm")
+    if above:
+        lines.append(ABOVE_NOTE)
     return "\n".join(lines)

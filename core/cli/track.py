@@ -103,6 +103,8 @@ def _event_line(event: ChangeEvent, *, final: bool = True) -> str:
 
 def summary_lines(outcome: TrackOutcome) -> list[str]:
     """The end-of-run summary: frames, the mount with its intervals, the plane, what is not seen, events."""
+    from cellcal.core.calibration.report import ABOVE_NOTE, plane_height_mm
+
     doc = outcome.document
     c = doc["counters"]
     why = {k: v for k, v in sorted(c.items()) if k.startswith(("skipped", "refused", "no plane"))}
@@ -128,7 +130,8 @@ def summary_lines(outcome: TrackOutcome) -> list[str]:
     lines.append(f"mount rotation, deg ({conf}): " + ", ".join(parts))
     plane = doc["plane"]
     lines.append(f"plane (base frame): normal [{', '.join(f'{v:.5f}' for v in plane['normal'])}], "
-                 f"offset {plane['offset_m'] * 1e3:.3f} mm")
+                 f"{plane_height_mm(plane):+.3f} mm above the base origin")
+    lines.append(ABOVE_NOTE)
     if iv.get("withheld"):
         lines.append(f"intervals withheld: {iv['withheld']}")
     for text in doc["unseen"]:

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcal.core.calibration.report import ABOVE_NOTE, plane_height_mm
 from cellcal.core.handeye.estimator import HandEyeEstimate, rpy_with_sigma_deg
 from cellcal.devices.pose import Pose
 
@@ -116,12 +117,14 @@ def _plane_lines(document: Mapping[str, Any], z: float) -> list[str]:
     plane, fit, seen = document["plane_base"], document["fit"], document["observability"]
     worst = max(document["poses"], key=lambda p: p["residual"]["chi2"])
     p_value = "n/a" if fit["p_value"] is None or math.isnan(fit["p_value"]) else f"{fit['p_value']:.2g}"
-    return [f"plane (base frame): normal {_triple(plane['normal'], '.6f')}, offset "
-            f"{1000 * plane['offset_m']:+.3f} mm ± {1000 * plane['offset_sigma_m'] * z:.3f} mm",
+    return [f"plane (base frame): normal {_triple(plane['normal'], '.6f')}, {plane_height_mm(plane):+.3f} mm "
+            f"± {1000 * plane['offset_sigma_m'] * z:.3f} mm above the base origin",
+            ABOVE_NOTE,
             f"fit: chi2 {fit['chi2']:.1f} over {fit['dof']} dof (p = {p_value}); {seen['rank']}/"
             f"{seen['n_parameters']} parameters observable, condition {seen['condition']:.3g}",
             f"residuals: largest at pose {worst['index'] + 1}: normal {worst['residual']['normal_deg']:.4f} deg, "
-            f"offset {1000 * worst['residual']['offset_m']:+.3f} mm (chi2 {worst['residual']['chi2']:.1f})",
+            f"camera distance {1000 * worst['residual']['offset_m']:+.3f} mm (measured - predicted; "
+            f"chi2 {worst['residual']['chi2']:.1f})",
             *(f"note: {note}" for note in fit.get("notes", []))]
 
 

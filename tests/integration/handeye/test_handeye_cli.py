@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,9 @@ from repo_paths import REPO_ROOT
 from cellcal.core.calibration.calibrator import build_devices
 from cellcal.core.calibration.config import load_config
 from cellcal.core.calibration.journal import journal_path
+from cellcal.core.calibration.report import ABOVE_NOTE
 from cellcal.core.cli import main
+from cellcal.core.geometry.planes import Plane
 from cellcal.core.handeye import HANDEYE_FILENAME, auto_plan, mount_difference, plan_calibrator, run_handeye
 from cellcal.devices.pose import Pose
 
@@ -67,6 +70,23 @@ def test_the_automatic_plan_finds_the_true_mount_within_its_intervals(run: tuple
     assert error["distance_m"] <= math.sqrt(3) * 1e-3 and error["rotation_deg"] <= 0.05  # the targets
     assert doc["fit"]["p_value"] > 0.001 and all(p["residual"]["normal_deg"] < 0.02 for p in doc["poses"])
     assert abs(doc["plane_base"]["offset_m"]) < 4 * doc["plane_base"]["offset_sigma_m"] + 1e-9
+
+
+def test_the_printed_plane_is_its_height_above_the_base_origin_in_mm(run: tuple[dict[str, Any], str, Path]) -> None:
+    doc, stdout, _ = run
+    plane, z = doc["plane_base"], doc["mount"]["interval_z"]
+    (line,) = [x for x in stdout.splitlines() if x.startswith("plane (base frame): normal ")]
+    found = re.fullmatch(r"plane \(base frame\): normal \[.*\], ([+-]\d+\.\d{3}) mm ± (\d+\.\d{3}) mm "
+                         r"above the base origin", line)
+    assert found is not None, line
+    height_m, half_width_m = float(found[1]) / 1000.0, float(found[2]) / 1000.0
+    # the plane passes through height x normal (printed to 1 um), and the interval is the offset's
+    assert abs(float(Plane.from_dict(plane).signed_distance(height_m * np.asarray(plane["normal"])))) <= 0.6e-6
+    assert half_width_m == pytest.approx(plane["offset_sigma_m"] * z, abs=0.6e-6)
+    assert stdout.count(ABOVE_NOTE) == 1
+    worst = max(doc["poses"], key=lambda p: p["residual"]["chi2"])
+    assert (f"residuals: largest at pose {worst['index'] + 1}: normal {worst['residual']['normal_deg']:.4f} deg, "
+            f"camera distance {1000 * worst['residual']['offset_m']:+.3f} mm (measured - predicted; ") in stdout
 
 
 def test_the_printed_mount_table_pastes_into_a_config(run: tuple[dict[str, Any], str, Path]) -> None:

@@ -113,10 +113,14 @@ def test_without_a_change_nothing_is_detected(tmp_path: Path, capsys: pytest.Cap
 
 def test_a_table_shift_is_told_apart_from_a_mount_change(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     events = "[[sim.events]]\nat_s = 30.0\nplane_point_m = [0.0, 0.0, 0.005]\nplane_normal = [0.0, 0.0, 1.0]\n"
-    code, _printed, doc = _run(tmp_path, capsys, "--config", str(_variant(tmp_path, events)), "--duration", "70")
+    code, printed, doc = _run(tmp_path, capsys, "--config", str(_variant(tmp_path, events)), "--duration", "70")
     (event,) = doc["events"]
     assert event["kind"] == "plane" and abs(event["size"]["plane_shift_m"] - 0.005) < 5e-4
     assert code == 0 and abs(doc["plane"]["offset_m"] + 0.005) < 5e-4             # n.x + offset = 0 at z = 5 mm
+    # printed as the table's height above the base origin: + 5 mm, not the offset's -5
+    found = re.search(r"^plane \(base frame\): normal \[.*\], ([+-]\d+\.\d{3}) mm above the base origin$", printed,
+                      re.M)
+    assert found is not None and abs(float(found[1]) - 5.0) < 0.5, printed
 
 
 def test_a_change_left_open_at_the_end_is_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
