@@ -16,6 +16,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+from cellcal.core.console import say
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -25,10 +26,9 @@ __all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_USAGE", "build_p
 
 
 def _say(text: str) -> None:
-    """One line on stderr, never raising (stderr may be closed or a broken pipe)."""
+    """One line on stderr, on a line of its own, never raising (stderr may be closed or a broken pipe)."""
     with contextlib.suppress(Exception):
-        sys.stderr.write(text + "\n")
-        sys.stderr.flush()
+        say(text)
 
 
 class _Interrupts:

@@ -15,7 +15,8 @@ from collections.abc import Sequence
 from importlib import import_module
 
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
-from cellcal.core.cli.text import one_line
+from cellcal.core.cli.text import escape, one_line
+from cellcal.core.console import Interrupted, say
 from cellcal.devices.errors import (
     CalibrationError,
     CalibrationQualityError,
@@ -79,8 +80,8 @@ def run_command(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except KeyboardInterrupt:
-        print("cellcal: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # a line of its own, whatever stderr had before (ADR 0043)
+        say(escape(exc.line) if isinstance(exc, Interrupted) else "cellcal: interrupted")  # its paths unshortened
         return EXIT_INTERRUPTED
     except BrokenPipeError:
         # output piped into e.g. `head`, which closed early: not an error of ours
@@ -88,5 +89,5 @@ def run_command(argv: Sequence[str] | None = None) -> int:
             sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - silence the interpreter's final flush
         return EXIT_OK
     except CellcalError as exc:
-        print(one_line(f"cellcal: error: {exc}"), file=sys.stderr)
+        say(one_line(f"cellcal: error: {exc}"))
         return exit_status(exc)

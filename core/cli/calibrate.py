@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -15,6 +14,7 @@ from cellcal.core.cli.progress import progress_factory
 from cellcal.core.cli.report import add_no_report_option
 from cellcal.core.cli.resumable import resume_command, run_resumable
 from cellcal.core.cli.text import one_line
+from cellcal.core.console import say
 from cellcal.devices.errors import CellcalError, ConfigError, OutputError
 
 if TYPE_CHECKING:  # the calibration (numpy, OpenCV) is imported when the command runs, not by `cellcal --help`
@@ -198,7 +198,7 @@ def _summarize(args: argparse.Namespace, calibrator: Any, document: dict[str, An
     print(f"result written to {out}" + (f"; cross-pose verdict {disagree}" if disagree else ""))
     strict = "--strict" if getattr(args, "strict", False) else "[cell] strict" if calibrator.config.cell.strict else ""
     if disagree and strict:
-        print(f"cellcal: {strict}: the poses' planes disagree (cross-pose verdict {disagree})", file=sys.stderr)
+        say(f"cellcal: {strict}: the poses' planes disagree (cross-pose verdict {disagree})")
         return EXIT_FAILURE
     if getattr(args, "replay", None):
         from cellcal.core.calibration.replay import compare_with_recording

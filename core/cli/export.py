@@ -12,13 +12,13 @@ import argparse
 import json
 import math
 import re
-import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_OK
 from cellcal.core.cli.options import check_input_file
+from cellcal.core.console import say
 from cellcal.devices import boundedjson
 from cellcal.devices.errors import ConfigError
 
@@ -166,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
     pose = mount_pose(document, args.ros2)
     note = configured_mount_note(document)
     if note is not None:
-        print(f"cellcal export: note: {note}", file=sys.stderr)
+        say(f"cellcal export: note: {note}")
     print(launch_snippet(pose, args.parent, args.child, note=note))
     print(f"<!-- URDF fixed joint: {args.parent} -> {args.child} -->")
     print(urdf_joint(pose, args.parent, args.child, note=note), end="")

@@ -4,7 +4,8 @@ On a terminal: a tqdm bar, gone when done. Anywhere else (a log file, a pipe, CI
 redraws would leave ``\\r``-separated fragments (``0/3``) in the log, so the run says once
 how many steps it has (``3 poses to go (0/3)``) and each finished step is one plain line:
 ``pose 2/3 done``. A long run (more than :data:`MAX_PLAIN_LINES` steps) prints a line per
-percent, and always the last step. :data:`PLAIN_LINE` matches those lines.
+percent, and always the last step. :data:`PLAIN_LINE` matches those lines. Each line is one
+write call with its newline, so a Ctrl-C never leaves one open for the next message (ADR 0043).
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import re
 import sys
 import threading
 from typing import IO, TYPE_CHECKING, Any
+
+from cellcal.core.console import write_line
 
 if TYPE_CHECKING:
     from cellcal.core.calibration.calibrator import ProgressFactory
@@ -44,14 +47,14 @@ class PlainProgress:
         self.n = 0
         self._every = max(1, -(-total // MAX_PLAIN_LINES))  # ceil: at most MAX_PLAIN_LINES lines
         self._lock = threading.Lock()  # a study's worker results arrive on another thread
-        print(f"{total} {desc} to go (0/{total})", file=stream, flush=True)
+        write_line(stream, f"{total} {desc} to go (0/{total})")
 
     def update(self, n: int = 1) -> None:
         """Count ``n`` finished steps; print a line for the step when it is one to show."""
         with self._lock:
             before, self.n = self.n, self.n + n
             if self.n == self.total or self.n // self._every > before // self._every:
-                print(f"{self.unit} {self.n}/{self.total} done", file=self.stream, flush=True)
+                write_line(self.stream, f"{self.unit} {self.n}/{self.total} done")
 
     def close(self) -> None:
         """Nothing to clear: the lines stay."""

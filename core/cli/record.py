@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -19,6 +18,7 @@ from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_INTERRUPTED, EXIT_OK
 from cellcal.core.cli.options import add_config_option
 from cellcal.core.cli.progress import progress_factory
+from cellcal.core.console import say
 from cellcal.devices.errors import CellcalError, ConfigError, OutputError
 
 if TYPE_CHECKING:  # the calibration and the recorder are imported by run(), not by `cellcal --help`
@@ -121,11 +121,11 @@ def _record(args: argparse.Namespace, out: Path, open_sink: Callable[[], Any], r
             with sink:
                 document = run_into(sink)
         except KeyboardInterrupt:
-            print(interrupted(sink), file=sys.stderr)
+            say(interrupted(sink))
             return sink, EXIT_INTERRUPTED
         except CellcalError:
             if sink.finished:
-                print(f"recording of the failed run written to {out}", file=sys.stderr)
+                say(f"recording of the failed run written to {out}")
             raise
         if args.result:
             print(f"result written to {write_json_atomic(Path(args.result) / RESULT_FILENAME, document)}")

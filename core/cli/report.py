@@ -32,15 +32,14 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal report``; returns the exit status."""
-    import sys
-
+    from cellcal.core.console import say
     from cellcal.core.report import REPORT_HTML_FILENAME, load_report_data, render_to_file
     from cellcal.devices.errors import ConfigError
 
     if args.out:
         page, note = render_to_file(args.dir, args.out)
         if note:
-            print(f"cellcal: {note}", file=sys.stderr)
+            say(f"cellcal: {note}")
         print(f"report written to {page}")
         return EXIT_OK
     page = Path(args.dir) / REPORT_HTML_FILENAME

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import shlex
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
 from cellcal.core.cli.exits import EXIT_INTERRUPTED
+from cellcal.core.console import say
 
 T = TypeVar("T")
 
@@ -41,7 +41,7 @@ def run_resumable(run: Callable[[], T], calibrator: Any, total: int, result_path
         return run()
     except KeyboardInterrupt:
         saved = poses_saved(calibrator)
-        print(f"cellcal: interrupted{f'; {hint(saved)}' if saved else ''}", file=sys.stderr)
+        say(f"cellcal: interrupted{f'; {hint(saved)}' if saved else ''}")
         return EXIT_INTERRUPTED
     except CellcalError as exc:
         saved = poses_saved(calibrator)

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+from cellcal.core.console import say
 from cellcal.core.liveview.server import LiveView, open_live_view
 
 __all__ = ["POLL_S", "linger", "live_view_session", "wait_for_viewer"]
@@ -16,7 +16,7 @@ POLL_S = 0.05
 
 
 def _say(text: str) -> None:
-    print(f"live view: {text}", file=sys.stderr, flush=True)
+    say(f"live view: {text}")
 
 
 def wait_for_viewer(view: LiveView, timeout_s: float) -> bool:

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import json
 import socket
-import sys
 import threading
 import time
 from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Self
 
+from cellcal.core.console import say
 from cellcal.core.liveview.sdklog import flush_sdk_log, route_sdk_logging
 from cellcal.core.liveview.subprotocol import SubprotocolRelay
 from cellcal.devices.errors import ConfigError
@@ -225,6 +225,5 @@ def open_live_view(port: int | None, *, drift: bool = False, track: bool = False
     if port is None:
         return None
     view = LiveView(port, drift=drift, track=track)
-    print(f"live view: {view.url} (in Foxglove: Open connection, Foxglove WebSocket, this URL)",
-          file=sys.stderr, flush=True)
+    say(f"live view: {view.url} (in Foxglove: Open connection, Foxglove WebSocket, this URL)")
     return view

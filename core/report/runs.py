@@ -2,40 +2,109 @@
 
 The drawing runs in a separate interpreter (``python -m cellcal.core.report DIR``) from the
 JSON just written: the command itself never imports matplotlib (it stays off the fast path,
-ADR 0021), and every report is proven to render from its JSON alone (ADR 0037).
+ADR 0021), and every report is proven to render from its JSON alone (ADR 0037). A Ctrl-C
+while it draws stops the child and says, on a line of its own, how to draw the page later
+(ADR 0043).
 """
 
 from __future__ import annotations
 
+import os
+import shlex
+import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from cellcal.core.report.render import REPORT_HTML_FILENAME, new_report_data, write_report_data
+from cellcal.core.console import Interrupted, say
+from cellcal.core.report.render import REPORT_DATA_FILENAME, REPORT_HTML_FILENAME, new_report_data, write_report_data
 from cellcal.core.report.text import SummaryText
 
-__all__ = ["DRAW_TIMEOUT_S", "CalibrationReport", "RunReport", "camera_name", "draw_in_child"]
+__all__ = ["DRAW_TIMEOUT_S", "STOP_GRACE_S", "CalibrationReport", "RunReport", "camera_name", "draw_command",
+           "draw_in_child"]
 
 #: Longest the drawing child may take, s (then it is killed and the run says so).
 DRAW_TIMEOUT_S = 120.0
+#: Longest the drawing child is given to end after a Ctrl-C, s (it removes its temporary files; then it is killed).
+STOP_GRACE_S = 5.0
+#: The child gets a process group of its own: a terminal's Ctrl-C reaches this process only, which stops
+#: the child and every worker it forked (none is left drawing after the run said the report is not written).
+_OWN_GROUP = os.name == "posix"
+
+
+def draw_command(out_dir: str | Path) -> list[str]:
+    """The drawing child's command line: ``python -m cellcal.core.report DIR``."""
+    return [sys.executable, "-m", "cellcal.core.report", str(out_dir)]
 
 
 def draw_in_child(out_dir: str | Path, timeout_s: float = DRAW_TIMEOUT_S) -> tuple[Path | None, str]:
-    """Draw the report of ``out_dir`` in a child interpreter; the page (None if not drawn) and a note."""
+    """Draw the report of ``out_dir`` in a child interpreter; the page (None if not drawn) and a note.
+
+    Raises:
+        KeyboardInterrupt: Ctrl-C while the child draws; the child and its workers are stopped first.
+    """
+    proc = None
     try:
-        done = subprocess.run([sys.executable, "-m", "cellcal.core.report", str(out_dir)], capture_output=True,
-                              text=True, timeout=timeout_s, check=False)
+        with _ctrl_c_held():  # a Ctrl-C while the child starts comes once it is known (to be stopped)
+            proc = subprocess.Popen(draw_command(out_dir), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True, start_new_session=_OWN_GROUP)
+        _, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
+        assert proc is not None
+        _stop(proc, signal.SIGKILL)
         return None, f"report not drawn: the drawing took more than {timeout_s:g} s"
     except OSError as exc:
         return None, f"report not drawn: {exc}"
-    lines = [line for line in (done.stderr or "").splitlines() if line.strip()]
-    if done.returncode != 0:
-        return None, f"report not drawn: {lines[-1] if lines else f'exit status {done.returncode}'}"
+    except KeyboardInterrupt:
+        if proc is not None:
+            _stop(proc, signal.SIGINT)
+        raise
+    lines = [line for line in (err or "").splitlines() if line.strip()]
+    if proc.returncode != 0:
+        return None, f"report not drawn: {lines[-1] if lines else f'exit status {proc.returncode}'}"
     return Path(out_dir) / REPORT_HTML_FILENAME, lines[-1] if lines else ""
+
+
+@contextmanager
+def _ctrl_c_held() -> Iterator[None]:
+    """Ctrl-C inside the block is handed to the SIGINT handler when the block ends, not where it lands.
+
+    Only in the main thread, where Python runs signal handlers, and only for a handler set
+    from Python (cellcal's, or Python's own KeyboardInterrupt); otherwise nothing is held.
+    """
+    previous = signal.getsignal(signal.SIGINT)
+    if not callable(previous) or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pressed: list[Any] = []
+    signal.signal(signal.SIGINT, lambda _signum, frame: pressed.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if pressed:
+            previous(signal.SIGINT, pressed[0])
+
+
+def _stop(proc: subprocess.Popen[str], first: signal.Signals) -> None:
+    """End the drawing child and the workers it forked: ``first`` to its group, SIGKILL after :data:`STOP_GRACE_S`."""
+    for sig in (first, signal.SIGKILL):
+        try:
+            if _OWN_GROUP:
+                os.killpg(proc.pid, sig)
+            else:
+                proc.kill()
+        except OSError:  # already gone
+            pass
+        try:
+            proc.communicate(timeout=STOP_GRACE_S)
+            return
+        except subprocess.TimeoutExpired:
+            continue
 
 
 class RunReport:
@@ -68,23 +137,53 @@ class RunReport:
         """Write the data and text, draw the pictures and the page; one line says where (or why not).
 
         A report that cannot be written costs the run nothing but that line (stderr).
+
+        Raises:
+            Interrupted: Ctrl-C before the page was written; its line says what is missing and how to
+                draw the page afterwards.
         """
         from cellcal.core.calibration.outlock import OutputLock
         from cellcal.devices.errors import CellcalError
 
         self.data["summary_text"] = self.summary.text
+        page_before = _identity(self.out_dir / REPORT_HTML_FILENAME)
+        stage = "data"
         try:  # one run per output directory: the report too is written under its lock
             with OutputLock.for_directory(self.out_dir):
                 write_report_data(self.out_dir, self.data)
+                stage = "drawing"
                 page, note = draw_in_child(self.out_dir)
+                stage = "done"
         except CellcalError as exc:
-            print(f"cellcal: report not written: {exc}".replace("\n", " "), file=sys.stderr)
+            say(f"cellcal: report not written: {exc}".replace("\n", " "))
             return None
+        except KeyboardInterrupt:
+            raise Interrupted(self._interrupted_line(stage != "data", page_before)) from None
         if note:
-            print(f"cellcal: {note}".replace("\n", " "), file=sys.stderr)
+            say(f"cellcal: {note}".replace("\n", " "))
         if page is not None and not quiet:
             print(f"report written to {page}")
         return page
+
+    def _interrupted_line(self, data_written: bool, page_before: tuple[int, int, int] | None) -> str:
+        """What a Ctrl-C while the report was written left undone, and how to draw the page afterwards.
+
+        Args:
+            data_written: Whether the report data was written (the page can be drawn from it).
+            page_before: :func:`_identity` of the page before the drawing (an earlier run's page, or None).
+        """
+        page = self.out_dir / REPORT_HTML_FILENAME
+        now = _identity(page)
+        if now is not None and now != page_before:  # written (atomically: a new file) before the child stopped
+            return f"cellcal: interrupted; the report was written to {page}"
+        earlier = now is not None
+        if not data_written:
+            return (f"cellcal: interrupted before the report was written: no report of this run in {self.out_dir}"
+                    + (f" ({page} is an earlier run's)" if earlier else ""))
+        again = f"cellcal report {shlex.quote(str(self.out_dir))} --out {shlex.quote(str(page))}"
+        return (f"cellcal: interrupted while drawing the report: {page} was not written"
+                + (" (the one there is an earlier run's)" if earlier else "")
+                + f"; '{again}' draws it from {self.out_dir / REPORT_DATA_FILENAME}")
 
 
 class CalibrationReport(RunReport):
@@ -131,6 +230,15 @@ class CalibrationReport(RunReport):
 
     def _store(self) -> None:
         self.section["poses"] = sorted(self.capture.poses, key=lambda p: int(p["index"]))
+
+
+def _identity(path: Path) -> tuple[int, int, int] | None:
+    """Device, inode and modification time of ``path`` (None: no such file): a file replaced atomically differs."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_mtime_ns
 
 
 def camera_name(config: Any) -> str:

@@ -211,12 +211,22 @@ class CellcalProcess:
 
     def wait_for(self, text: str, timeout_s: float = 60.0) -> bool:
         """Wait until ``text`` appears on stderr (True) or the process ends or time runs out (False)."""
+        return self._wait_until(lambda err: text in err, timeout_s)
+
+    def wait_for_line(self, line: str, timeout_s: float = 60.0) -> bool:
+        """Wait until ``line`` is a whole line of stderr, its newline written too (True), or the process ends or
+        time runs out (False)."""
+        return self._wait_until(lambda err: f"\n{line}\n" in f"\n{err}", timeout_s)
+
+    def _wait_until(self, seen: Callable[[str], bool], timeout_s: float) -> bool:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if text in self.stderr_so_far():
+            if seen(self.stderr_so_far()):
                 return True
             if self.proc.poll() is not None:
-                return text in self.stderr_so_far()
+                for reader in self._readers:  # what the process wrote before it ended
+                    reader.join(5.0)
+                return seen(self.stderr_so_far())
             time.sleep(0.005)
         return False
 

@@ -1,7 +1,7 @@
 """Real ``cellcal`` processes: interrupted recordings, one run per output, a full disk, saved-pose counts.
 
 Each test starts the console script on the fast sim cell slowed down by a settle time
-at every pose, and acts on it at a known point of its run (the progress bar on stderr
+at every pose, and acts on it at a known point of its run (a whole progress line on stderr
 says which pose it is at): Ctrl-C, a second run on the same output, a file size limit.
 """
 
@@ -25,6 +25,9 @@ from cellcal.core.cli.progress import PLAIN_LINE
 from cellcal.devices.recording import read_recording
 
 N_POSES = 3
+#: The whole progress line that says the run is at a pose (stderr is a pipe: plain lines).
+AT_POSE = {f"{n}/{N_POSES}": f"pose {n}/{N_POSES} done" for n in range(1, N_POSES + 1)}
+AT_POSE[f"0/{N_POSES}"] = f"{N_POSES} poses to go (0/{N_POSES})"
 
 
 def _names(directory: Path) -> list[str]:
@@ -32,11 +35,12 @@ def _names(directory: Path) -> list[str]:
 
 
 def _one_line(err: str) -> str:
-    """The one line a failing command prints (after the progress lines: stderr is a pipe here)."""
+    """The one line a failing command prints (after the progress lines: stderr is a pipe here), on a line of its own."""
     assert "Traceback" not in err, err
     lines = [line for line in err.replace("\r", "\n").splitlines()
              if line.strip() and "|" not in line and not PLAIN_LINE.fullmatch(line)]
     assert len(lines) == 1, err
+    assert lines[0].startswith("cellcal: "), err  # no progress text run into it
     return lines[0]
 
 
@@ -51,7 +55,7 @@ def test_interrupted_recording_is_finished_with_what_was_recorded(tmp_path: Path
     out = tmp_path / "rec" / "s.mcap"
     run = CellcalProcess(["record", "--config", str(config), "--out", str(out),
                           *(["--keep-failed"] if keep_failed else [])])
-    assert run.wait_for(f"{after_poses}/{N_POSES}"), run.stderr_so_far()
+    assert run.wait_for_line(AT_POSE[f"{after_poses}/{N_POSES}"]), run.stderr_so_far()
     run.interrupt()  # during the next pose's settle time: its frame is not taken yet
     code, out_text, err = run.finish()
     assert code == 130, err
@@ -89,8 +93,8 @@ def test_ctrl_c_at_any_moment_of_a_recording_leaves_no_file_or_a_valid_one(tmp_p
     if moment == "main":
         run.wait_ready()
     else:
-        assert run.wait_for(moment), run.stderr_so_far()
-    time.sleep(delay)
+        assert run.wait_for_line(AT_POSE[moment]), run.stderr_so_far()
+    time.sleep(delay)  # the moment of the Ctrl-C; either outcome below is checked
     run.interrupt()
     code, _out, err = run.finish()
     assert code == 130, err
@@ -111,7 +115,7 @@ def test_a_second_run_on_the_same_output_is_refused_while_the_first_goes_on(tmp_
     config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=2.5))
     out = tmp_path / "out"
     first = CellcalProcess(["calibrate", "--config", str(config), "--out", str(out), "--no-report"])
-    assert first.wait_for(f"1/{N_POSES}"), first.stderr_so_far()  # running, one pose in its journal
+    assert first.wait_for_line(AT_POSE[f"1/{N_POSES}"]), first.stderr_so_far()  # running, one pose in its journal
     assert (out / LOCK_NAME).read_text() == f"{first.pid}\n"
     second = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(out)])
     code, text, err = second.finish()
@@ -127,7 +131,7 @@ def test_a_second_run_on_the_same_output_is_refused_while_the_first_goes_on(tmp_
     # a recording is locked the same way
     rec = tmp_path / "s.mcap"
     first = CellcalProcess(["record", "--config", str(config), "--out", str(rec)])
-    assert first.wait_for(f"1/{N_POSES}"), first.stderr_so_far()
+    assert first.wait_for_line(AT_POSE[f"1/{N_POSES}"]), first.stderr_so_far()
     code, _text, err = CellcalProcess(["record", "--config", str(config), "--out", str(rec)]).finish()
     assert first.proc.poll() is None, "the first recording ended before the second one tried"
     assert code == 1 and f"{rec} is in use by another cellcal run (pid {first.pid})" in err
@@ -138,7 +142,7 @@ def test_the_lock_of_a_killed_run_blocks_nobody(tmp_path: Path) -> None:
     config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=1.0))
     out = tmp_path / "out"
     crashed = CellcalProcess(["calibrate", "--config", str(config), "--out", str(out)])
-    assert crashed.wait_for(f"1/{N_POSES}"), crashed.stderr_so_far()
+    assert crashed.wait_for_line(AT_POSE[f"1/{N_POSES}"]), crashed.stderr_so_far()
     crashed.proc.send_signal(signal.SIGKILL)
     assert crashed.finish()[0] == -signal.SIGKILL
     assert LOCK_NAME in _names(out)  # left behind, but no longer locked
@@ -200,7 +204,7 @@ def test_interrupted_run_counts_only_its_own_saved_poses(tmp_path: Path) -> None
     out = tmp_path / "out"
     journal = journal_path(out / "result.json")
     first = CellcalProcess(["calibrate", "--config", str(config), "--out", str(out)])
-    assert first.wait_for(f"1/{N_POSES}"), first.stderr_so_far()
+    assert first.wait_for_line(AT_POSE[f"1/{N_POSES}"]), first.stderr_so_far()
     first.interrupt()
     code, _text, err = first.finish()
     assert code == 130 and f"1 of {N_POSES} poses are saved in {journal}" in _one_line(err)
@@ -208,10 +212,11 @@ def test_interrupted_run_counts_only_its_own_saved_poses(tmp_path: Path) -> None
     # a fresh run (no --resume) on the same output, interrupted during its first pose: the journal
     # on disk is the first run's, and this run saved nothing
     second = CellcalProcess(["calibrate", "--config", str(config), "--out", str(out)])
-    assert second.wait_for(f"0/{N_POSES}"), second.stderr_so_far()
+    assert second.wait_for_line(AT_POSE[f"0/{N_POSES}"]), second.stderr_so_far()  # the whole line, its newline too
     second.interrupt()
     code, _text, err = second.finish()
     assert code == 130 and _one_line(err) == "cellcal: interrupted", err
+    assert err.endswith(f"{AT_POSE[f'0/{N_POSES}']}\ncellcal: interrupted\n"), err
     assert [e.index for e in read_journal(journal, header["fingerprint"])] == [0]  # the first run's, intact
     code, _text, err = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(out),
                                        "--resume", "--no-report"]).finish()

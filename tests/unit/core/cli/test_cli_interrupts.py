@@ -50,7 +50,7 @@ def test_ctrl_c_pressed_three_times_is_still_130(tmp_path: Path, gap_s: float) -
     """Presses while the run stops, while main returns and while the interpreter shuts down."""
     config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=2.0))
     run = CellcalProcess(["calibrate", "--config", str(config), "--out", str(tmp_path / "out")])
-    assert run.wait_for("0/3"), run.stderr_so_far()  # the devices are connected, the first pose under way
+    assert run.wait_for_line("3 poses to go (0/3)"), run.stderr_so_far()  # connected, the first pose under way
     for _ in range(3):
         run.interrupt()
         time.sleep(gap_s)
@@ -77,7 +77,8 @@ def test_importing_the_entry_point_imports_nothing_heavy() -> None:
     code = ("import sys; import cellcal.core.cli; "
             "print(sorted(m for m in sys.modules if m.startswith(('cellcal', 'numpy', 'scipy', 'argparse'))))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
-    assert proc.stdout.strip() == "['cellcal', 'cellcal.core', 'cellcal.core.cli', 'cellcal.core.cli.exits']"
+    assert proc.stdout.strip() == ("['cellcal', 'cellcal.core', 'cellcal.core.cli', 'cellcal.core.cli.exits', "
+                                   "'cellcal.core.console']")
 
 
 def test_in_process_main_restores_the_previous_handler(capsys: pytest.CaptureFixture[str]) -> None:
