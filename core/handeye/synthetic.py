@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.handeye.estimator import estimate_mount, rpy_with_sigma_deg
-from cellcal.core.handeye.model import PlaneModel, PlaneObservation
+from cellcal.core.handeye.model import PlaneModel, PlaneObservation, tangent_basis
 from cellcal.core.handeye.noise import MAX_INTERVAL_SCALE, normal_z
 from cellcal.devices.pose import Pose
 
@@ -115,7 +115,9 @@ def observations(scenario: Scenario, rng: np.random.Generator | None) -> list[Pl
     for flange, n, offset in zip(s.flanges, normals, offsets, strict=True):
         if offset < 0:
             n, offset = -n, -offset  # normal toward the camera
-        across = np.linalg.svd(np.eye(3) - np.outer(n, n))[0][:, :2]  # two axes across the normal
+        # two axes across the normal, built without a LAPACK call: an SVD's basis (and so the noise drawn along
+        # it) differs with the BLAS kernel, and every figure drawn from these frames with it
+        across = tangent_basis(n)
         c3 = np.diag([s.normal_sigma_rad**2, s.normal_sigma_rad**2, s.offset_sigma_m**2])
         c3[0, 2] = c3[2, 0] = s.correlation * s.normal_sigma_rad * s.offset_sigma_m
         m = np.zeros((4, 3))
@@ -124,7 +126,8 @@ def observations(scenario: Scenario, rng: np.random.Generator | None) -> list[Pl
         cov = m @ c3 @ m.T  # (normal, offset) covariance of the plane fit
         read = flange
         if rng is not None:
-            step = rng.multivariate_normal(np.zeros(3), c3)  # the plane fit's error
+            # the plane fit's error; the Cholesky factor, unlike the default SVD, is unique: the same draws on any BLAS
+            step = rng.multivariate_normal(np.zeros(3), c3, method="cholesky")
             n = n + across @ step[:2]
             n = n / np.linalg.norm(n)
             offset = offset + step[2]

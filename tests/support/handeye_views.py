@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.handeye import PlaneObservation
+from cellcal.core.handeye.model import tangent_basis
 from cellcal.devices.pose import Pose
 
 NOMINAL_MOUNT = Pose.from_xyz_rpy([0.0, 0.04, 0.06], np.radians([0.0, 0.0, 90.0]))
@@ -35,7 +36,7 @@ def plane_views(flanges: Sequence[Pose], rng: np.random.Generator | None, *, mou
         camera = flange @ mount
         n = camera.rotation.inv().apply(np.array(plane.normal))  # the true normal in the camera frame
         offset = plane.offset_m + float(np.array(plane.normal) @ camera.translation)
-        across = np.linalg.svd(np.eye(3) - np.outer(n, n))[0][:, :2]  # two axes across the normal
+        across = tangent_basis(n)  # two axes across the normal (an SVD's would change with the BLAS kernel)
         # covariance of (normal, offset): tangent noise, offset noise, and a correlation between the first two
         c2 = np.diag([NORMAL_SIGMA_RAD**2, NORMAL_SIGMA_RAD**2, OFFSET_SIGMA_M**2])
         c2[0, 2] = c2[2, 0] = correlation * NORMAL_SIGMA_RAD * OFFSET_SIGMA_M
@@ -45,7 +46,7 @@ def plane_views(flanges: Sequence[Pose], rng: np.random.Generator | None, *, mou
         cov = m @ c2 @ m.T
         read = flange
         if rng is not None:
-            step = rng.multivariate_normal(np.zeros(3), c2)
+            step = rng.multivariate_normal(np.zeros(3), c2, method="cholesky")  # unique factor: the same on any BLAS
             n = n + across @ step[:2]
             n /= np.linalg.norm(n)
             offset += step[2]

@@ -33,6 +33,7 @@ from cellcal.core.handeye.model import PlaneObservation
 from cellcal.core.handeye.synthetic import Scenario, camera_views, observations, sim_scenario
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.pose import Pose
+from tests.support.numerics import assert_covariance_close
 
 FloatArray = NDArray[np.float64]
 
@@ -84,7 +85,7 @@ def rpy_sigma_deg(rotation: Rotation, turn_covariance: FloatArray) -> FloatArray
 
 def monte_carlo_rpy_sigma_deg(rotation: Rotation, turn_covariance: FloatArray, runs: int, seed: int) -> FloatArray:
     """Sample 1-sigma (deg) of roll, pitch, yaw of turns drawn from the covariance, each wrapped around the centre."""
-    turns = np.random.default_rng(seed).multivariate_normal(np.zeros(3), turn_covariance, runs)
+    turns = np.random.default_rng(seed).multivariate_normal(np.zeros(3), turn_covariance, runs, method="cholesky")
     angles = (Rotation.from_rotvec(turns) * rotation).as_euler("xyz", degrees=True)
     spread: FloatArray = np.std(wrap_deg(angles - euler_deg(rotation)), axis=0, ddof=1)
     return spread
@@ -250,7 +251,7 @@ def test_a_fit_of_a_mount_rolled_180_deg_gives_the_rpy_sigmas_of_its_own_covaria
     _, jac = check_pinned(est, by)
     assert est.noise.verdict == "too_good"  # noise-free: chi2 ~0, the intervals keep the stated noise
     cov = covariance(jac, range(9))
-    np.testing.assert_allclose(est.covariance, cov, rtol=1e-5, atol=1e-24)
+    assert_covariance_close(est.covariance, cov, rtol=1e-5)
     rpy, sigma = est.rpy_and_sigma_deg()
     assert abs(abs(rpy[0]) - 180.0) < 1e-7 and rpy[2] == pytest.approx(179.7, abs=1e-7)  # on the seam
     np.testing.assert_allclose(sigma, rpy_sigma_deg(est.mount.rotation, cov[:3, :3]), rtol=1e-5)
@@ -274,8 +275,8 @@ def test_a_consistent_fit_carries_the_chi2_covariance_and_document_of_the_model(
     step = cov @ jac.T @ white.ravel()
     assert np.all(np.abs(step) < 1e-6 * np.sqrt(np.diag(cov)))
     assert est.chi2 == pytest.approx(chi2, rel=1e-9) and est.dof == 15  # 8 poses x 3 residuals - 9 parameters
-    np.testing.assert_allclose(est.covariance, cov, rtol=1e-5, atol=1e-24)
-    np.testing.assert_allclose(est.absolute_covariance, cov, rtol=1e-5, atol=1e-24)
+    assert_covariance_close(est.covariance, cov, rtol=1e-5)
+    assert_covariance_close(est.absolute_covariance, cov, rtol=1e-5)
     # per pose: the angle between predicted and measured normals, measured minus predicted offset, chi2
     for r, o, (n_c, c_c), w in zip(est.residuals, views, by.predicted(p), white, strict=True):
         angle = math.degrees(math.atan2(float(np.linalg.norm(np.cross(n_c, o.normal))), float(n_c @ o.normal)))
@@ -297,8 +298,8 @@ def test_a_consistent_fit_carries_the_chi2_covariance_and_document_of_the_model(
     assert doc["chi2_per_dof"] == pytest.approx(chi2 / 15, rel=1e-9)
     assert doc["p_value"] == pytest.approx(float(chi2_dist.sf(chi2, 15)), rel=1e-8)
     assert doc["given"] == [] and doc["given_sigma"] == {} and doc["parameters"] == NAMES
-    np.testing.assert_allclose(doc["covariance"], cov, rtol=1e-5, atol=1e-24)
-    np.testing.assert_allclose(doc["covariance_absolute"], cov, rtol=1e-5, atol=1e-24)
+    assert_covariance_close(doc["covariance"], cov, rtol=1e-5)
+    assert_covariance_close(doc["covariance_absolute"], cov, rtol=1e-5)
     assert doc["interval_scale"] == 1.0 and doc["interval_z"] == z95
     assert doc["noise_model"] == {"verdict": "consistent", "chi2_per_dof": pytest.approx(chi2 / 15, rel=1e-9),
                                   "p_above": pytest.approx(float(chi2_dist.sf(chi2, 15)), rel=1e-8),
@@ -328,8 +329,8 @@ def test_a_scaled_fit_with_a_held_and_a_prior_given_value_carries_both_in_its_do
     assert est.noise.verdict == "scaled" and est.interval_scale == pytest.approx(scale, rel=1e-9) and scale > 2.0
     absolute = covariance(jac, fitted, prior)
     scaled = covariance(jac, fitted, prior, scale)
-    np.testing.assert_allclose(est.absolute_covariance, absolute, rtol=1e-5, atol=1e-24)
-    np.testing.assert_allclose(est.covariance, scaled, rtol=1e-5, atol=1e-24)
+    assert_covariance_close(est.absolute_covariance, absolute, rtol=1e-5)
+    assert_covariance_close(est.covariance, scaled, rtol=1e-5)
     np.testing.assert_allclose(est.rpy_and_sigma_deg()[1], rpy_sigma_deg(est.mount.rotation, scaled[:3, :3]),
                                rtol=1e-5)
     # the observability at the solution is that of the 7 free parameters' columns
@@ -353,8 +354,8 @@ def test_a_scaled_fit_with_a_held_and_a_prior_given_value_carries_both_in_its_do
     assert doc["p_value"] == pytest.approx(p_above, rel=1e-6)
     assert doc["given"] == ["plane_tilt_a", "plane_offset"] and doc["given_sigma"] == {"plane_offset": 0.002}
     assert doc["parameters"] == NAMES
-    np.testing.assert_allclose(doc["covariance"], scaled, rtol=1e-5, atol=1e-24)
-    np.testing.assert_allclose(doc["covariance_absolute"], absolute, rtol=1e-5, atol=1e-24)
+    assert_covariance_close(doc["covariance"], scaled, rtol=1e-5)
+    assert_covariance_close(doc["covariance_absolute"], absolute, rtol=1e-5)
     assert doc["interval_scale"] == pytest.approx(scale, rel=1e-9)
     assert doc["interval_z"] == pytest.approx(t90, rel=1e-12) and est.z == doc["interval_z"]
     assert doc["noise_model"] == {"verdict": "scaled", "chi2_per_dof": pytest.approx(chi2 / dof, rel=1e-9),
@@ -375,7 +376,7 @@ def test_a_prior_sigma_of_exactly_1_is_a_prior_like_any_other() -> None:
     p, jac = check_pinned(est, by)
     chi2 = float(np.sum(by.whitened(p) ** 2)) + p[8] ** 2
     assert est.dof == 16 and est.chi2 == pytest.approx(chi2, rel=1e-9)  # 24 + 1 residuals, 9 parameters
-    np.testing.assert_allclose(est.covariance, covariance(jac, range(9), [0.0] * 8 + [1.0]), rtol=1e-5, atol=1e-24)
+    assert_covariance_close(est.covariance, covariance(jac, range(9), [0.0] * 8 + [1.0]), rtol=1e-5)
     assert est.to_dict()["given_sigma"] == {"plane_offset": 1.0}
 
 
@@ -401,7 +402,7 @@ def test_two_poses_leave_zero_or_one_degree_of_freedom(given: tuple[str, ...], d
         assert doc["noise_model"]["verdict"] == "untested" and doc["noise_model"]["chi2_per_dof"] is None
         assert doc["notes"] == ["no degrees of freedom left: the noise model cannot be checked, the intervals assume "
                                 "it", held]
-        np.testing.assert_allclose(est.covariance, covariance(jac, fitted), rtol=1e-5, atol=1e-24)
+        assert_covariance_close(est.covariance, covariance(jac, fitted), rtol=1e-5)
     else:
         assert doc["chi2"] == pytest.approx(chi2, rel=1e-6) and doc["chi2_per_dof"] == pytest.approx(chi2, rel=1e-6)
         assert doc["p_value"] == pytest.approx(float(chi2_dist.sf(chi2, 1)), rel=1e-6)
@@ -470,9 +471,11 @@ def test_the_report_of_an_estimate_is_at_its_solution_where_a_turn_can_cross_the
 
     The plan is accepted (observable before the fit); at the solution the same direction, a turn
     about the flange z axis (the tool axis, about which the plane normal's cone lies) traded with
-    the table's tilt, has 0.08 % less: the estimate's report says the data cannot determine it.
+    the table's tilt, has 0.26 % less: the estimate's report says the data cannot determine it. The normal's
+    first axis across (nearest the camera's x) correlated -0.5 with the offset sets how much less: +0.3 would give
+    0.13 % more.
     """
-    scenario = sim_scenario()
+    scenario = replace(sim_scenario(), correlation=-0.5)
     views = observations(scenario, None)
     free = list(range(8))  # the table height given
     by = ByHand(views, scenario.nominal_mount, scenario.nominal_plane, arm_t=0.0)
@@ -485,7 +488,7 @@ def test_the_report_of_an_estimate_is_at_its_solution_where_a_turn_can_cross_the
     est = estimate_mount(views, scenario.nominal_mount, scenario.nominal_plane, given=("plane_offset",),
                          arm_translation_sigma_m=0.0)
     _, s, vt = np.linalg.svd(by.jacobian(est.parameters)[:, free])
-    assert s[-1] < 9.999
+    assert s[-1] < 9.99  # 9.978: below the limit by 0.1 % of it at least, far beyond any rounding
     np.testing.assert_allclose(est.observability.singular_values, s, rtol=1e-6)
     # the unseen direction by the naming rules: its turn is along flange z and along the mean normal, with tilt in it
     turn = vt[-1][:3] / np.linalg.norm(vt[-1][:3])

@@ -17,6 +17,7 @@ from cellcal.core.handeye.noise import check_noise, scaled_covariance
 from cellcal.core.handeye.synthetic import Scenario, camera_views, coverage, observations, sim_scenario
 from cellcal.devices.errors import CalibrationQualityError, ConfigError
 from cellcal.devices.pose import Pose
+from tests.support.numerics import assert_covariance_close
 
 ARM_T, ARM_R = 1e-4, math.radians(0.01)  # the unmodelled read-back noise: 0.1 mm, 0.01 deg
 CONFIG = REPO_ROOT / "configs" / "sim_handeye.toml"
@@ -59,9 +60,9 @@ def test_scaled_intervals_do_not_depend_on_an_understated_noise() -> None:
     assert low.chi2 == pytest.approx(16 * right.chi2, rel=1e-6)
     np.testing.assert_allclose(low.parameters, right.parameters, atol=1e-10)
     assert low.interval_scale == pytest.approx(math.sqrt(low.chi2 / low.dof))
-    np.testing.assert_allclose(low.covariance, low.absolute_covariance * low.chi2 / low.dof, rtol=1e-9, atol=1e-30)
+    assert_covariance_close(low.covariance, low.absolute_covariance * low.chi2 / low.dof, rtol=1e-9)
     # scaled intervals equal the right model's rescaled by its own chi2/dof
-    np.testing.assert_allclose(low.covariance, right.covariance * right.chi2 / right.dof, rtol=1e-6, atol=1e-30)
+    assert_covariance_close(low.covariance, right.covariance * right.chi2 / right.dof, rtol=1e-6)
     assert low.z == pytest.approx(float(student_t.ppf(0.975, low.dof)))
     assert any("scaled by" in note for note in low.notes)
 

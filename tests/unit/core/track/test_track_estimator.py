@@ -44,13 +44,20 @@ def test_converges_to_the_truth_and_to_the_batch_fit_of_the_same_frames() -> Non
 
 
 def test_95_percent_intervals_hold_the_truth_in_a_sensible_share_of_runs() -> None:
-    inside = []
+    inside, scaled = [], 0
     for seed in range(40):
         state = run(SC, 80, 100 + seed).state
         error = np.concatenate([state.mount.translation - SC.true_mount.translation, state.mount_rpy_deg - TRUE_RPY])
         sigma = np.concatenate([state.mount_translation_sigma_m, state.mount_rpy_sigma_deg])
-        assert np.all(np.isfinite(sigma)) and state.interval_z == pytest.approx(1.96, abs=0.01)
+        assert np.all(np.isfinite(sigma)) and state.noise is not None
+        if state.noise.verdict == "scaled":  # a true model fails the 1 % test now and then: wider, Student-t
+            scaled += 1
+            assert state.interval_scale > 1.0 and state.interval_z > 1.96
+        else:
+            assert state.interval_scale == 1.0 and state.interval_z == pytest.approx(1.96, abs=0.01)
         inside.append(np.abs(error) <= state.interval_z * sigma)
+    # three components tested at 1 % above each: about 1.2 of 40 runs scaled; 6 or more has a chance below 1e-3
+    assert scaled <= 5, scaled
     share = float(np.mean(inside))  # 240 intervals
     assert 0.88 <= share <= 0.99, share
 
@@ -63,7 +70,10 @@ def test_understated_noise_scales_the_intervals() -> None:
     assert 2.9 < state.interval_scale < 3.5
     assert not state.events  # noise larger than stated is not a change
     error = np.abs(state.mount.translation - SC.true_mount.translation)
-    assert np.all(error <= 3.0 * state.mount_translation_sigma_m)  # unscaled the y error would be 8 sigma
+    # within 3.5 sigma (here y is the largest at 3.0; a 3.5 sigma excursion of one of three has p = 0.14 %);
+    # unscaled the y error would be 9.6 sigma
+    assert np.all(error <= 3.5 * state.mount_translation_sigma_m)
+    assert error[1] > 5.0 * state.mount_translation_sigma_m[1] / state.interval_scale
 
 
 def test_rolls_at_one_inclination_leave_the_height_unseen_and_unmoved() -> None:

@@ -115,7 +115,7 @@ def test_estimate_and_intervals_equal_an_independent_batch_fit_of_the_same_frame
     assert state.confidence == 0.95 and state.intervals_withheld == ""
     model = PlaneModel(SC.nominal_mount, SC.nominal_plane)
     assert state.mount.distance_to(model.mount(x_ref)) < 0.01 * sigma[3:6].min()
-    assert state.plane.offset_m == pytest.approx(model.plane(x_ref).offset_m, abs=1e-3 * sigma[8])
+    assert state.plane.offset_m == pytest.approx(model.plane(x_ref).offset_m, abs=0.01 * sigma[8])  # as the parameters
     rpy_ref = np.degrees(model.mount(x_ref).as_xyz_rpy()[3:])
     assert np.all(np.abs(state.mount_rpy_deg - rpy_ref) < 0.02 * state.mount_rpy_sigma_deg)
 
@@ -412,18 +412,22 @@ def test_a_change_left_undecided_until_the_window_is_full_restarts_both_blocks()
     assert state.change_unresolved and not all(state.observable.values())  # one pose cannot show everything
 
 
-@pytest.mark.parametrize(("shift_m", "seed"), [(1.5e-4, 160), (1.8e-4, 215)])
-def test_a_small_change_starts_after_the_last_frame_at_or_below_the_reference(shift_m: float, seed: int) -> None:
+@pytest.mark.parametrize(("shift_m", "seed", "beyond_clip"), [(1.5e-4, 102, False), (1.8e-4, 110, True)])
+def test_a_small_change_starts_after_the_last_frame_at_or_below_the_reference(shift_m: float, seed: int,
+                                                                               beyond_clip: bool) -> None:
     """A 150 / 180 um table shift: every frame after it above the reference, the alarm's frame below the clip.
 
-    With 180 um the frame before the alarm is beyond the clip: the alarm's own frame decides the bound.
+    With 180 um a frame before the alarm is beyond the clip: the alarm's own frame decides the bound. The draws
+    keep every comparison 3 or more away from its bound (reference 8, clip 40): after the change the smallest
+    chi2 is 11.7 / 29.5, the alarm's 37.0 / 31.2, the largest before it 34.0 / 51.7.
     """
     tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
     feed(tracker, SC, 60, 480)
     run = feed(tracker, dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, shift_m)), seed, 60, start=481)
     k, step = next((k, s) for k, (_, s) in enumerate(run) if s.event is not None)
-    assert all(s.chi2 > 8.0 for _, s in run[:k + 1]) and step.chi2 <= 40.0  # reference < chi2, the alarm's <= clip
-    assert (max(s.chi2 for _, s in run[:k]) > 40.0) is (seed == 215)
+    assert all(s.chi2 > 8.0 + 3.0 for _, s in run[:k + 1]) and step.chi2 <= 40.0 - 3.0  # reference < chi2 <= clip
+    before = max(s.chi2 for _, s in run[:k])
+    assert before > 40.0 + 3.0 if beyond_clip else before < 40.0 - 3.0
     assert step.note == "change detected" and step.event is not None
     assert step.event.started_at_s == 481 / 30 and step.event.detected_at_s == (481 + k) / 30
     assert step.event.size == {"innovation_chi2": step.chi2}
@@ -512,12 +516,15 @@ def test_the_arm_turn_noise_acts_through_the_mount_lever() -> None:
     turn_sigma = 2e-5  # rad: 9 um at the 72 mm lever, comparable to the offset noise
     noisy = SC.with_arm_noise(ARM_SIGMA_M, turn_sigma)
     tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(arm_rotation_sigma_rad=turn_sigma))
-    run = feed(tracker, noisy, 53, 240)
+    run = feed(tracker, noisy, 51, 240)
     obs = [o for o, _ in run]
     _, jac = batch(obs, rotation_sigma_rad=turn_sigma)
     sigma = np.sqrt(np.diag(np.linalg.inv(np.einsum("nki,nkj->ij", jac, jac))))
     state = tracker.state
+    # the turn noise modelled: chi2/dof 1.01, 1.01, 0.95 per component, far inside the 1 % tails (0.80-1.22 at
+    # 240 dof; over seeds 50-61 the means are 0.99, 1.03, 0.96)
     assert state.noise is not None and state.noise.verdict == "consistent"
+    assert 0.9 < state.noise.chi2 / state.noise.dof < 1.1
     np.testing.assert_allclose(np.sqrt(np.diag(state.covariance)), sigma, rtol=2e-3)
     _, plain = batch(obs)  # the same frames without the turn noise: narrower, so the lever matters
     plain_sigma = np.sqrt(np.diag(np.linalg.inv(np.einsum("nki,nkj->ij", plain, plain))))
@@ -540,6 +547,8 @@ def test_the_change_test_divides_by_the_measured_noise_after_30_frames_capped_at
         used: list[np.ndarray] = []
         for t_s, obs in work(noisy, np.random.default_rng(seed), 60, dwell=10):
             step = tracker.update(t_s, obs)
+            # no change detected (a detection would empty the noise window): the CUSUM stays below 86 of its 120
+            assert step.event is None and tracker._cusum.statistic < 100.0
             if step.accepted:
                 used.append(np.asarray(step.residual) ** 2)
             if len(used) < 30:
@@ -611,19 +620,42 @@ def test_a_surprising_frame_is_judged_after_relinearising_every_frame(frames: in
     assert step.chi2 < 8.0 and step.chi2 == pytest.approx(innovation_chi2(previous, obs), rel=1e-3)
 
 
-def test_an_open_change_is_tried_again_when_the_arm_has_moved() -> None:
-    """A 1 mm table shift: told apart once a view at the second inclination has shown enough, at a view's first frame.
+def table_shift_verdicts(monkeypatch: pytest.MonkeyPatch, seeds: tuple[int, int], start: int, dwell: int,
+                         frames: int, *, every_frame: bool) -> list[tuple[int, ChangeEvent]]:
+    """A 1 mm table shift after 480 frames of work: (frame, event) of each event, the change tried as configured
+    or (``every_frame``) at every frame after the alarm (the arm counts as moved whenever it is asked)."""
+    if every_frame:
+        import cellcal.core.track.estimator as estimator
 
-    The hypotheses are tried at the alarm, then when the arm has turned 0.5 deg / moved 5 mm (every 10 frames
-    here) or after 30 frames: the mount's p-value falls below the reject level within a dwell, and the verdict
-    comes at the next view's first frame.
-    """
+        monkeypatch.setattr(estimator, "CLASSIFY_TURN_RAD", -1.0)
     tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
-    feed(tracker, SC, 80, 480)
-    run = feed(tracker, dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 1e-3)), 81, 120, start=481)
-    events = [(481 + k, s.event) for k, (_, s) in enumerate(run) if s.event is not None]
-    assert [(frame, e.kind) for frame, e in events] == [(484, "mount or plane"), (560, "plane")]
-    assert events[1][1].size["plane_shift_m"] == pytest.approx(1e-3, abs=1e-4)
+    feed(tracker, SC, seeds[0], 480)
+    shifted = dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 1e-3))
+    run = feed(tracker, shifted, seeds[1], frames, start=start, dwell=dwell)
+    monkeypatch.undo()
+    return [(start + k, s.event) for k, (_, s) in enumerate(run) if s.event is not None]
+
+
+@pytest.mark.parametrize(("dwell", "start", "frames", "seeds"), [(10, 481, 120, (80, 81)), (2, 480, 150, (80, 83))])
+def test_an_open_change_is_tried_again_only_when_the_arm_has_moved(monkeypatch: pytest.MonkeyPatch, dwell: int,
+                                                                   start: int, frames: int,
+                                                                   seeds: tuple[int, int]) -> None:
+    """A 1 mm table shift is told apart once the views after it have shown enough, at a view's first frame.
+
+    The hypotheses are tried at the alarm, then when the arm has turned 0.5 deg / moved 5 mm (at each view's
+    first frame: every ``dwell`` frames) or after 30 frames. Tried at every frame the verdict comes at some frame
+    F inside a view (here 548 and 579); tried as configured it comes at the first view's first frame at or after
+    F (550 and 580): the frames of one view add little, so the p-values cross within the view and the verdict
+    waits for the arm to move.
+    """
+    tried_always = table_shift_verdicts(monkeypatch, seeds, start, dwell, frames, every_frame=True)
+    configured = table_shift_verdicts(monkeypatch, seeds, start, dwell, frames, every_frame=False)
+    assert [e.kind for _, e in tried_always] == [e.kind for _, e in configured] == ["mount or plane", "plane"]
+    assert tried_always[0][0] == configured[0][0]  # the alarm: the same frame either way
+    verdict_any = tried_always[1][0]
+    assert verdict_any % dwell != 0  # the p-values crossed inside a view (this draw's F; else the test shows nothing)
+    assert configured[1][0] == verdict_any + (-verdict_any) % dwell  # the next view's first frame
+    assert configured[1][1].size["plane_shift_m"] == pytest.approx(1e-3, abs=1e-4)
 
 
 def test_a_change_is_resolved_when_what_was_seen_before_it_is_seen_again() -> None:
@@ -678,11 +710,14 @@ def test_an_open_change_is_tried_again_after_a_half_degree_turn_5_mm_or_30_frame
 
 def test_every_30_accepted_frames_the_estimate_is_the_batch_fit() -> None:
     """Between batch steps the estimate is sequential (here up to 0.8 sigma off at 29 frames); at 30 and 60 it
-    is the batch fit of every frame. A high reference keeps surprising frames from adding batch steps."""
-    tracker = Tracker(SC.nominal_mount, SC.nominal_plane, TrackSettings(detector_reference=30.0))
+    is the batch fit of every frame. A reference of 1000 keeps surprising frames from adding batch steps: the
+    innovations' chi2 stay below 100 (3 dof: below 30 here), ten times below it."""
+    tracker = Tracker(SC.nominal_mount, SC.nominal_plane,
+                      TrackSettings(detector_reference=1000.0, detector_clip=2000.0, detector_threshold=1e4))
     obs: list[PlaneObservation] = []
     for k, (t_s, o) in enumerate(work(SC, np.random.default_rng(91), 60, dwell=10), start=1):
-        assert tracker.update(t_s, o).accepted
+        step = tracker.update(t_s, o)
+        assert step.accepted and step.chi2 < 100.0
         assert tracker._since_batch == k % 30  # accepted frames since the last batch step
         obs.append(o)
         if k in (30, 60):
@@ -699,17 +734,6 @@ def test_without_iterations_nothing_is_estimated_and_nothing_fails() -> None:
     state = tracker.state
     assert not any(state.observable.values()) and np.all(state.parameters == 0.0)
     assert np.all(tracker._info == 0.0) and state.mount.is_close(SC.nominal_mount)
-
-
-def test_with_two_frames_per_view_a_change_is_told_apart_at_a_views_first_frame() -> None:
-    """The arm moves every 2nd (even) frame: an open change is tried at those frames only, so the verdict on a
-    1 mm table shift comes at an even frame (here 592; tried at every frame it would come at 591)."""
-    tracker = Tracker(SC.nominal_mount, SC.nominal_plane)
-    feed(tracker, SC, 80, 480)
-    run = feed(tracker, dataclasses.replace(SC, true_plane=shifted_plane(SC.true_plane, 1e-3)), 83, 150, start=480,
-               dwell=2)
-    events = [(480 + k, s.event.kind) for k, (_, s) in enumerate(run) if s.event is not None]
-    assert events == [(483, "mount or plane"), (592, "plane")] and events[1][0] % 2 == 0
 
 
 def test_the_detector_settings_reach_the_cusum() -> None:
