@@ -209,6 +209,9 @@ class CellcalProcess:
     def stderr_so_far(self) -> str:
         return bytes(self._err).decode("utf-8", "replace")
 
+    def stdout_so_far(self) -> str:
+        return bytes(self._out).decode("utf-8", "replace")
+
     def wait_for(self, text: str, timeout_s: float = 60.0) -> bool:
         """Wait until ``text`` appears on stderr (True) or the process ends or time runs out (False)."""
         return self._wait_until(lambda err: text in err, timeout_s)
@@ -218,15 +221,23 @@ class CellcalProcess:
         time runs out (False)."""
         return self._wait_until(lambda err: f"\n{line}\n" in f"\n{err}", timeout_s)
 
-    def _wait_until(self, seen: Callable[[str], bool], timeout_s: float) -> bool:
+    def wait_for_stdout_line(self, start: str, timeout_s: float = 60.0) -> bool:
+        """Wait until a whole line of stdout (its newline written too) starts with ``start`` (True), or the process
+        ends or time runs out (False)."""
+        return self._wait_until(lambda out: any(line.startswith(start) for line in out.split("\n")[:-1]),
+                                timeout_s, self.stdout_so_far)
+
+    def _wait_until(self, seen: Callable[[str], bool], timeout_s: float,
+                    text: Callable[[], str] | None = None) -> bool:
+        so_far = self.stderr_so_far if text is None else text
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if seen(self.stderr_so_far()):
+            if seen(so_far()):
                 return True
             if self.proc.poll() is not None:
                 for reader in self._readers:  # what the process wrote before it ended
                     reader.join(5.0)
-                return seen(self.stderr_so_far())
+                return seen(so_far())
             time.sleep(0.005)
         return False
 

@@ -7,7 +7,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -139,12 +138,16 @@ def test_monitor_writes_its_report_on_ctrl_c(tmp_path: Path) -> None:
     from fault_cells import CellcalProcess
 
     out = tmp_path / "mon"
-    run = CellcalProcess(["monitor", "--out", str(out)], announce=True)
-    run.wait_ready()
-    time.sleep(3.0)  # start-up, the baseline frames, then drift values at the sim's 20 Hz
-    run.interrupt()
-    code, text, err = run.finish()
+    with CellcalProcess(["monitor", "--out", str(out)], announce=True) as run:
+        run.wait_ready()
+        # the baseline line is printed at the first frame measured against the baseline, after the report's
+        # capture has kept that frame's drift values: from then on the series has a value
+        assert run.wait_for_stdout_line("[sim] baseline ", timeout_s=120.0), (run.stdout_so_far(),
+                                                                              run.stderr_so_far())
+        run.interrupt()
+        code, text, err = run.finish(timeout_s=120.0)
     assert code == 130, err
+    assert "[sim] baseline " in text and "monitor interrupted after" in text
     data = json.loads((out / "report-data.json").read_text())
     assert data["status"] == "interrupted" and data["monitor"]["cameras"]["sim"]["series"]["t"]
     assert "monitor interrupted after" in (out / "report.txt").read_text()
