@@ -106,18 +106,29 @@ def axis_text(axis: FloatArray, frame: str = "flange") -> str:
     return f"{frame} ({a[0]:.2f},{a[1]:.2f},{a[2]:.2f})"
 
 
+def _canonical(axis: FloatArray) -> FloatArray:
+    """The unseen line's direction with its largest component positive.
+
+    An SVD returns a null vector with either sign (which one changes with the BLAS kernel); a line
+    has no sign, so it is named the same way on every machine.
+    """
+    k = int(np.argmax(np.abs(axis)))
+    out: FloatArray = -axis if axis[k] < 0 else axis
+    return out
+
+
 def _rotation_text(dirs: FloatArray, normals_flange: FloatArray, with_plane: bool) -> UnseenDirection:
     """Name an unseen subspace (columns ``dirs``) of the mount's rotation."""
     mean = normals_flange.mean(axis=0)
     mean /= np.linalg.norm(mean)
     traded = " (traded with the plane's tilt)" if with_plane else ""
     if dirs.shape[1] == 1:
-        a = dirs[:, 0]
+        a = _canonical(dirs[:, 0])
         normal = " (= the plane normal)" if abs(a @ mean) > PARALLEL_COS else ""
         return UnseenDirection("rotation", tuple(float(v) for v in a),  # type: ignore[arg-type]
                                f"mount rotation about {axis_text(a)}{normal}{traded}", FIX_ROTATION)
     if dirs.shape[1] == 2:
-        b = np.cross(dirs[:, 0], dirs[:, 1])
+        b = _canonical(np.cross(dirs[:, 0], dirs[:, 1]))
         return UnseenDirection("rotation", None, f"mount rotation about axes across {axis_text(b)}{traded}",
                                FIX_ROTATION)
     return UnseenDirection("rotation", None, f"mount rotation about any axis{traded}", FIX_ROTATION)
@@ -142,13 +153,13 @@ def _translation_text(dirs: FloatArray, height_axis: FloatArray | None,
     flat = bool(np.max(np.abs(normals_flange @ dirs)) < ACROSS_COS)  # every pose sees them edge-on
     along = " (parallel to the plane)" if flat else ""
     if dirs.shape[1] == 1:
-        a = dirs[:, 0]
+        a = _canonical(dirs[:, 0])
         what = f"mount translation along {axis_text(a)}{along}"
     elif dirs.shape[1] == 2:
-        what = f"mount translation across {axis_text(np.cross(dirs[:, 0], dirs[:, 1]))}{along}"
+        what = f"mount translation across {axis_text(_canonical(np.cross(dirs[:, 0], dirs[:, 1])))}{along}"
     else:
         what = "mount translation in every direction"
-    axis = tuple(float(v) for v in dirs[:, 0]) if dirs.shape[1] == 1 else None
+    axis = tuple(float(v) for v in _canonical(dirs[:, 0])) if dirs.shape[1] == 1 else None
     out.append(UnseenDirection("translation", axis, what, FIX_ALONG_PLANE))  # type: ignore[arg-type]
     return out
 

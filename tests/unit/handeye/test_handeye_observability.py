@@ -78,7 +78,7 @@ def test_inclinations_without_rolls_hide_a_rotation_and_the_translation_across_t
     words = [d.what for d in report.unseen]
     assert "mount rotation about flange y (traded with the plane's tilt)" in words
     assert seen(flanges, given=("mount_rot_y",)).unseen[0].what == \
-        "mount translation along flange -y (parallel to the plane)"
+        "mount translation along flange y (parallel to the plane)"
     u = np.stack([o.flange.rotation.inv().apply([0.0, 0.0, 1.0]) for o in plane_views(flanges, None)])
     assert np.max(np.abs(u[:, 1])) < 1e-9  # edge-on at every pose
     assert seen(flanges, given=("mount_rot_y", "mount_y")).observable
