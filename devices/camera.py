@@ -91,6 +91,26 @@ class Camera3D(Device):
         self._require_connected("read intrinsics")
         return self._intrinsics()
 
+    def configured_intrinsics(self) -> Intrinsics | None:
+        """The intrinsics the camera's configuration fixes, known without connecting; None if only the device can tell.
+
+        ``cellcal calibrate --check`` checks the plan's pixels against them without touching
+        the device (a simulated camera, a recording, a fake device whose image size is a key
+        of its config); a camera that returns None is checked once it is connected, before
+        the arm moves. Needs no connection.
+
+        Raises:
+            CalibrationError: If the backend returns something else than Intrinsics or None.
+        """
+        intr = self._configured_intrinsics()
+        if intr is not None and not isinstance(intr, Intrinsics):  # a backend bug, reported clearly
+            raise CalibrationError(f"{self.backend_name}: _configured_intrinsics returned {type(intr).__name__}")
+        return intr
+
+    def _configured_intrinsics(self) -> Intrinsics | None:
+        """The intrinsics the configuration alone fixes (override in a backend that knows them; default None)."""
+        return None
+
     @abstractmethod
     def _capture(self, timeout: float) -> Frame:
         """Return the newest complete frame within ``timeout`` seconds."""

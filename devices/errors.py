@@ -35,6 +35,8 @@ from __future__ import annotations
 import builtins
 from typing import Any
 
+from .readable import quantity_pair
+
 
 class CellcalError(Exception):
     """Root of every error raised by cellcal."""
@@ -172,18 +174,25 @@ class CalibrationError(CellcalError, ValueError):
 class CalibrationQualityError(CalibrationError):
     """A calibration result failed a quality gate.
 
+    The attributes keep SI units; the message shows a length in millimetres and an angle in
+    degrees, with as many digits as it takes for the value and the threshold to read differently.
+
     Args:
         gate: Name of the gate, e.g. ``"inlier_fraction"``.
-        value: The measured value.
-        threshold: The configured threshold it failed.
+        value: The measured value, in ``unit``.
+        threshold: The configured threshold it failed, in ``unit``.
         message: Optional extra explanation.
+        unit: The SI unit of ``value`` and ``threshold``: ``"m"``, ``"rad"``, or ``""`` for a
+            plain number (a fraction, a ratio, a count).
     """
 
-    def __init__(self, gate: str, value: float, threshold: float, message: str = ""):
+    def __init__(self, gate: str, value: float, threshold: float, message: str = "", *, unit: str = ""):
         self.gate = gate
         self.value = value
         self.threshold = threshold
-        text = f"quality gate '{gate}' failed: {value:.6g} vs threshold {threshold:.6g}"
+        self.unit = unit
+        shown, limit = quantity_pair(value, threshold, unit, digits=6)
+        text = f"quality gate '{gate}' failed: {shown} vs threshold {limit}"
         super().__init__(f"{text}; {message}" if message else text)
 
 

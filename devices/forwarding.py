@@ -58,6 +58,9 @@ class ForwardingCamera(ForwardingDevice[Camera3D], Camera3D):
     def _intrinsics(self) -> Intrinsics:
         return self.inner.intrinsics
 
+    def _configured_intrinsics(self) -> Intrinsics | None:
+        return self.inner.configured_intrinsics()
+
     def _measurement_model(self) -> MeasurementModel:
         return self.inner.measurement_model
 

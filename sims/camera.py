@@ -349,6 +349,9 @@ class SimCamera(SimCameraShell):
     def _intrinsics(self) -> Intrinsics:
         return self._intr
 
+    def _configured_intrinsics(self) -> Intrinsics:
+        return self._intr
+
     def _measurement_model(self) -> MeasurementModel:
         """ToF, with the noise law this camera draws from (:func:`~cellcal.sims.tof.stated_tof_model`)."""
         cfg = self.config

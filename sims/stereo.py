@@ -282,6 +282,9 @@ class SimStereoCamera(SimCameraShell):
     def _intrinsics(self) -> Intrinsics:
         return self._intr
 
+    def _configured_intrinsics(self) -> Intrinsics:
+        return self._intr
+
     def describe(self) -> dict[str, Any]:
         """Model parameters for reports."""
         return {"intrinsics": self._intr.to_dict(), "measurement": self._measurement_model().to_dict()}

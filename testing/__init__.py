@@ -28,6 +28,7 @@ if TYPE_CHECKING:  # the names as the type checker sees them; at run time they l
     from .camera import CAMERA_CHECKS, CAMERA_RULES, CameraOptions, check_camera
     from .emulators import O3RAddress, URAddress, XArmAddress, o3r_emulator, ur_emulator, xarm_emulator
     from .faults import CellFaults
+    from .readiness import ScenePlane
     from .sim import SimCell, sim_arm, sim_camera, sim_cell
     from .suite import ArmConformance, CameraConformance
 
@@ -37,6 +38,7 @@ _HOMES: dict[str, str] = {
     **dict.fromkeys(("ARM_CHECKS", "ARM_RULES", "ArmOptions", "check_arm"), ".arm"),
     **dict.fromkeys(("CAMERA_CHECKS", "CAMERA_RULES", "CameraOptions", "check_camera"), ".camera"),
     **dict.fromkeys(("CameraConformance", "ArmConformance"), ".suite"),
+    "ScenePlane": ".readiness",
     "ConformanceError": "cellcal.devices.errors",
     **dict.fromkeys(("SimCell", "sim_cell", "sim_camera", "sim_arm"), ".sim"),
     **dict.fromkeys(("CellFaults",), ".faults"),
@@ -59,6 +61,7 @@ __all__ = [
     "ConformanceError",
     "ConformanceReport",
     "O3RAddress",
+    "ScenePlane",
     "SimCell",
     "URAddress",
     "XArmAddress",

@@ -37,6 +37,7 @@ from ._runner import (
     timed,
 )
 from .lifecycle import CommonOptions, lifecycle_checks
+from .readiness import ScenePlane, calibrate_checks
 
 Factory = Callable[[], Camera3D]
 
@@ -58,6 +59,16 @@ class CameraOptions(CommonOptions):
             camera that cannot tell how it measures opts out of that part of
             ``camera.measurement-model`` by saying why here (users then state the model in
             ``[camera.model]``); None (default) requires a stated model.
+        perimeters_px: The P1-P9 grid perimeters the image must hold (``camera.calibrate-image``),
+            pixels; None (default): the default plan's, (20, 30, 40, 50). A camera whose cells
+            will use smaller ones says so here (and they go into its cells' ``[plan]``).
+        scene_plane: The plane the camera sees in the test scene (:class:`ScenePlane`, camera
+            frame): ``camera.calibrate-frames`` runs calibrate's full-frame fit on the frames
+            and requires every default gate to pass, the fitted plane to lie within the default
+            ``[reference]`` search tolerances (15 deg, 100 mm) of this one among them.
+        scene_reason: Why the test scene cannot be a plane filling the image (a mocked SDK that
+            sends a constant depth): ``camera.calibrate-frames`` is then not run. One of
+            ``scene_plane`` and ``scene_reason`` is required.
 
     The shared attributes (``connect_timeout_s``, ``short_timeout_s``, ``timing_slack_s``,
     ``check_resources``) are described in :class:`CommonOptions`.
@@ -70,6 +81,9 @@ class CameraOptions(CommonOptions):
     reprojection_tolerance_px: float | None = 0.5
     min_valid_fraction: float = 0.01
     model_unknown_reason: str | None = None
+    perimeters_px: tuple[int, ...] | None = None
+    scene_plane: ScenePlane | None = None
+    scene_reason: str | None = None
 
     def __post_init__(self) -> None:
         self._require_positive("capture_timeout_s", "xyz_tolerance_m")
@@ -77,6 +91,16 @@ class CameraOptions(CommonOptions):
                                                           and self.model_unknown_reason.strip()):
             raise CellcalError("CameraOptions.model_unknown_reason must say why the camera states no model "
                                f"(a non-empty string), got {self.model_unknown_reason!r}")
+        if self.scene_reason is not None and not (isinstance(self.scene_reason, str) and self.scene_reason.strip()):
+            raise CellcalError("CameraOptions.scene_reason must say why the test scene cannot be a plane "
+                               f"(a non-empty string), got {self.scene_reason!r}")
+        if self.scene_plane is not None and not isinstance(self.scene_plane, ScenePlane):
+            raise CellcalError(f"CameraOptions.scene_plane must be a ScenePlane, got {type(self.scene_plane).__name__}")
+        if self.perimeters_px is not None and not (
+                len(self.perimeters_px) > 0 and all(isinstance(p, (int, float)) and not isinstance(p, bool)
+                                                    and math.isfinite(p) and p > 0 for p in self.perimeters_px)):
+            raise CellcalError(f"CameraOptions.perimeters_px must be positive numbers of pixels, got "
+                               f"{self.perimeters_px!r}")
         lo, hi = self.distance_range_m
         if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo < hi):
             raise CellcalError(f"CameraOptions.distance_range_m must be 0 <= min < max metres, got {(lo, hi)}")
@@ -264,6 +288,7 @@ CAMERA_CHECKS: tuple[Check[Camera3D, CameraOptions], ...] = (
     Check("camera.sequence", "consecutive captures give new frames with increasing epoch timestamps", _sequence),
     Check("camera.measurement-model", "the camera states how it measures (a MeasurementModel with its source) "
                                       "and every frame carries it", _measurement_model),
+    *calibrate_checks(),
     Check("camera.timeout-validation", "a non-positive, NaN, infinite or non-number timeout is a clear CellcalError",
           _timeout_validation),
     Check("camera.timeout-bounded", "capture(timeout) returns a frame or raises DeviceTimeoutError in bounded time",

@@ -30,6 +30,7 @@ from cellcal.core.calibration.journal import (
     remove_journal,
 )
 from cellcal.core.calibration.outlock import OutputLock
+from cellcal.core.calibration.plan_image import check_plan_image
 from cellcal.core.calibration.reach import check_reach, reachable_plan_poses
 from cellcal.core.calibration.region import expected_plane, region_document, region_mask
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
@@ -308,6 +309,7 @@ class Calibrator:
                 self._connect(stack, "arm", self.arm)
                 self._connect(stack, "camera", self.camera)
                 connect_s = time.perf_counter() - started
+                self._check_image()
                 self._check_arm_ready("before the first move")
                 self._check_moves(self._flange_pose(), todo)
                 if device_state is not None:
@@ -352,6 +354,11 @@ class Calibrator:
         """Close ``device``, abandoning a close() that hangs (it has no timeout; failing here would hide the cause)."""
         with contextlib.suppress(CellcalError):
             guard.call(device.close, CLOSE_ALLOWANCE_S - guard.grace_s, "close()")
+
+    def _check_image(self) -> None:
+        """Before the first move: the camera's image must hold the plan's grid (ConfigError naming the perimeters)."""
+        t = self.camera.default_timeout_s  # a driver whose intrinsics travel with the frames captures one
+        check_plan_image(self.config, self.guards["camera"].call(lambda: self.camera.intrinsics, t, "intrinsics"))
 
     def _flange_pose(self) -> Pose:
         """The arm's reported flange pose, under the arm's guard."""
@@ -474,7 +481,8 @@ class Calibrator:
             except CalibrationQualityError as exc:
                 extra = str(exc).partition("; ")[2]
                 raise CalibrationQualityError(exc.gate, exc.value, exc.threshold,
-                                              f"plan pose {index + 1}" + (f": {extra}" if extra else "")) from None
+                                              f"plan pose {index + 1}" + (f": {extra}" if extra else ""),
+                                              unit=exc.unit) from None
             measurements.append(row)
             full_frame = full_frame_document(result, camera_pose, expected, expected_plane=search)
             full_frame["region"] = region_document(self.config.region, region)

@@ -24,6 +24,8 @@ import cv2
 import numpy as np
 
 from cellcal.core.methods.fullframe import FullFrameSettings
+from cellcal.core.methods.fullframe.expected import DEFAULT_SEARCH_TOLERANCE_DEG, DEFAULT_SEARCH_TOLERANCE_M
+from cellcal.core.methods.paper import DEFAULT_PERIMETERS_PX, DEFAULT_WINDOW_PX
 from cellcal.devices import boundedjson
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError
@@ -141,8 +143,8 @@ class ReferenceSection:
     plane_point_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0})
     plane_normal: Vec3 = field(default=(0.0, 0.0, 1.0), metadata={"ge": -1e6, "le": 1e6})  # norm cannot overflow
     search: bool = True
-    search_tolerance_deg: float = field(default=15.0, metadata={"gt": 0.0, "le": 90.0})
-    search_tolerance_m: float = field(default=0.1, metadata={"gt": 0.0, "le": 10.0})
+    search_tolerance_deg: float = field(default=DEFAULT_SEARCH_TOLERANCE_DEG, metadata={"gt": 0.0, "le": 90.0})
+    search_tolerance_m: float = field(default=DEFAULT_SEARCH_TOLERANCE_M, metadata={"gt": 0.0, "le": 10.0})
 
     def __post_init__(self) -> None:
         if not np.linalg.norm(self.plane_normal) > 0:
@@ -264,11 +266,11 @@ class PlanSection:
                                             metadata={"ge": -360, "le": 360, "min_items": 1, "max_items": 360})
     target_m: Vec3 = field(default=(0.3, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0})
     poses: tuple[PlanPose, ...] = field(default=(), metadata={"max_items": MAX_POSES})
-    perimeters_px: tuple[int, ...] = field(default=(20, 30, 40, 50),
+    perimeters_px: tuple[int, ...] = field(default=DEFAULT_PERIMETERS_PX,
                                            metadata={"ge": 1, "le": 10000, "min_items": 1, "max_items": 100})
     methods: tuple[MethodName, ...] = field(default=ALL_METHODS, metadata={"min_items": 1})
     frames_per_pose: int = field(default=1, metadata={"ge": 1, "le": 100})
-    window_px: int = field(default=3, metadata={"ge": 1, "le": 15})
+    window_px: int = field(default=DEFAULT_WINDOW_PX, metadata={"ge": 1, "le": 15})
     settle_s: float = field(default=0.0, metadata={"ge": 0, "le": 60})
     # a collaborative arm's slowest useful and fastest possible tool motion (the envelope's own caps)
     speed_m_s: float = field(default=0.2, metadata={"ge": 0.001, "le": 3.0})

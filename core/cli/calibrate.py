@@ -86,10 +86,12 @@ def _where(device: Any) -> str:
 
 def _check(args: argparse.Namespace) -> int:
     from cellcal.core.calibration.calibrator import Calibrator
+    from cellcal.core.calibration.plan_image import describe_plan_image
 
     config, camera, arm = _session(args)
     calibrator = Calibrator(config, camera, arm)
     calibrator.check_plan(None)
+    image = describe_plan_image(config, camera.configured_intrinsics())  # refuses an image too small for the plan
     poses = calibrator.poses
     plan = config.plan
     print(f"config:  {config.source} (cell '{config.cell.name}')")
@@ -99,6 +101,7 @@ def _check(args: argparse.Namespace) -> int:
           f"({type(arm.inner).__module__}.{type(arm.inner).__qualname__}), behind the safety envelope")
     print(f"plan:    {len(poses)} poses x {len(plan.perimeters_px)} perimeters x {len(plan.methods)} methods "
           f"({', '.join(plan.methods)}); every target pose inside the safety envelope")
+    print(f"image:   {image}")
     print("config OK (no device was touched)")
     return EXIT_OK
 

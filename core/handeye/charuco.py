@@ -153,10 +153,10 @@ def check_motion(flanges: Sequence[Pose]) -> None:
     spread = max((float(np.arccos(min(1.0, abs(a @ b)))) for a in axes for b in axes), default=0.0)
     if len(axes) < 2 or spread < MIN_AXIS_ANGLE_RAD:
         largest = max((float(np.linalg.norm(t)) for t in turns), default=0.0)
-        raise CalibrationQualityError("motion", np.degrees(spread), np.degrees(MIN_AXIS_ANGLE_RAD),
+        raise CalibrationQualityError("motion", spread, MIN_AXIS_ANGLE_RAD,
                                       f"the views turn the flange by at most {np.degrees(largest):.2f} deg about "
                                       f"axes within {np.degrees(spread):.2f} deg of each other; calibrateHandEye "
-                                      "needs turns of > 2 deg about two axes > 5 deg apart")
+                                      "needs turns of > 2 deg about two axes > 5 deg apart", unit="rad")
 
 
 def board_residuals(mount: Pose, flanges: Sequence[Pose], boards: Sequence[Pose]) -> list[tuple[float, float]]:

@@ -161,7 +161,7 @@ def charuco_document(config: CellConfig, method: str, plan_kind: str, measured: 
         from cellcal.core.handeye.board_config import missing_board_hint
 
         raise CalibrationQualityError(exc.gate, exc.value, exc.threshold, f"{str(exc).partition('; ')[2]}; "
-                                      f"{missing_board_hint(config)}") from None
+                                      f"{missing_board_hint(config)}", unit=exc.unit) from None
     best = found["methods"][found["best"]]["mount"]
     header = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
               "config_source": config.source, "plan": plan_kind, "method": method}

@@ -24,6 +24,8 @@ from cellcal.devices.types import Frame, Intrinsics
 FloatArray = NDArray[np.float64]
 
 __all__ = [
+    "DEFAULT_PERIMETERS_PX",
+    "DEFAULT_WINDOW_PX",
     "GRID_METHODS",
     "GRID_NAMES",
     "GridEstimate",
@@ -35,11 +37,13 @@ __all__ = [
     "grid_phi_theta",
     "grid_pixels",
     "grid_points",
+    "largest_perimeter_px",
     "law_of_cosines_angle",
     "law_of_cosines_estimate",
     "max_perimeter_px",
     "nominal_model",
     "paper_methods",
+    "perimeter_problem",
     "plane_fit",
     "plane_fit_angle",
     "plane_fit_estimate",
@@ -65,6 +69,12 @@ GRID_NAMES: tuple[str, ...] = tuple(row[0] for row in _LAYOUT)
 
 #: The methods evaluated on the P1-P9 grid at every perimeter (configuration names).
 GRID_METHODS: tuple[str, ...] = ("law_of_cosines", "plane_fit", "plane_fit_nominal")
+
+#: The default plan's grid half-sizes (``[plan] perimeters_px``, the paper's), pixels.
+DEFAULT_PERIMETERS_PX: tuple[int, ...] = (20, 30, 40, 50)
+
+#: The default sampling window around each grid point (``[plan] window_px``), pixels.
+DEFAULT_WINDOW_PX = 3
 
 
 @dataclass(frozen=True)
@@ -94,6 +104,44 @@ def max_perimeter_px(width_px: int, height_px: int, cx: float | None = None,
     cx = (width_px - 1) / 2.0 if cx is None else cx
     cy = (height_px - 1) / 2.0 if cy is None else cy
     return float(min(cx, width_px - 1 - cx, cy, height_px - 1 - cy))
+
+
+def largest_perimeter_px(intrinsics: Intrinsics, window_px: int = DEFAULT_WINDOW_PX) -> float:
+    """Largest perimeter (px) whose nine points and their ``window_px`` sampling windows stay inside the image.
+
+    The windows' pixel centres must lie within ``[0, size - 1]`` (see
+    :func:`~cellcal.core.geometry.sampling.sample_points`), so each reaches ``window_px // 2``
+    pixels beyond its point. Negative when not even the centre window fits.
+    """
+    return max_perimeter_px(intrinsics.width, intrinsics.height, intrinsics.cx, intrinsics.cy) - window_px // 2
+
+
+def perimeter_problem(intrinsics: Intrinsics, perimeters_px: Sequence[float],
+                      window_px: int = DEFAULT_WINDOW_PX) -> str | None:
+    """Why a camera's image cannot hold the P1-P9 grid at these perimeters, in one line; None when it can.
+
+    The text names the perimeters that do not fit, the image size, how far from the
+    principal point the grid may reach and the largest whole perimeter that fits (what to
+    change). ``cellcal calibrate`` (``--check``, and before the first move) and the
+    conformance kit refuse a camera with it.
+
+    Args:
+        intrinsics: The camera's intrinsics (image size and principal point, pixels).
+        perimeters_px: Grid half-sizes, pixels.
+        window_px: Odd sampling window around each point, pixels.
+    """
+    reach = largest_perimeter_px(intrinsics, window_px)
+    bad = [float(p) for p in perimeters_px if not float(p) <= reach]
+    if not bad:
+        return None
+    listed = ", ".join(f"{p:g}" for p in bad)
+    what = f"perimeter {listed} px puts" if len(bad) == 1 else f"perimeters {listed} px put"
+    largest = math.floor(reach)
+    change = (f"use perimeters_px of at most {largest} px" if largest >= 1 else
+              f"no perimeter fits: leave {', '.join(GRID_METHODS)} out of the plan's methods")
+    return (f"{what} the P1-P9 grid with its {window_px} px sampling windows outside the "
+            f"{intrinsics.width}x{intrinsics.height} image (at most {reach:g} px from the principal point "
+            f"({intrinsics.cx:g}, {intrinsics.cy:g}) px); {change}")
 
 
 def grid_points(p_px: float, *, width_px: int = 224, height_px: int = 172,

@@ -97,6 +97,12 @@ class ReplayCamera(Camera3D):
         assert self._intr is not None  # set by _connect
         return self._intr
 
+    def _configured_intrinsics(self) -> Intrinsics | None:
+        infos = self.recording.camera_infos       # what the recorded camera stated at its first connect
+        if not infos:
+            return None
+        return decoded(self.recording, lambda: Intrinsics(**infos[0]["intrinsics"]))
+
     def _capture(self, timeout: float) -> Frame:
         with self._lock:
             index = self._next

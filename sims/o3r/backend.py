@@ -157,6 +157,10 @@ class EmulatedO3RCamera(Camera3D):
         """
         return self.sim.measurement_model
 
+    def _configured_intrinsics(self) -> Intrinsics | None:
+        """The simulated camera's (the driver decodes them from float32 models: the same to about 1e-5 px)."""
+        return self.sim.configured_intrinsics()
+
     def _intrinsics(self) -> Intrinsics:
         """The intrinsics exactly as the driver decodes them, without triggering a frame.
 

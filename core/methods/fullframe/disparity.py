@@ -23,6 +23,7 @@ from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSetting
 from cellcal.core.methods.fullframe.start import FIXED_SEED, fixed_subsample
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import MeasurementModel
+from cellcal.devices.readable import quantity_pair
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -274,11 +275,12 @@ def _refuse_expected(hyp: FloatArray, fb: float, a: FloatArray, d: FloatArray, b
     res = d[None, :] - hyp @ a.T
     best = hyp[int(np.argmin(np.minimum(res * res, band * band).sum(axis=1)))]
     angle, offset = expected.departure(plane_from_disparity(best, fb))
+    shown_a, tol_a = quantity_pair(angle, expected.angle_tolerance_rad, "rad")
+    shown_o, tol_o = quantity_pair(offset, expected.offset_tolerance_m, "m")
     raise CalibrationQualityError(
         "expected_plane", angle, expected.angle_tolerance_rad,
-        f"no plane within {math.degrees(expected.angle_tolerance_rad):.3g} deg and "
-        f"{expected.offset_tolerance_m * 1000:.3g} mm of the expected one; the dominant plane found is "
-        f"{math.degrees(angle):.3g} deg and {offset * 1000:.3g} mm away from it")
+        f"no plane within {tol_a} and {tol_o} of the expected one; the dominant plane found is {shown_a} and "
+        f"{shown_o} away from it", unit="rad")
 
 
 def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int], model: MeasurementModel,

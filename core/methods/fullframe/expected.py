@@ -15,7 +15,12 @@ from numpy.typing import NDArray
 from cellcal.core.geometry.planes import Plane
 from cellcal.devices.errors import CalibrationError
 
-__all__ = ["ExpectedPlane", "check_region"]
+__all__ = ["DEFAULT_SEARCH_TOLERANCE_DEG", "DEFAULT_SEARCH_TOLERANCE_M", "ExpectedPlane", "check_region"]
+
+#: How far the fitted normal may be from the expected one by default (``[reference] search_tolerance_deg``), deg.
+DEFAULT_SEARCH_TOLERANCE_DEG = 15.0
+#: How far the camera's distance to the two planes may differ by default (``[reference] search_tolerance_m``), m.
+DEFAULT_SEARCH_TOLERANCE_M = 0.1
 
 
 @dataclass(frozen=True)

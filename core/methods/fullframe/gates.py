@@ -11,15 +11,20 @@ from numpy.typing import NDArray
 from cellcal.core.methods.fullframe.result import FullFrameResult
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.devices.errors import CalibrationQualityError
+from cellcal.devices.readable import distinct, quantity, quantity_pair
 
-__all__ = ["GATE_NAMES", "CoverageCells", "check_gates", "coverage_cells", "expected_rms_m", "floor_reference_m",
-           "image_coverage", "residual_threshold_m"]
+__all__ = ["GATE_NAMES", "GATE_UNITS", "CoverageCells", "check_gates", "coverage_cells", "expected_rms_m",
+           "floor_reference_m", "image_coverage", "residual_threshold_m"]
 
 #: Gate names in the order they are checked.
 #: A lock-on, a wrong plane and a second surface come early: each also halves the inliers and the
 #: coverage, and naming it says why.
 GATE_NAMES = ("valid_fraction", "residual_floor", "expected_plane", "flatness", "inlier_fraction",
               "residual_rms_m", "coverage")
+
+#: Gate name -> the SI unit of its value and threshold (``""``: a fraction or a ratio), for the error message.
+GATE_UNITS = {"valid_fraction": "", "residual_floor": "", "expected_plane": "rad", "flatness": "m",
+              "inlier_fraction": "", "residual_rms_m": "m", "coverage": ""}
 
 #: Gate name -> (what is measured, how it failed, display unit) for the error message.
 _GATE_TEXT = {
@@ -101,29 +106,32 @@ def gate_table(settings: FullFrameSettings, result: FullFrameResult) -> dict[str
 
 def _floor_message(value: float, threshold: float, result: FullFrameResult, settings: FullFrameSettings) -> str:
     ref = floor_reference_m(result, settings)
-    rms = f"inlier residual RMS {result.residual_rms_m * 1000:.3g} mm"
-    what = (f"the {ref * 1000:.3g} mm the sensor can deliver for these pixels (quantisation floor "
-            f"{result.residual_floor_m * 1000:.3g} mm)") if ref > 0 else "a sensor that states no floor"
+    rms = f"inlier residual RMS {quantity(result.residual_rms_m, 'm')}"
+    what = (f"the {quantity(ref, 'm')} the sensor can deliver for these pixels (quantisation floor "
+            f"{quantity(result.residual_floor_m, 'm')})") if ref > 0 else "a sensor that states no floor"
     if result.lock_on:
         return f"the fit sat on one quantisation level: {result.lock_on}; {rms} against {what}"
-    return (f"{rms} is {value:.3g} x {what}, {threshold - value:.3g} x below the minimum of {threshold:.3g} x: "
+    shown, limit = distinct(value, threshold)
+    return (f"{rms} is {shown} x {what}, below the minimum of {limit} x: "
             "too good to be a measurement of this sensor (a fit on one quantisation level, or the wrong model)")
 
 
 def _expected_message(result: FullFrameResult) -> str:
     angle, offset = result.expected_departure or (math.nan, math.nan)
     tol_a, tol_o = result.expected_tolerance or (math.nan, math.nan)
-    # each part as the user reads it: degrees and millimetres
-    a, o, ta, to = math.degrees(angle), offset * 1000, math.degrees(tol_a), tol_o * 1000
+    # each part as the user reads it, degrees and millimetres, never printed equal to its tolerance
+    a, ta = quantity_pair(angle, tol_a, "rad")
+    o, to = quantity_pair(offset, tol_o, "m", digits=4)
+    da, do = quantity(angle - tol_a, "rad"), quantity(offset - tol_o, "m", digits=4)
     angle_bad, offset_bad = not angle <= tol_a, not offset <= tol_o
     if angle_bad and offset_bad:
-        return (f"the fitted plane is {a:.3g} deg and {o:.4g} mm from the expected one, {a - ta:.3g} deg and "
-                f"{o - to:.4g} mm beyond the tolerances of {ta:.3g} deg and {to:.4g} mm")
+        return (f"the fitted plane is {a} and {o} from the expected one, {da} and {do} beyond the tolerances of "
+                f"{ta} and {to}")
     if offset_bad:
-        return (f"the fitted plane is {o:.4g} mm from the expected one, {o - to:.4g} mm beyond the tolerance of "
-                f"{to:.4g} mm (its angle, {a:.3g} deg, is within {ta:.3g} deg)")
-    return (f"the fitted plane is {a:.3g} deg from the expected one, {a - ta:.3g} deg beyond the tolerance of "
-            f"{ta:.3g} deg (its offset, {o:.4g} mm, is within {to:.4g} mm)")
+        return (f"the fitted plane is {o} from the expected one, {do} beyond the tolerance of {to} (its angle, {a}, "
+                f"is within {ta})")
+    return (f"the fitted plane is {a} from the expected one, {da} beyond the tolerance of {ta} (its offset, {o}, "
+            f"is within {to})")
 
 
 def _message(name: str, value: float, threshold: float, result: FullFrameResult,
@@ -133,13 +141,17 @@ def _message(name: str, value: float, threshold: float, result: FullFrameResult,
     if name == "expected_plane":
         return _expected_message(result)
     what, side, unit = _GATE_TEXT[name]
-    k = 1000.0 if unit == "mm" else 100.0
-    unit_s = " mm" if unit == "mm" else " %"
-    text = (f"{what} {value * k:.3g}{unit_s}, {abs(value - threshold) * k:.3g}{unit_s} {side} of "
-            f"{threshold * k:.3g}{unit_s}")
+    if unit == "mm":
+        shown, limit = quantity_pair(value, threshold, "m")
+        by = quantity(abs(value - threshold), "m")
+    else:
+        pct, pct_limit = distinct(value * 100.0, threshold * 100.0)
+        shown, limit = f"{pct} %", f"{pct_limit} %"
+        by = f"{abs(value - threshold) * 100.0:.3g} %"
+    text = f"{what} {shown}, {by} {side} of {limit}"
     expected = expected_rms_m(result, settings)
     if name == "residual_rms_m" and expected > 0:
-        text += f" ({value / expected:.3g} x the {expected * 1000.0:.3g} mm the noise model expects for these pixels)"
+        text += f" ({value / expected:.3g} x the {quantity(expected, 'm')} the noise model expects for these pixels)"
     elif name == "flatness" and result.flatness_where:
         text += f" (in {result.flatness_where})"
     return text
@@ -165,7 +177,8 @@ def check_gates(result: FullFrameResult, settings: FullFrameSettings | None = No
             continue
         value, threshold, ok = gates[name]
         if not ok:
-            raise CalibrationQualityError(name, value, threshold, _message(name, value, threshold, result, cfg))
+            raise CalibrationQualityError(name, value, threshold, _message(name, value, threshold, result, cfg),
+                                          unit=GATE_UNITS[name])
 
 
 def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings,

@@ -20,6 +20,7 @@ from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.fullframe.passes import Cutoff, Model, Pass, Scratch, basis, gn_pass, step_plane, truncation
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
+from cellcal.devices.readable import quantity_pair
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -86,13 +87,14 @@ def _nearest_refusal(expected: ExpectedPlane, nrm: FloatArray, off: FloatArray, 
     k = int(np.argmin(score))
     near = Plane(nrm[k], float(off[k])).oriented_toward_origin()
     angle, doff = expected.departure(near)
+    a, tol_a = quantity_pair(angle, expected.angle_tolerance_rad, "rad")
+    o, tol_o = quantity_pair(doff, expected.offset_tolerance_m, "m", digits=4)
     return CalibrationQualityError(
         "expected_plane", angle, expected.angle_tolerance_rad,
-        f"no plane within {math.degrees(expected.angle_tolerance_rad):.3g} deg and "
-        f"{expected.offset_tolerance_m * 1000:.3g} mm of the expected one among {nrm.shape[0]} candidate planes; "
-        f"the nearest is {math.degrees(angle):.3g} deg and {doff * 1000:.4g} mm from it (tilt x "
+        f"no plane within {tol_a} and {tol_o} of the expected one among {nrm.shape[0]} candidate planes; "
+        f"the nearest is {a} and {o} from it (tilt x "
         f"{math.degrees(near.tilt_about_x_rad()):.3g} deg, tilt y {math.degrees(near.tilt_about_y_rad()):.3g} deg, "
-        f"{near.offset_m * 1000:.4g} mm from the camera)")
+        f"{near.offset_m * 1000:.4g} mm from the camera)", unit="rad")
 
 
 def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings,

@@ -16,12 +16,19 @@ import numpy as np
 import pytest
 from cellcal.core.cli import main
 from cellcal.devices import ConfigError, DeviceConnectionError, DeviceTimeoutError, ProtocolError, default_registry
-from cellcal.testing import CameraConformance, CameraOptions, check_camera
+from cellcal.testing import CameraConformance, CameraOptions, ScenePlane, check_camera
 
 from acme_cellcal import wire
 from acme_cellcal.camera import RANGE_M, Z1_MODEL, AcmeZ1Camera
 from acme_cellcal.emulated import AcmeZ1EmulatedCamera
 from acme_cellcal.fake_device import FakeZ1, FakeZ1Settings
+
+#: What the fake Z1 shows without a simulated cell: a plane 1.2 m ahead on the optical axis, tilted 20 deg about
+#: the camera's x axis (FakeZ1Settings' defaults); the kit runs calibrate's full-frame fit on it.
+_FIXED = FakeZ1Settings()
+SCENE = ScenePlane(normal=(0.0, math.sin(math.radians(_FIXED.plane_tilt_deg)),
+                           -math.cos(math.radians(_FIXED.plane_tilt_deg))), axis_distance_m=_FIXED.plane_distance_m)
+OPTIONS = CameraOptions(distance_range_m=RANGE_M, scene_plane=SCENE)
 
 
 def camera_at(device: FakeZ1, **keys: object) -> AcmeZ1Camera:
@@ -33,7 +40,7 @@ def camera_at(device: FakeZ1, **keys: object) -> AcmeZ1Camera:
 class TestAcmeZ1Conformance(CameraConformance):
     """Every contract rule against a fake Z1 this fixture starts on 127.0.0.1, port 0."""
 
-    options = CameraOptions(distance_range_m=RANGE_M)
+    options = OPTIONS
 
     @pytest.fixture
     def camera_factory(self) -> Iterator[Callable[[], AcmeZ1Camera]]:
@@ -49,8 +56,20 @@ class TestAcmeZ1Conformance(CameraConformance):
 def test_kit_function_api_also_passes_at_low_frame_rate() -> None:
     # at 5 Hz a 0.25 s capture may time out: the kit accepts DeviceTimeoutError there, in bounded time
     with FakeZ1(FakeZ1Settings(frame_rate_hz=5.0)) as device:
-        report = check_camera(lambda: camera_at(device), CameraOptions(distance_range_m=RANGE_M), quiet=True)
-    assert report.ok and report.backend == "acme-z1" and len(report.results) == 15
+        report = check_camera(lambda: camera_at(device), OPTIONS, quiet=True)
+    assert report.ok and report.backend == "acme-z1" and len(report.results) == 17
+
+
+def test_a_z1_too_small_for_the_default_plan_fails_the_kit_as_calibrate_refuses_it() -> None:
+    """A 64 x 48 Z1 passed the 15 rules of the kit before, and `cellcal calibrate` refused it (issue #37)."""
+    with FakeZ1(FakeZ1Settings(width=64, height=48, frame_rate_hz=60.0)) as device:
+        report = check_camera(lambda: camera_at(device), OPTIONS, raise_on_failure=False, quiet=True)
+    (failure,) = report.failures
+    assert failure.rule == "camera.calibrate-image"
+    assert failure.detail.endswith(
+        "refuses this camera before the arm moves: perimeters 30, 40, 50 px put the P1-P9 grid with its 3 px "
+        "sampling windows outside the 64x48 image (at most 22.5 px from the principal point (31.5, 23.5) px); use "
+        "perimeters_px of at most 22 px")
 
 
 def test_the_z1_states_its_model_and_the_frames_measure_up_to_it() -> None:
@@ -67,8 +86,7 @@ def test_the_z1_states_its_model_and_the_frames_measure_up_to_it() -> None:
 
 
 def test_the_emulated_backend_passes_the_kit() -> None:
-    report = check_camera(lambda: AcmeZ1EmulatedCamera.from_config({"frame_rate_hz": 60.0}),
-                          CameraOptions(distance_range_m=RANGE_M), quiet=True)
+    report = check_camera(lambda: AcmeZ1EmulatedCamera.from_config({"frame_rate_hz": 60.0}), OPTIONS, quiet=True)
     assert report.ok and report.backend == "acme-z1-emulated"
 
 

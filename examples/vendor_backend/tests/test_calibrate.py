@@ -28,6 +28,21 @@ def test_the_check_shows_what_connects_to_what(capsys: pytest.CaptureFixture[str
     out = capsys.readouterr().out
     assert "camera:  backend 'acme-z1-emulated' (acme_cellcal.emulated.AcmeZ1EmulatedCamera)" in out
     assert "plan:    8 poses" in out
+    assert "image:   160x120 px (from the configuration) holds the grid at perimeters 30 px with 3 px windows" in out
+
+
+def test_the_check_refuses_an_image_too_small_for_the_plan(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """The emulated Z1 knows its image from its config: --check says at once what the run would refuse."""
+    small = tmp_path / "small.toml"
+    small.write_text(CELL.read_text().replace("noise_m = 0.001", "noise_m = 0.001\nwidth = 64\nheight = 48"))
+    assert main(["calibrate", "--check", "--config", str(small)]) == 2
+    why = (f"{small}: key 'plan.perimeters_px': perimeter 30 px puts the P1-P9 grid with its 3 px sampling windows "
+           "outside the 64x48 image (at most 22.5 px from the principal point (31.5, 23.5) px); use perimeters_px "
+           "of at most 22 px")
+    assert capsys.readouterr().err == f"cellcal: error: {why}\n"
+    assert main(["calibrate", "--config", str(small), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    assert capsys.readouterr().err.startswith(f"cellcal: error: {why}")   # before the arm moved
 
 
 def test_calibrate_with_the_camera_following_the_arm_is_consistent(tmp_path: Path) -> None:

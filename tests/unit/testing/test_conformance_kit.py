@@ -8,7 +8,9 @@ bypassed life cycle) and must fail exactly the rules that promise belongs to.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 import subprocess
 import sys
 import threading
@@ -35,7 +37,7 @@ from cellcal.devices import (
 )
 from cellcal.devices.errors import ConformanceError
 from cellcal.devices.measurement import MeasurementModel
-from cellcal.testing import ARM_RULES, CAMERA_RULES, ArmOptions, CameraOptions, check_arm, check_camera
+from cellcal.testing import ARM_RULES, CAMERA_RULES, ArmOptions, CameraOptions, ScenePlane, check_arm, check_camera
 
 _release_leaks = threading.Event()
 #: Fast timing for the timeout mutants: a call may take its timeout + 0.1 s.
@@ -55,7 +57,9 @@ def _leak_thread() -> None:
 
 # ---------------------------------------------------------------- a correct camera, and mutants
 class ToyCamera(Camera3D):
-    """32 x 24 px pinhole camera facing a wall 1.5 m away; a 4 x 4 px corner is invalid."""
+    """160 x 120 px pinhole ToF camera facing a wall 1.5 m ahead on its axis, tilted 20 deg about the camera's x axis;
+    a 4 x 4 px corner is invalid. It draws the range noise it states (4 mm at 1 m, x range^1.5), from a seed per
+    frame."""
 
     backend_name = "toy-cam"
     mutation: ClassVar[str] = ""
@@ -80,8 +84,15 @@ class ToyCamera(Camera3D):
         return DeviceInfo(backend="toy-cam", vendor="" if self.mutation == "no-vendor" else "Toy", model="T1")
 
     def _intrinsics(self) -> Intrinsics:
-        f = 0.004 if self.mutation == "focal-in-metres" else 30.0
-        return Intrinsics(32, 24, f, f, 15.5, 11.5)
+        if self.mutation == "tiny-image":
+            return Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)
+        f = 0.004 if self.mutation == "focal-in-metres" else 150.0
+        return Intrinsics(160, 120, f, f, 79.5, 59.5)
+
+    def _configured_intrinsics(self) -> Intrinsics | None:
+        if self.mutation == "configured-wrong-size":      # what its config says differs from what it sends
+            return Intrinsics(224, 172, 150.0, 150.0, 111.5, 85.5)
+        return None
 
     def _measurement_model(self) -> MeasurementModel:
         m = self.mutation
@@ -91,7 +102,8 @@ class ToyCamera(Camera3D):
             return {"kind": "tof"}  # type: ignore[return-value]
         source = "unstated" if m == "model-without-source" else "backend"
         settings: dict[str, Any] = {"mode": "near"} if m != "settings-not-json" else {"mode": {"near"}}
-        return MeasurementModel(kind="tof", sigma_at_1m_m=0.004, source=source, settings=settings)
+        sigma = 0.0004 if m == "states-a-tenth-of-its-noise" else TOY_SIGMA_AT_1M_M
+        return MeasurementModel(kind="tof", sigma_at_1m_m=sigma, source=source, settings=settings)
 
     def _capture(self, timeout: float) -> Frame:
         m = self.mutation
@@ -102,8 +114,15 @@ class ToyCamera(Camera3D):
         intr = self._intrinsics()
         v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
         rays = np.dstack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)])
-        xyz = rays * self.config.wall_m                      # the wall z = wall_m
-        distance = np.linalg.norm(xyz, axis=2)
+        rays /= np.linalg.norm(rays, axis=2, keepdims=True)                  # unit rays
+        normal = np.asarray(TOY_SCENE.normal)                                 # the tilted wall
+        distance = (normal @ [0.0, 0.0, self.config.wall_m]) / (rays @ normal)
+        if m != "noise-free":
+            rng = np.random.default_rng(self._seq)
+            distance = distance + TOY_SIGMA_AT_1M_M * np.abs(distance)**1.5 * rng.standard_normal(distance.shape)
+        if m == "rows-bottom-up":                           # read out from the last row, not flipped back
+            distance = distance[::-1].copy()
+        xyz = rays * distance[..., None]
         if m == "millimetres":
             xyz, distance = xyz * 1000.0, distance * 1000.0
         if m == "depth-not-radial":
@@ -116,13 +135,18 @@ class ToyCamera(Camera3D):
             xyz[~valid], distance[~valid] = np.nan, np.nan
         if m != "stale-frames":
             self._seq += 1
-        frame_intr = Intrinsics(32, 24, 31.0, 31.0, 15.5, 11.5) if m == "frame-intrinsics-differ" else intr
+        frame_intr = dataclasses.replace(intr, fx=151.0, fy=151.0) if m == "frame-intrinsics-differ" else intr
         # a frame stamped with another model than the camera states (e.g. a stale one)
         model = FRAME_MODEL_DIFFERS if m == "frame-model-differs" else MeasurementModel()
         return Frame(distance.astype(np.float32), xyz.astype(np.float32), np.ones(intr.shape, np.float32), valid,
                      frame_intr, 1.7e9 + 0.05 * self._seq, self._seq, measurement=model)
 
 
+#: The range noise the toy camera draws and states, 1-sigma at 1 m (times range^1.5), metres.
+TOY_SIGMA_AT_1M_M = 0.004
+#: The toy camera's test scene: the wall 1.5 m ahead, its normal tilted 20 deg about the camera's x axis.
+TOY_SCENE = ScenePlane(normal=(0.0, math.sin(math.radians(20.0)), -math.cos(math.radians(20.0))),
+                       axis_distance_m=1.5)
 FRAME_MODEL_DIFFERS = MeasurementModel(kind="tof", sigma_at_1m_m=0.008, source="backend")
 
 
@@ -137,23 +161,25 @@ def camera_mutant(mutation: str) -> type[ToyCamera]:
     return type(f"ToyCamera_{mutation}", (ToyCamera,), {"mutation": mutation})
 
 
-TOY_CAMERA_OPTIONS = CameraOptions(distance_range_m=(0.1, 5.0), **FAST)
+TOY_CAMERA_OPTIONS = CameraOptions(distance_range_m=(0.1, 5.0), scene_plane=TOY_SCENE, **FAST)
 
 
 def test_correct_toy_camera_passes_every_rule() -> None:
     report = check_camera(ToyCamera, TOY_CAMERA_OPTIONS)
     assert report.ok and report.backend == "toy-cam"
-    assert [r.rule for r in report.results] == list(CAMERA_RULES) and len(CAMERA_RULES) == 15
-    assert str(report).startswith("camera backend toy-cam: 15/15 contract checks passed")
+    assert [r.rule for r in report.results] == list(CAMERA_RULES) and len(CAMERA_RULES) == 17
+    assert str(report).startswith("camera backend toy-cam: 17/17 contract checks passed")
 
 
 CAMERA_MUTANTS = {
-    "millimetres": {"camera.frame-units"},
-    "depth-not-radial": {"camera.frame-units"},
-    "y-up": {"camera.frame-geometry"},
+    # calibrate's fit refuses what it cannot measure: millimetres by name, ranges off the rays as no plane
+    "millimetres": {"camera.frame-units", "camera.calibrate-frames"},
+    "depth-not-radial": {"camera.frame-units", "camera.calibrate-frames"},
+    "y-up": {"camera.frame-geometry", "camera.calibrate-frames"},      # the wall is mirrored: 40 deg off
     "invalid-not-nan": {"camera.frame-units"},
     "stale-frames": {"camera.sequence"},
-    "focal-in-metres": {"camera.intrinsics", "camera.frame-units"},  # its rays reach 4 km at 1.5 m depth
+    # its rays reach 4 km at 1.5 m depth (most miss the tilted wall: behind the camera), and lie along a line
+    "focal-in-metres": {"camera.intrinsics", "camera.frame-units", "camera.calibrate-frames"},
     "frame-intrinsics-differ": {"camera.frame-layout", "camera.frame-geometry"},
     "no-vendor": {"camera.info"},
     "ignores-timeout": {"camera.timeout-bounded"},
@@ -163,6 +189,12 @@ CAMERA_MUTANTS = {
     "model-without-source": {"camera.measurement-model"},
     "settings-not-json": {"camera.measurement-model"},
     "frame-model-differs": {"camera.measurement-model"},
+    # what only calibrate minded before (issue #37): each passed the other 16 rules
+    "tiny-image": {"camera.calibrate-image"},
+    "configured-wrong-size": {"camera.calibrate-image"},
+    "noise-free": {"camera.calibrate-frames"},
+    "states-a-tenth-of-its-noise": {"camera.calibrate-frames"},
+    "rows-bottom-up": {"camera.calibrate-frames"},                    # consistent rays, a mirrored wall
 }
 
 
@@ -173,8 +205,17 @@ def test_failure_messages_say_what_was_wrong() -> None:
         return failure.detail
 
     assert "outside the declared 0.1..5 m" in detail("millimetres", "camera.frame-units")
-    corner_mm = 1500.0 * np.linalg.norm([15.5 / 30.0, 11.5 / 30.0, 1.0])  # the far corner of the wall, in mm
-    assert f"max {corner_mm:.6g}; metres expected" in detail("millimetres", "camera.frame-units")
+    # the wall's nearest and farthest pixels in millimetres, within 6 sigma of the range noise there (12 mm at
+    # 2.1 m): every pixel's ray x = ((u - 79.5) / 150, (v - 59.5) / 150, 1) meets n . x = 1.5 n_z at z = 1.5 n_z / n . x
+    n = np.asarray(TOY_SCENE.normal)
+    u, v = np.meshgrid((np.arange(160) - 79.5) / 150.0, (np.arange(120) - 59.5) / 150.0)
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1)
+    d = 1.5 * n[2] / (rays @ n) * np.linalg.norm(rays, axis=-1)
+    d[:4, :4] = np.nan                                                       # the invalid corner
+    found = re.search(r"\(min ([0-9.]+), max ([0-9.]+); metres expected\)", detail("millimetres", "camera.frame-units"))
+    assert found is not None
+    assert float(found[1]) == pytest.approx(1000.0 * np.nanmin(d), abs=75.0)
+    assert float(found[2]) == pytest.approx(1000.0 * np.nanmax(d), abs=75.0) and 1000.0 * np.nanmax(d) > 2000.0
     assert "|xyz| differs from distance" in detail("depth-not-radial", "camera.frame-units")
     assert "OpenCV camera frame" in detail("y-up", "camera.frame-geometry")
     assert "must increase" in detail("stale-frames", "camera.sequence")
@@ -207,6 +248,79 @@ def test_a_camera_stating_no_model_is_told_how_to_state_one_or_to_opt_out() -> N
                                              "a frame must carry the camera's model")
 
 
+def _detail(mutation: str, rule: str, options: CameraOptions = TOY_CAMERA_OPTIONS) -> str:
+    """The failure detail of one rule for a toy mutant ("" when the rule passes)."""
+    report = check_camera(camera_mutant(mutation), options, only=[rule], raise_on_failure=False, quiet=True)
+    return report.failures[0].detail if report.failures else ""
+
+
+def test_a_camera_too_small_for_the_default_plan_is_refused_as_calibrate_refuses_it() -> None:
+    """The user's 64x48 camera: 15 of 15 rules passed, `cellcal calibrate` refused it (issue #37)."""
+    assert _detail("tiny-image", "camera.calibrate-image") == (
+        "`cellcal calibrate` with [plan] perimeters_px = [20, 30, 40, 50], window_px = 3 refuses this camera before "
+        "the arm moves: perimeters 30, 40, 50 px put the P1-P9 grid with its 3 px sampling windows outside the 64x48 "
+        "image (at most 22.5 px from the principal point (31.5, 23.5) px); use perimeters_px of at most 22 px")
+    # a camera whose cells use smaller perimeters says so, and passes; 23 px is past the 22.5 px it can hold
+    assert _detail("tiny-image", "camera.calibrate-image",
+                   dataclasses.replace(TOY_CAMERA_OPTIONS, perimeters_px=(10, 22))) == ""
+    assert "perimeter 23 px puts the P1-P9 grid" in _detail(
+        "tiny-image", "camera.calibrate-image", dataclasses.replace(TOY_CAMERA_OPTIONS, perimeters_px=(10, 23)))
+    assert _detail("configured-wrong-size", "camera.calibrate-image") == (
+        "configured_intrinsics() before connect() says a 224x172 image centred at (111.5, 85.5) px, the connected "
+        "camera a 160x120 image centred at (79.5, 59.5) px; `calibrate --check` would judge the plan on the wrong "
+        "image")
+
+
+FRAME_REFUSAL = "`cellcal calibrate` with the default [full_frame] gates refuses frame #0 of the test scene: "
+
+
+def test_frames_calibrate_would_refuse_fail_the_kit_with_calibrates_words() -> None:
+    """The noise gates against the stated model, and the plane where the vendor says it is (issue #37)."""
+    noise_free = _detail("noise-free", "camera.calibrate-frames")
+    assert noise_free.startswith(FRAME_REFUSAL + "quality gate 'residual_floor' failed: ")
+    assert "x the 7.61 mm the sensor can deliver for these pixels (quantisation floor 0 mm), below the minimum of " \
+           "0.25 x" in noise_free
+    assert noise_free.endswith("the frames are less noisy than the camera's measurement model says: state the noise "
+                               "it has (docs/extending.md, 'Stating how the camera measures')")
+    loud = _detail("states-a-tenth-of-its-noise", "camera.calibrate-frames")
+    assert loud.startswith(FRAME_REFUSAL + "quality gate 'residual_rms_m' failed: ")
+    assert "the frames are noisier than the camera's measurement model says" in loud
+    # rows read out bottom-up: every xyz lies on its pixel's ray (camera.frame-geometry passes), but the wall
+    # tilted +20 deg is seen at -20 deg: 40 deg from the declared plane, past the default 15 deg
+    mirrored = _detail("rows-bottom-up", "camera.calibrate-frames")
+    assert mirrored.startswith(FRAME_REFUSAL + "quality gate 'expected_plane' failed: 40.0")
+    assert " deg vs threshold 15 deg; the fitted plane is 40 deg from the expected one, 25 deg beyond the tolerance " \
+           "of 15 deg (its offset, " in mirrored
+    assert "an image read out upside down mirrors every plane" in mirrored
+    assert _detail("millimetres", "camera.calibrate-frames").startswith(
+        FRAME_REFUSAL + "the median range of the valid pixels is 15")
+
+
+def test_the_frames_rule_needs_the_scene_declared_or_a_reason() -> None:
+    undeclared = CameraOptions(distance_range_m=(0.1, 5.0), **FAST)
+    assert _detail("", "camera.calibrate-frames", undeclared).startswith(
+        "the kit cannot run calibrate's full-frame fit on this camera's frames without knowing its test scene: point "
+        "the camera at a flat surface filling the image and declare it, e.g. CameraOptions(scene_plane=ScenePlane(")
+    reason = dataclasses.replace(undeclared, scene_reason="the mocked SDK sends one depth for every pixel")
+    assert _detail("noise-free", "camera.calibrate-frames", reason) == ""        # not run, with its reason
+    # a plane declared 20 deg off the wall the toy sees: within 15 deg of it? no, of the declared one: refused
+    off = ScenePlane(normal=(0.0, 0.0, 1.0), axis_distance_m=1.5)
+    assert "quality gate 'expected_plane' failed: 20" in _detail(
+        "", "camera.calibrate-frames", dataclasses.replace(undeclared, scene_plane=off))
+    with pytest.raises(CellcalError, match="scene_reason must say why"):
+        CameraOptions(scene_reason="")
+    with pytest.raises(CellcalError, match="scene_plane must be a ScenePlane"):
+        CameraOptions(scene_plane=((0.0, 0.0, 1.0), 1.5))  # type: ignore[arg-type]
+    with pytest.raises(CellcalError, match="perimeters_px must be positive"):
+        CameraOptions(perimeters_px=(20, 0))
+    with pytest.raises(CellcalError, match="axis_distance_m must be a positive number of metres"):
+        ScenePlane(normal=(0.0, 0.0, 1.0), axis_distance_m=-1.0)
+    with pytest.raises(CellcalError, match="the axis never meets the plane"):
+        ScenePlane(normal=(1.0, 0.0, 0.0), axis_distance_m=1.0)
+    with pytest.raises(CellcalError, match="finite, non-zero 3-vector"):
+        ScenePlane(normal=(0.0, 0.0, 0.0), axis_distance_m=1.0)
+
+
 def test_bypassed_life_cycle_is_caught() -> None:
     report = check_camera(BypassingCamera, TOY_CAMERA_OPTIONS, raise_on_failure=False)
     # ... and the frames it hands out skip the stamping of the camera's model
@@ -220,7 +334,7 @@ def test_conformance_error_lists_every_failed_rule() -> None:
     with pytest.raises(ConformanceError) as err:
         check_camera(camera_mutant("frame-intrinsics-differ"), TOY_CAMERA_OPTIONS)
     lines = str(err.value).splitlines()
-    assert lines[0] == "toy-cam: 2 of 15 camera contract checks failed"
+    assert lines[0] == "toy-cam: 2 of 17 camera contract checks failed"
     assert [line.split(" contract rule ")[1].split()[0] for line in lines[1:]] == ["camera.frame-layout",
                                                                                     "camera.frame-geometry"]
     assert isinstance(err.value, AssertionError) and isinstance(err.value, CellcalError)
@@ -432,10 +546,11 @@ def test_function_api_works_without_pytest() -> None:
         "from cellcal.devices import default_registry, BackendContext\n"
         "doc = tomllib.loads(resources.files('cellcal.configs').joinpath('sim.toml').read_text())\n"
         "r = kit.check_camera(lambda: default_registry().create_camera({'backend': 'sim'},"
-        " BackendContext(section='camera', document=doc)), kit.CameraOptions(distance_range_m=(0.1, 4.0)))\n"
+        " BackendContext(section='camera', document=doc)), kit.CameraOptions(distance_range_m=(0.1, 4.0),"
+        " scene_plane=kit.ScenePlane(normal=(0.0, 0.0, 1.0), axis_distance_m=0.44)))\n"
         "print(r.backend, len(r.results), r.ok)\n"
         "try:\n    kit.CameraConformance\nexcept ImportError as e:\n    print('classes need pytest')\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split("\n")[:2] == ["sim 15 True", "classes need pytest"]
+    assert out.stdout.split("\n")[:2] == ["sim 17 True", "classes need pytest"]

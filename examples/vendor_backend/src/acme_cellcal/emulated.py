@@ -74,6 +74,11 @@ class AcmeZ1EmulatedCamera(Camera3D):
         assert self._camera is not None
         return self._camera.intrinsics
 
+    def _configured_intrinsics(self) -> Intrinsics:
+        # the fake device's image is fixed by this config: `cellcal calibrate --check` checks the plan against it
+        fx, fy, cx, cy = self.config.intrinsics()
+        return Intrinsics(width=self.config.width, height=self.config.height, fx=fx, fy=fy, cx=cx, cy=cy)
+
     def _measurement_model(self) -> MeasurementModel:
         return Z1_MODEL                          # what the real Z1 backend states; its frames carry it
 

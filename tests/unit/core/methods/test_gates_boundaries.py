@@ -166,8 +166,9 @@ def test_a_plane_filling_the_left_half_of_the_image_is_at_both_fraction_threshol
     assert (err.gate, err.value) == ("valid_fraction", 0.5)
     err = failure(res, FullFrameSettings(min_coverage=above(0.5)))
     assert (err.gate, err.value) == ("coverage", 0.5)
-    assert str(err) == ("quality gate 'coverage' failed: 0.5 vs threshold 0.5; image cells holding plane inliers "
-                        "50 %, 1.11e-14 % below the minimum of 50 %")
+    # a value just below its threshold never prints equal to it
+    assert str(err) == ("quality gate 'coverage' failed: 0.5 vs threshold 0.5000000000000001; image cells holding "
+                        "plane inliers 50 %, 1.11e-14 % below the minimum of 50.00000000000001 %")
 
 
 # ---------------------------------------------------------------------- each gate at its threshold
@@ -288,7 +289,7 @@ def test_the_message_uses_the_settings_given_not_those_of_the_fit() -> None:
                  residual_unit_rms_m=1.0, residual_rms_m=5 * MM)
     check_gates(res)                                       # 5 mm <= 4 x 4 mm
     err = failure(res, FullFrameSettings(expected_noise_m=0.001))
-    assert str(err) == ("quality gate 'residual_rms_m' failed: 0.005 vs threshold 0.004; inlier residual RMS 5 mm, "
+    assert str(err) == ("quality gate 'residual_rms_m' failed: 5 mm vs threshold 4 mm; inlier residual RMS 5 mm, "
                         "1 mm above the maximum of 4 mm (5 x the 1 mm the noise model expects for these pixels)")
 
 
@@ -360,11 +361,11 @@ def test_a_sensor_stating_no_floor_passes_the_floor_gate_with_no_value() -> None
 
 @pytest.mark.parametrize(("stated", "text"), [
     (False, "quality gate 'residual_floor' failed: 0.2 vs threshold 0.25; inlier residual RMS 0.2 mm is 0.2 x the "
-            "1 mm the sensor can deliver for these pixels (quantisation floor 1 mm), 0.05 x below the minimum of "
+            "1 mm the sensor can deliver for these pixels (quantisation floor 1 mm), below the minimum of "
             "0.25 x: too good to be a measurement of this sensor (a fit on one quantisation level, or the wrong "
             "model)"),
     (True, "quality gate 'residual_floor' failed: 0.1 vs threshold 0.25; inlier residual RMS 0.2 mm is 0.1 x the "
-           "2 mm the sensor can deliver for these pixels (quantisation floor 1 mm), 0.15 x below the minimum of "
+           "2 mm the sensor can deliver for these pixels (quantisation floor 1 mm), below the minimum of "
            "0.25 x: too good to be a measurement of this sensor (a fit on one quantisation level, or the wrong "
            "model)"),
 ])
@@ -378,9 +379,47 @@ def test_the_floor_message_rounds_each_length_to_three_digits() -> None:
     res = result(residual_floor_m=1.234 * MM, sigma_stated=False, residual_rms_m=0.2354 * MM)
     assert str(failure(res)) == (
         "quality gate 'residual_floor' failed: 0.190762 vs threshold 0.25; inlier residual RMS 0.235 mm is 0.191 x "
-        "the 1.23 mm the sensor can deliver for these pixels (quantisation floor 1.23 mm), 0.0592 x below the "
+        "the 1.23 mm the sensor can deliver for these pixels (quantisation floor 1.23 mm), below the "
         "minimum of 0.25 x: too good to be a measurement of this sensor (a fit on one quantisation level, or the "
         "wrong model)")
+
+
+def test_a_fit_far_below_the_floor_reads_as_a_multiple_of_it_not_as_a_difference() -> None:
+    """A noise-free camera stating 1 mm of noise: 1e-05 x the floor, printed beside its minimum of 0.25 x (it
+    read "0.25 x below the minimum of 0.25 x" before: the difference printed equal to the threshold)."""
+    res = result(residual_floor_m=0.0, sigma_stated=True, residual_expected_m=1 * MM, residual_rms_m=0.01 * MM * MM)
+    err = failure(res)
+    assert (err.gate, err.value, err.threshold, err.unit) == ("residual_floor", pytest.approx(1e-5, rel=1e-12),
+                                                              0.25, "")
+    assert str(err) == ("quality gate 'residual_floor' failed: 1e-05 vs threshold 0.25; inlier residual RMS 1e-05 mm "
+                        "is 1e-05 x the 1 mm the sensor can deliver for these pixels (quantisation floor 0 mm), below "
+                        "the minimum of 0.25 x: too good to be a measurement of this sensor (a fit on one "
+                        "quantisation level, or the wrong model)")
+
+
+@pytest.mark.parametrize(("departure", "shown", "limit", "beyond"), [
+    (math.radians(15.0) + 1e-9, "15.0000001 deg", "15 deg", "5.73e-08 deg"),     # 1 nrad past 15 deg
+    # the next float past it: 17 digits, which show radians(15) itself as 14.999999999999998 deg
+    (above(math.radians(15.0)), "15.000000000000002 deg", "14.999999999999998 deg", "3.18e-15 deg"),
+])
+def test_an_angle_just_past_its_tolerance_never_prints_equal_to_it(departure: float, shown: str, limit: str,
+                                                                    beyond: str) -> None:
+    """The user's report: gate expected_plane "0.261799 vs threshold 0.261799" (radians, equal in print). Now in
+    degrees, with the digits the difference needs; the attributes stay in radians."""
+    tol = math.radians(15.0)
+    err = failure(result(expected_departure=(departure, 3 * MM), expected_tolerance=(tol, 0.1)))
+    assert (err.gate, err.value, err.threshold, err.unit) == ("expected_plane", departure, tol, "rad")
+    assert str(err) == (f"quality gate 'expected_plane' failed: {shown} vs threshold {limit}; the fitted plane is "
+                        f"{shown} from the expected one, {beyond} beyond the tolerance of {limit} (its offset, 3 mm, "
+                        "is within 100 mm)")
+
+
+def test_a_length_just_past_its_tolerance_never_prints_equal_to_it() -> None:
+    err = failure(result(flatness_m=above(1 * MM)))
+    assert (err.gate, err.value, err.threshold, err.unit) == ("flatness", above(1 * MM), 1 * MM, "m")
+    assert str(err) == ("quality gate 'flatness' failed: 1.0000000000000002 mm vs threshold 1 mm; a local plane "
+                        "departs from the global fit (beyond its uncertainty) by 1.0000000000000002 mm, 2.17e-16 mm "
+                        "above the tolerance of 1 mm")
 
 
 # ---------------------------------------------------------------------- the other texts, whole
@@ -394,39 +433,39 @@ def test_the_floor_message_rounds_each_length_to_three_digits() -> None:
      "quality gate 'coverage' failed: 0.472222 vs threshold 0.5; image cells holding plane inliers 47.2 %, "
      "2.78 % below the minimum of 50 %"),
     ({"flatness_m": 1.5 * MM, "flatness_where": "the left half of the image"},
-     "quality gate 'flatness' failed: 0.0015 vs threshold 0.001; a local plane departs from the global fit (beyond "
+     "quality gate 'flatness' failed: 1.5 mm vs threshold 1 mm; a local plane departs from the global fit (beyond "
      "its uncertainty) by 1.5 mm, 0.5 mm above the tolerance of 1 mm (in the left half of the image)"),
     ({"flatness_m": 1.5 * MM},
-     "quality gate 'flatness' failed: 0.0015 vs threshold 0.001; a local plane departs from the global fit (beyond "
+     "quality gate 'flatness' failed: 1.5 mm vs threshold 1 mm; a local plane departs from the global fit (beyond "
      "its uncertainty) by 1.5 mm, 0.5 mm above the tolerance of 1 mm"),
     ({"residual_rms_m": 5 * MM},
-     "quality gate 'residual_rms_m' failed: 0.005 vs threshold 0.004; inlier residual RMS 5 mm, 1 mm above the "
+     "quality gate 'residual_rms_m' failed: 5 mm vs threshold 4 mm; inlier residual RMS 5 mm, 1 mm above the "
      "maximum of 4 mm (5 x the 1 mm the noise model expects for these pixels)"),
     # an expected 1.234 mm just below a rounding step: 1.23 mm, the threshold 4 x 1.234 = 4.936 mm
     ({"residual_rms_m": 5 * MM, "residual_expected_m": 1.234 * MM},
-     "quality gate 'residual_rms_m' failed: 0.005 vs threshold 0.004936; inlier residual RMS 5 mm, 0.064 mm above "
+     "quality gate 'residual_rms_m' failed: 5 mm vs threshold 4.936 mm; inlier residual RMS 5 mm, 0.064 mm above "
      "the maximum of 4.94 mm (4.05 x the 1.23 mm the noise model expects for these pixels)"),
     # nothing expected (no noise, no floor): a multipath allowance of 2 mm is the whole threshold
     ({"residual_rms_m": 3 * MM, "sigma_given": False, "sigma_stated": False, "residual_unit_rms_m": 0.0,
       "multipath_allowance_m": 2 * MM},
-     "quality gate 'residual_rms_m' failed: 0.003 vs threshold 0.002; inlier residual RMS 3 mm, 1 mm above the "
+     "quality gate 'residual_rms_m' failed: 3 mm vs threshold 2 mm; inlier residual RMS 3 mm, 1 mm above the "
      "maximum of 2 mm"),
     ({"expected_departure": (math.radians(2.0), 3 * MM)},
-     "quality gate 'expected_plane' failed: 0.0349066 vs threshold 0.0174533; the fitted plane is 2 deg from the "
+     "quality gate 'expected_plane' failed: 2 deg vs threshold 1 deg; the fitted plane is 2 deg from the "
      "expected one, 1 deg beyond the tolerance of 1 deg (its offset, 3 mm, is within 5 mm)"),
     ({"expected_departure": (math.radians(0.5), 7.5 * MM)},
-     "quality gate 'expected_plane' failed: 0.00872665 vs threshold 0.0174533; the fitted plane is 7.5 mm from the "
+     "quality gate 'expected_plane' failed: 0.5 deg vs threshold 1 deg; the fitted plane is 7.5 mm from the "
      "expected one, 2.5 mm beyond the tolerance of 5 mm (its angle, 0.5 deg, is within 1 deg)"),
     # one part exactly at its tolerance is within it: only the other is named
     ({"expected_departure": (math.radians(1.0), 7.5 * MM)},
-     "quality gate 'expected_plane' failed: 0.0174533 vs threshold 0.0174533; the fitted plane is 7.5 mm from the "
+     "quality gate 'expected_plane' failed: 1 deg vs threshold 1 deg; the fitted plane is 7.5 mm from the "
      "expected one, 2.5 mm beyond the tolerance of 5 mm (its angle, 1 deg, is within 1 deg)"),
     ({"expected_departure": (math.radians(2.0), 5 * MM)},
-     "quality gate 'expected_plane' failed: 0.0349066 vs threshold 0.0174533; the fitted plane is 2 deg from the "
+     "quality gate 'expected_plane' failed: 2 deg vs threshold 1 deg; the fitted plane is 2 deg from the "
      "expected one, 1 deg beyond the tolerance of 1 deg (its offset, 5 mm, is within 5 mm)"),
     # both beyond: both named, with their excesses
     ({"expected_departure": (math.radians(1.5), 6 * MM)},
-     "quality gate 'expected_plane' failed: 0.0261799 vs threshold 0.0174533; the fitted plane is 1.5 deg and 6 mm "
+     "quality gate 'expected_plane' failed: 1.5 deg vs threshold 1 deg; the fitted plane is 1.5 deg and 6 mm "
      "from the expected one, 0.5 deg and 1 mm beyond the tolerances of 1 deg and 5 mm"),
 ])
 def test_each_gate_says_what_failed_by_how_much_in_one_line(fields: dict[str, object], text: str) -> None:
