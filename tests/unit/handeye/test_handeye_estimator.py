@@ -53,6 +53,7 @@ def test_noisy_views_meet_the_targets_within_their_sigmas(flanges: list[Pose]) -
     assert 0 < est.p_value < 1 and est.observability.observable
 
 
+@pytest.mark.statistical
 def test_intervals_hold_the_truth_95_percent_of_the_time(flanges: list[Pose]) -> None:
     rng = np.random.default_rng(11)
     truth = truth_vector()

@@ -67,6 +67,7 @@ def test_scaled_intervals_do_not_depend_on_an_understated_noise() -> None:
     assert any("scaled by" in note for note in low.notes)
 
 
+@pytest.mark.statistical
 def test_unmodelled_arm_noise_intervals_cover_the_truth() -> None:
     # the case: the arm reads back with 0.1 mm / 0.01 deg, the estimator is told 0.025 mm / 0
     noisy = sim_scenario().with_arm_noise(ARM_T, ARM_R)
@@ -78,6 +79,7 @@ def test_unmodelled_arm_noise_intervals_cover_the_truth() -> None:
     assert float(result.inside_absolute.mean()) <= 0.65  # what absolute weights gave: about half
 
 
+@pytest.mark.statistical
 def test_a_right_noise_model_keeps_95_percent() -> None:
     result = coverage(sim_scenario(), 60, seed=28)
     assert result.refused == 0 and result.scaled <= 0.05  # 1 % of runs expected

@@ -758,6 +758,7 @@ def test_no_seed_is_a_fixed_seed_and_a_given_seed_is_used() -> None:
     assert len({outcome(seed) for seed in range(10)}) > 1
 
 
+@pytest.mark.statistical
 @pytest.mark.parametrize("k_sig", [2.0, 3.0])
 def test_the_stated_covariance_is_the_scatter_of_repeated_fits(k_sig: float) -> None:
     """A Monte Carlo of the camera: 1500 fits of 400 pixels with 1 px Gaussian noise, cut at ``k_sig`` sigma.

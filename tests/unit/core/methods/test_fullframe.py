@@ -88,6 +88,7 @@ def test_clutter_of_boxes_with_flying_pixels_is_rejected(width: int, height: int
     assert res.mixed_margin_px >= 1 and res.n_mixed > 0
 
 
+@pytest.mark.statistical
 @pytest.mark.slow
 def test_1280x800_clutter_with_mixed_pixels_stays_within_its_intervals() -> None:
     base = ToFSetup(width=1280, height=800, flying=0.5)

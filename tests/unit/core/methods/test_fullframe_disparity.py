@@ -120,6 +120,7 @@ def test_rounding_bias_vanishes_with_dither() -> None:
     assert rounding_bias_px(0.5, 1.0) < 0.003
 
 
+@pytest.mark.statistical
 @pytest.mark.parametrize(("bits", "sigma_d"), [(3, 0.1), (0, 0.5)])
 def test_interval_coverage_on_dithered_quantised_planes(bits: int, sigma_d: float) -> None:
     rng = np.random.default_rng(5 + bits)

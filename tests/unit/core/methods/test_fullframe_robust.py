@@ -18,6 +18,7 @@ def _z(res: FullFrameResult, st: ToFSetup) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- seeds
+@pytest.mark.statistical
 def test_the_answer_does_not_depend_on_the_seed() -> None:
     """Low boxes (1-4 cm: their tops and the flying pixels between sit near the noise band) at 40 % clutter,
     every edge pixel flying: the accepted answers of ten seeds (and of none) agree within 0.2 sigma."""
@@ -102,6 +103,7 @@ def test_mixed_pixels_on_the_plane_side_are_dropped_where_they_are() -> None:
 
 
 # ---------------------------------------------------------------------- coverage
+@pytest.mark.statistical
 @pytest.mark.parametrize("clutter", [0.0, 0.4])
 def test_interval_coverage_with_clutter_and_mixed_pixels(clutter: float) -> None:
     """95 % intervals contain the truth in 91.5-98.5 % (binomial +-2.7 sigma) of 300 frames (60 box layouts x

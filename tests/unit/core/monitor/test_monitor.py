@@ -253,6 +253,7 @@ def test_a_bump_on_the_sim_is_flagged_within_the_window_and_not_before(delta: Po
     assert summary.drift_detected and summary.cameras[0].drifting
 
 
+@pytest.mark.statistical
 def test_sim_noise_does_not_flag_over_200_real_frames() -> None:
     config = load_config(None)
     camera, _ = make_camera(config)

@@ -96,6 +96,7 @@ def test_at_one_pose_a_change_is_mount_or_plane_and_waits() -> None:
     assert np.all(np.isnan(state.mount_translation_sigma_m))  # no interval while it is open
 
 
+@pytest.mark.statistical
 def test_no_alarm_in_3000_frames_without_change() -> None:
     rng = np.random.default_rng(24)
     tracker = Tracker(SC.nominal_mount, SC.nominal_plane)

@@ -43,6 +43,7 @@ def test_converges_to_the_truth_and_to_the_batch_fit_of_the_same_frames() -> Non
     np.testing.assert_allclose(state.mount_translation_sigma_m, batch.translation_sigma_m, rtol=0.02)
 
 
+@pytest.mark.statistical
 def test_95_percent_intervals_hold_the_truth_in_a_sensible_share_of_runs() -> None:
     inside, scaled = [], 0
     for seed in range(40):
