@@ -73,7 +73,8 @@ class SimConfig:
     """The ``[sim]`` table: the simulated cell's ground truth.
 
     It sets the plane, the boxes, the initial flange pose, the seed, the ToF camera's
-    artefacts (``[sim.artefacts]``, all on by default) and optionally a mount that
+    artefacts (``[sim.artefacts]``, all on by default), whether the camera rides on the
+    arm (``camera_on_arm``; false simulates a rig error) and optionally a mount that
     overrides the document's ``[mount]`` table: the calibrator reads ``[mount]`` as its
     *nominal* mount, the sim uses it as the *true* one unless ``[sim.mount]`` says
     otherwise, which is how a mount error is simulated.
@@ -102,6 +103,9 @@ class SimConfig:
         "doc": "the arm's own work program (moves on its own from the start; cellcal track reads it)"})
     events: list[EventConfig] = field(default_factory=list, metadata={
         "doc": "changes of the true mount or plane at given simulated times"})
+    camera_on_arm: bool = field(default=True, metadata={
+        "doc": "false: the camera stays where the arm's initial pose put it and its view does not follow the "
+               "arm (a camera not on the arm that moves: a rig or config error)"})
 
     def __post_init__(self) -> None:
         if float(np.linalg.norm(self.plane_normal)) < 1e-9:
@@ -316,6 +320,8 @@ class SimWorld:
         self.charuco: CharucoConfig | None = None
         #: Changes of the truth still to come (``[[sim.events]]``), earliest first.
         self.events: list[EventConfig] = []
+        #: The flange pose the camera stays at when it is not on the arm (``[sim] camera_on_arm = false``), or None.
+        self.camera_flange: Pose | None = None
 
     @classmethod
     def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
@@ -325,14 +331,21 @@ class SimWorld:
                     seed if config.seed is None else config.seed, artefacts=config.artefacts)
         world.charuco = config.charuco
         world.events = sorted(config.events, key=lambda e: e.at_s)
+        if not config.camera_on_arm:
+            world.camera_flange = config.initial_flange_pose()
         if config.work is not None:
             world.arm.start_work(WorkPlan(config.initial_flange_pose(), config.work))
         return world
 
     def camera_pose(self) -> Pose:
-        """True camera pose in the base frame, ``T_base_camera = T_base_flange @ T_flange_camera``."""
+        """True camera pose in the base frame, ``T_base_camera = T_base_flange @ T_flange_camera``.
+
+        With :attr:`camera_flange` set the camera stays at ``camera_flange @ mount`` while the arm moves.
+        """
         self.apply_events()
-        return self.arm.flange_pose() @ self.mount
+        flange = self.arm.flange_pose()  # also brings the simulated clock up to the motion under way
+        fixed = self.camera_flange
+        return (flange if fixed is None else fixed) @ self.mount
 
     def apply_events(self) -> None:
         """Make every ``[[sim.events]]`` change whose time has come (called before each frame is rendered)."""

@@ -34,8 +34,9 @@ from cellcal.core.calibration.plan_image import check_plan_image
 from cellcal.core.calibration.reach import check_reach, reachable_plan_poses
 from cellcal.core.calibration.region import expected_plane, region_document, region_mask
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
-from cellcal.core.geometry.planes import Plane
-from cellcal.core.methods.fullframe import FullFrameResult
+from cellcal.core.geometry.planes import Plane, plane_covariance
+from cellcal.core.geometry.view_follows import ViewFollowsArm, ViewSample
+from cellcal.core.methods.fullframe import FullFrameResult, fit_full_frame
 from cellcal.core.methods.measure import (
     FULL_FRAME,
     ExpectedGeometry,
@@ -240,6 +241,8 @@ class Calibrator:
                        "arm": DeadlineGuard(f"arm backend '{arm.backend_name}'", GUARD_GRACE_S)}
         #: The journal writer of the last :meth:`run` (None without a journal).
         self.journal_writer: JournalWriter | None = None
+        #: Whether the camera's view follows the arm, fed each pose measured by the last :meth:`run` (ADR 0045).
+        self.view_check: ViewFollowsArm | None = None
 
     def check_plan(self, start: Pose | None = None) -> None:
         """Check every move of the plan against the safety envelope (nothing moves).
@@ -271,6 +274,9 @@ class Calibrator:
         self.check_plan(None)
         fingerprint = plan_fingerprint(self.config.document, self.poses)
         done = self._journal_entries(journal, fingerprint) if resume else []
+        he = self.config.handeye  # the arm's read-back noise, as the hand-eye fit states it
+        self.view_check = ViewFollowsArm(self.config.mount.pose(), arm_translation_sigma_m=he.arm_translation_sigma_m,
+                                         arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg))
         self.journal_writer = None if journal is None else JournalWriter(journal, fingerprint, len(self.poses),
                                                                          append=resume, resumed=len(done))
         started = time.perf_counter()
@@ -479,6 +485,7 @@ class Calibrator:
                 row, result = measure_full_frame(frames, self.config.full_frame, expected=expected, region=region,
                                                  expected_plane=search)
             except CalibrationQualityError as exc:
+                self._check_view(index, reported, frames, None)  # a camera off the arm is the cause to name
                 extra = str(exc).partition("; ")[2]
                 raise CalibrationQualityError(exc.gate, exc.value, exc.threshold,
                                               f"plan pose {index + 1}" + (f": {extra}" if extra else ""),
@@ -486,6 +493,7 @@ class Calibrator:
             measurements.append(row)
             full_frame = full_frame_document(result, camera_pose, expected, expected_plane=search)
             full_frame["region"] = region_document(self.config.region, region)
+        self._check_view(index, reported, frames, result)
         t4 = time.perf_counter()
         record = PoseRecord(index, target, reported, camera_pose, expected, measurements,
                             {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,
@@ -494,6 +502,29 @@ class Calibrator:
         if self.observer is not None:
             self.observer(record, frames, result)
         return record
+
+    def _check_view(self, index: int, flange: Pose, frames: Sequence[Frame], fit: FullFrameResult | None) -> None:
+        """Feed this pose's plane (fitted here if the method is not run) to :attr:`view_check` (ADR 0045).
+
+        Raises:
+            CalibrationQualityError: Gate ``view_follows_arm``; the resume journal is dropped (poses of a
+                camera that is not on the arm are no start for a run on the corrected rig).
+        """
+        if self.view_check is None:
+            return
+        if fit is None:
+            try:
+                fit = fit_full_frame(list(frames), self.config.full_frame)
+            except CalibrationError:
+                return  # no plane in the frame: nothing to compare
+        cov = plane_covariance(fit.normal_covariance, fit.offset_sigma_m, fit.normal_offset_covariance)
+        try:
+            self.view_check.add(ViewSample(str(index + 1), flange, fit.plane.normal, fit.plane.offset_m, cov))
+        except CalibrationQualityError:
+            writer, self.journal_writer = self.journal_writer, None
+            if writer is not None and writer.saved:
+                remove_journal(writer.path)
+            raise
 
 
 def run_to_file(calibrator: Calibrator, out: str | Path, *, resume: bool = False) -> dict[str, Any]:

@@ -29,6 +29,7 @@ __all__ = [
     "fit_plane_ols",
     "fit_plane_robust",
     "fit_plane_tls",
+    "plane_covariance",
     "validate_points",
 ]
 
@@ -519,3 +520,19 @@ def fit_plane_robust(points: ArrayLike, threshold_m: float, *, max_iterations: i
     rng = np.random.default_rng(seed)
     plane = _ransac(p, threshold_m, max_iterations, confidence, rng, max_score_points)
     return _refit_inliers(p, plane, threshold_m, refine_iterations)
+
+
+def plane_covariance(normal_covariance: ArrayLike, offset_sigma_m: float, normal_offset_covariance: ArrayLike
+                     ) -> FloatArray:
+    """The 4x4 covariance of a plane observation (unit normal, offset) from a fit's parts.
+
+    Args:
+        normal_covariance: 3x3 covariance of the unit normal (tangent to the sphere).
+        offset_sigma_m: 1-sigma of the offset, m.
+        normal_offset_covariance: Their cross-covariance, shape (3,), m.
+    """
+    cov = np.zeros((4, 4))
+    cov[:3, :3] = normal_covariance                       # the normal's block
+    cov[3, 3] = offset_sigma_m ** 2                       # the offset's variance, m^2
+    cov[:3, 3] = cov[3, :3] = normal_offset_covariance    # their correlation
+    return cov

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.geometry.planes import Plane
+from cellcal.core.geometry.planes import Plane, plane_covariance
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 
@@ -148,22 +148,6 @@ def observation_from_pose(record: dict[str, object]) -> PlaneObservation:
                            np.asarray(ff.get("normal_offset_covariance", np.zeros(3)), dtype=np.float64))
     flange = Pose.from_dict(record["reported_flange_pose"])  # type: ignore[arg-type]
     return PlaneObservation(flange, np.asarray(plane["normal"], dtype=np.float64), float(plane["offset_m"]), cov)
-
-
-def plane_covariance(normal_covariance: FloatArray, offset_sigma_m: float, normal_offset_covariance: FloatArray
-                     ) -> FloatArray:
-    """The 4x4 covariance of a plane observation (unit normal, offset) from a fit's parts.
-
-    Args:
-        normal_covariance: 3x3 covariance of the unit normal (tangent to the sphere).
-        offset_sigma_m: 1-sigma of the offset, m.
-        normal_offset_covariance: Their cross-covariance, shape (3,), m.
-    """
-    cov = np.zeros((4, 4))
-    cov[:3, :3] = normal_covariance                       # the normal's block
-    cov[3, 3] = offset_sigma_m ** 2                       # the offset's variance, m^2
-    cov[:3, 3] = cov[3, :3] = normal_offset_covariance    # their correlation
-    return cov
 
 
 __all__ = ["MOUNT_ROTATION", "MOUNT_TRANSLATION", "PARAMETERS", "PLANE_OFFSET", "PLANE_TILT", "PlaneModel",

@@ -20,6 +20,7 @@ from typing import IO, Any
 import numpy as np
 
 from cellcal.core.calibration.config import CellConfig
+from cellcal.core.geometry.view_follows import ViewFollowsArm, ViewSample
 from cellcal.core.handeye.model import PlaneObservation, plane_covariance
 from cellcal.core.handeye.run import reference_plane
 from cellcal.core.methods.fullframe import FullFrameResult, check_gates, fit_full_frame
@@ -165,8 +166,11 @@ class TrackRun:
         self.now = now
         self.on_progress = on_progress
         self.decimation = decimation
-        self.tracker = Tracker(config.mount.pose(), reference_plane(config, "cellcal track"),
-                               settings or track_settings(config))
+        settings = settings or track_settings(config)
+        self.tracker = Tracker(config.mount.pose(), reference_plane(config, "cellcal track"), settings)
+        #: Whether the camera's view follows the arm's work, until a pair of frames decides it (ADR 0045).
+        self.view_check = ViewFollowsArm(config.mount.pose(), arm_translation_sigma_m=settings.arm_translation_sigma_m,
+                                         arm_rotation_sigma_rad=settings.arm_rotation_sigma_rad, what="frames at")
         self.history = PoseHistory()
         self.counters: collections.Counter[str] = collections.Counter()
         self._t0: float | None = None
@@ -223,7 +227,10 @@ class TrackRun:
             return self._skip(index, t_s, f"refused: gate {exc.gate}", flange=paired)
         except CalibrationError:
             return self._skip(index, t_s, "no plane", flange=paired)
-        step = self.tracker.update(t_s, observation(fit, paired))
+        seen = observation(fit, paired)
+        # a camera whose view does not follow the arm ends the run (CalibrationQualityError, view_follows_arm)
+        self.view_check.add(ViewSample(f"{t_s:.1f} s", paired, seen.normal, seen.offset_m, seen.covariance))
+        step = self.tracker.update(t_s, seen)
         outcome = "accepted" if step.accepted else "held out"
         self._row(frame_row(step, t_s, index=index, fit_ms=round((time.perf_counter() - started) * 1e3, 2)), outcome)
         if self.on_progress is not None:

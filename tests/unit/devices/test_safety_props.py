@@ -131,6 +131,8 @@ def test_nothing_outside_the_envelope_reaches_the_backend(scenario: tuple[dict[s
 
     inner = RecordingArm(start, error)
     camera = SimCamera(CAMERA_CONFIG, BackendContext(document={"sim": {}}))
+    # the camera rides on the recording arm (one that stays put is refused, gate view_follows_arm)
+    camera.fault_hook = lambda _event, _n: camera.world.arm.set_flange_pose(inner.pose)
     calibrator = Calibrator(config, camera, SafeArm(inner, config.safety_limits()))
     try:
         calibrator.run()
