@@ -43,8 +43,8 @@ def register(sub: Any) -> None:
                    help="print every move of the plan with its safety checks; connect and move nothing")
     p.add_argument("--strict", action="store_true",
                    help="fail the run (exit 1, result still written) when the poses' planes disagree in the base "
-                   "frame: cross-pose verdict 'inconsistent' or 'failed' (a camera that does not move with the arm, "
-                   "a wrong [mount])")
+                   "frame: cross-pose verdict 'inconsistent' or 'failed' (e.g. a wrong [mount]; a camera that does "
+                   "not move with the arm stops every run, gate view_follows_arm)")
     add_viz_port_option(p)
     p.add_argument("--replay", metavar="FILE.mcap", type=path_arg,
                    help="re-run a session recorded with 'cellcal record' from the file alone (its recorded "

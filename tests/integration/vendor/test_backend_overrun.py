@@ -56,7 +56,7 @@ min_standoff_m = 0.2
 heights_m = [0.46]
 inclination_deg = 80.0
 target_m = [0.3, 0.0, 0.0]
-perimeters_px = [20]
+perimeters_px = [10]  # the 32x24 image holds the P1-P9 grid up to 10 px
 capture_timeout_s = {timeout}
 """
 
@@ -144,7 +144,9 @@ def test_a_capture_that_never_returns_ends_the_run_naming_the_backend_and_the_ar
     assert str(error) == (f"camera backend '{backend}': capture(timeout={CAPTURE_TIMEOUT_S:g} s) did not return "
                           f"within {CAPTURE_TIMEOUT_S + GRACE_S:g} s (its timeout + {GRACE_S:g} s): the backend "
                           "does not honour its timeout")
-    assert CAPTURE_TIMEOUT_S + GRACE_S <= took < CAPTURE_TIMEOUT_S + GRACE_S + 1.0
+    # abandoned at its deadline: never before it; after it by less than 5 s even on a loaded machine (a capture
+    # that is waited for never returns)
+    assert CAPTURE_TIMEOUT_S + GRACE_S <= took < CAPTURE_TIMEOUT_S + GRACE_S + 5.0
     assert calibrator.arm.inner.stops == 1 and not calibrator.arm.connected and not calibrator.camera.connected
 
 
@@ -155,7 +157,7 @@ def test_off_the_main_thread_the_call_is_abandoned_in_time(tmp_path: Path) -> No
     runner.join(10.0)
     (error, took, calibrator), = outcome
     assert isinstance(error, BackendOverrunError) and "camera backend 'stuck-cam': capture" in str(error)
-    assert took < CAPTURE_TIMEOUT_S + GRACE_S + 1.0
+    assert took < CAPTURE_TIMEOUT_S + GRACE_S + 5.0  # room for a loaded machine; a capture waited for never returns
     assert calibrator.arm.inner.stops == 1
 
 
@@ -172,7 +174,7 @@ def test_the_monitor_ends_on_an_overrunning_camera(tmp_path: Path, capsys: pytes
     t0 = time.monotonic()
     code = main(["monitor", "--config", str(_cell(tmp_path, "stuck-cam")), "--duration", "20"])
     took = time.monotonic() - t0
-    assert code == 1 and took < 5.0                   # not the 20 s of --duration: the first capture ended it
+    assert code == 1 and took < 12.0                  # not the 20 s of --duration: the first capture ended it
     err = capsys.readouterr().err
     assert "camera backend 'stuck-cam'" in err and "capture(timeout=" in err and "does not honour its timeout" in err
 
