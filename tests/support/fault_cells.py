@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import re
 import signal
 import subprocess
 import sys
@@ -102,8 +103,9 @@ def interrupt() -> None:
 
 
 def leftovers(threads_before: set[threading.Thread], fds_before: set[tuple[str, str]],
-              settle_s: float = 1.0) -> tuple[list[threading.Thread], set[tuple[str, str]]]:
-    """Threads and descriptors opened since the snapshot and still open (after up to ``settle_s``)."""
+              settle_s: float = 30.0) -> tuple[list[threading.Thread], set[tuple[str, str]]]:
+    """Threads and descriptors opened since the snapshot and still open (after up to ``settle_s``: what ends
+    does so in milliseconds, later only on a loaded machine)."""
     deadline = time.monotonic() + settle_s
     while True:
         threads = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
@@ -216,9 +218,12 @@ class CellcalProcess:
         """Wait until ``text`` appears on stderr (True) or the process ends or time runs out (False)."""
         return self._wait_until(lambda err: text in err, timeout_s)
 
-    def wait_for_line(self, line: str, timeout_s: float = 60.0) -> bool:
+    def wait_for_line(self, line: str | re.Pattern[str], timeout_s: float = 60.0) -> bool:
         """Wait until ``line`` is a whole line of stderr, its newline written too (True), or the process ends or
-        time runs out (False)."""
+        time runs out (False). A pattern must match a whole line."""
+        if isinstance(line, re.Pattern):
+            pattern = line
+            return self._wait_until(lambda err: any(pattern.fullmatch(x) for x in err.split("\n")[:-1]), timeout_s)
         return self._wait_until(lambda err: f"\n{line}\n" in f"\n{err}", timeout_s)
 
     def wait_for_stdout_line(self, start: str, timeout_s: float = 60.0) -> bool:

@@ -8,8 +8,11 @@ code, and tests/integration/hostile/test_hostile_xarm.py its own fake.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import select
+import struct
+import termios
 import threading
 import tty
 from collections.abc import Callable
@@ -158,6 +161,10 @@ class ScriptedPeer:
     def send(self, data: bytes) -> None:
         """Write unsolicited bytes to the host."""
         os.write(self._master, data)
+
+    def pending_at_host(self) -> int:
+        """How many bytes wait to be read at the host's end of the line (a write reaches it a moment later)."""
+        return int(struct.unpack("i", fcntl.ioctl(self._slave, termios.FIONREAD, b"\0\0\0\0"))[0])
 
     def _serve(self) -> None:
         splitter = request_splitter()

@@ -3,6 +3,8 @@
 Each test starts the console script on the fast sim cell slowed down by a settle time
 at every pose, and acts on it at a known point of its run (a whole progress line on stderr
 says which pose it is at): Ctrl-C, a second run on the same output, a file size limit.
+The settle times leave a second or more between that line and the end of the run, for a
+loaded machine's delay in seeing the line and sending the signal.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def _one_line(err: str) -> str:
                          ids=["after-pose-1", "at-the-last-pose", "at-the-last-pose-keep-failed"])
 def test_interrupted_recording_is_finished_with_what_was_recorded(tmp_path: Path, after_poses: int,
                                                                   keep_failed: bool) -> None:
-    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=0.6))
+    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=1.0))  # 1 s after the last pose's line
     out = tmp_path / "rec" / "s.mcap"
     run = CellcalProcess(["record", "--config", str(config), "--out", str(out),
                           *(["--keep-failed"] if keep_failed else [])])
@@ -80,6 +82,7 @@ def test_interrupted_recording_is_finished_with_what_was_recorded(tmp_path: Path
 
 #: (what to wait for, seconds after it): main's call (the imports; the recorder may not
 #: exist yet), and every pose of the run (the devices are connected: the file must be kept).
+#: The run settles 1.5 s at each pose: 2/3 + 0.45 s still leaves a second before it ends.
 MOMENTS = [("main", 0.0), ("main", 0.02), ("main", 0.3), ("0/3", 0.0), ("0/3", 0.3), ("1/3", 0.0),
            ("1/3", 0.25), ("2/3", 0.1), ("2/3", 0.45)]
 
@@ -87,7 +90,7 @@ MOMENTS = [("main", 0.0), ("main", 0.02), ("main", 0.3), ("0/3", 0.0), ("0/3", 0
 @pytest.mark.parametrize(("moment", "delay"), MOMENTS, ids=[f"{m}+{d}s" for m, d in MOMENTS])
 def test_ctrl_c_at_any_moment_of_a_recording_leaves_no_file_or_a_valid_one(tmp_path: Path, moment: str,
                                                                            delay: float) -> None:
-    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=0.5))
+    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=1.5))
     out = tmp_path / "rec" / "s.mcap"
     run = CellcalProcess(["record", "--config", str(config), "--out", str(out)], announce=True)
     if moment == "main":
@@ -111,15 +114,21 @@ def test_ctrl_c_at_any_moment_of_a_recording_leaves_no_file_or_a_valid_one(tmp_p
 
 
 def test_a_second_run_on_the_same_output_is_refused_while_the_first_goes_on(tmp_path: Path) -> None:
-    # 2.5 s per pose: the second process's start-up (up to 2 s on a loaded machine) ends long before the first run
-    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=2.5))
+    # the first run is stopped (SIGSTOP) at its second pose while the second one starts, however long that
+    # takes on a loaded machine, and continued afterwards; 1 s per pose leaves 2 s to stop it in, and timeouts
+    # of a minute let a move or capture go on after the stop (the fast cell's end one at a second's pause)
+    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=1.0, plan={"move_timeout_s": 60.0,
+                                                                                      "capture_timeout_s": 60.0}))
     out = tmp_path / "out"
     first = CellcalProcess(["calibrate", "--config", str(config), "--out", str(out), "--no-report"])
     assert first.wait_for_line(AT_POSE[f"1/{N_POSES}"]), first.stderr_so_far()  # running, one pose in its journal
-    assert (out / LOCK_NAME).read_text() == f"{first.pid}\n"
-    second = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(out)])
-    code, text, err = second.finish()
-    assert first.proc.poll() is None, "the first run ended before the second one tried"
+    first.proc.send_signal(signal.SIGSTOP)
+    try:
+        assert first.proc.poll() is None, "the first run ended before it was held"
+        assert (out / LOCK_NAME).read_text() == f"{first.pid}\n"
+        code, text, err = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(out)]).finish()
+    finally:
+        first.proc.send_signal(signal.SIGCONT)
     assert code == 1 and text == ""
     assert err == (f"cellcal: error: {out} is in use by another cellcal run (pid {first.pid}); wait for it to end "
                    f"or write elsewhere (lock file {out / LOCK_NAME})\n")
@@ -132,8 +141,12 @@ def test_a_second_run_on_the_same_output_is_refused_while_the_first_goes_on(tmp_
     rec = tmp_path / "s.mcap"
     first = CellcalProcess(["record", "--config", str(config), "--out", str(rec)])
     assert first.wait_for_line(AT_POSE[f"1/{N_POSES}"]), first.stderr_so_far()
-    code, _text, err = CellcalProcess(["record", "--config", str(config), "--out", str(rec)]).finish()
-    assert first.proc.poll() is None, "the first recording ended before the second one tried"
+    first.proc.send_signal(signal.SIGSTOP)
+    try:
+        assert first.proc.poll() is None, "the first recording ended before it was held"
+        code, _text, err = CellcalProcess(["record", "--config", str(config), "--out", str(rec)]).finish()
+    finally:
+        first.proc.send_signal(signal.SIGCONT)
     assert code == 1 and f"{rec} is in use by another cellcal run (pid {first.pid})" in err
     assert first.finish()[0] == 0 and read_recording(rec).result["ok"]
 

@@ -54,7 +54,10 @@ def test_a_calibration_streams_points_plane_and_frames_to_a_websocket_client() -
             assert {t: (c["schemaName"], c["encoding"]) for t, c in client.seen.channels.items()} == {
                 t: (SCHEMAS[t], "json") for t in SCENE_TOPICS}
             client.subscribe_all()
-            time.sleep(0.3)  # the server registers the subscription
+            deadline = time.monotonic() + 60
+            while view.subscriptions < len(client.seen.channels):  # the server registers each subscription
+                assert time.monotonic() < deadline, view.subscriptions
+                time.sleep(0.01)
             document = Calibrator(config, camera, arm, observer=view.observe_pose(config.mount.pose())).run()
             n = len(document["poses"])
             seen = client.collect(SCENE_TOPICS, count=n)

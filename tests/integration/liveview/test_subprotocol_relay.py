@@ -96,17 +96,21 @@ def test_a_client_that_never_reads_holds_at_most_the_relays_bound_and_does_not_s
         channels = json.loads(ws.recv(timeout=10))["channels"]
         ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": c["id"], "channelId": c["id"]}
                                                                  for c in channels]}))
-        deadline = time.monotonic() + 30
-        while not view.has_subscribers():
-            assert time.monotonic() < deadline
+        deadline = time.monotonic() + 60
+        while view.subscriptions < len(channels):  # the server registers each subscription
+            assert time.monotonic() < deadline, view.subscriptions
             time.sleep(0.01)
         document = Calibrator(config, camera, arm, observer=view.observe_pose(config.mount.pose())).run()
         points = view.message_counts["/camera/points"]
         assert points == len(document["poses"]) == 3  # every scene published, none waited for the client
         for _ in range(10):
             view.republish()
-        time.sleep(0.5)
         (pair,) = {id(p): p for p in relay._pairs.values()}.values()
+        deadline = time.monotonic() + 60
+        while len(pair.to_client) < MAX_BUFFER_BYTES:  # the relay thread reads from the SDK until its bound
+            assert time.monotonic() < deadline, len(pair.to_client)
+            time.sleep(0.01)
+        time.sleep(0.3)  # a relay that read past its bound would do so now
         assert pair.stage == "open" and pair.legacy
         # each cloud is n_points x 16 bytes: more than the bound was sent toward the client ...
         assert view.message_counts["/camera/points"] == 13

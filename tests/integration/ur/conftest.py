@@ -33,7 +33,7 @@ def emu(emulator_process: UREmulatorProcess) -> UREmulatorProcess:
     emulator_process.call("reset")
     emulator_process.call("set_time_scale", time_scale=TIME_SCALE)
     emulator_process.call("set_unlock_delay", delay_s=0.0)
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + 60.0
     while emulator_process.snapshot()["moving"] and time.monotonic() < deadline:
         time.sleep(0.01)
     emulator_process.call("set_flange_pose", pose=[float(v) for v in pose_to_ur(HOME)])
@@ -46,7 +46,7 @@ def no_leaks() -> Iterator[None]:
     threads = set(threading.enumerate())
     fds = open_fds()
     yield
-    deadline = time.monotonic() + 3.0
+    deadline = time.monotonic() + 30.0
     extra = [t for t in threading.enumerate() if t not in threads]
     for t in extra:
         t.join(max(0.0, deadline - time.monotonic()))

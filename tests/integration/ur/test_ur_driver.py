@@ -8,14 +8,13 @@ close costs a second.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 import pytest
-from ur_rig import HOME, wait_until
+from ur_rig import HOME, once_moving, wait_until
 
 from cellcal.devices.errors import (
     DeviceConnectionError,
@@ -54,13 +53,6 @@ def make_arm(emu: UREmulatorProcess) -> Iterator[Callable[..., URArm]]:
     yield make
     for arm in made:
         arm.close()
-
-
-def later(delay_s: float, fn: Callable[[], object]) -> threading.Thread:
-    """Run ``fn`` after ``delay_s`` in a thread (a fault that lands while the driver waits)."""
-    thread = threading.Thread(target=lambda: (time.sleep(delay_s), fn()), name="fault-injector")
-    thread.start()
-    return thread
 
 
 def commands(emu: UREmulatorProcess, command_id: int) -> int:
@@ -173,7 +165,7 @@ def test_frozen_receive_streams(emu: UREmulatorProcess, make_arm: Callable[..., 
         # frozen for every new connection too, in the middle of a move: the move ends stopped
         emu.call("set_time_scale", time_scale=1.0)
         stops = commands(emu, 33)
-        injector = later(0.2, lambda: emu.call("freeze_stream", target="receive", new_sessions=True))
+        injector = once_moving(emu, lambda: emu.call("freeze_stream", target="receive", new_sessions=True))
         t0 = time.monotonic()
         with pytest.raises(MotionError, match=r"contact lost during moveL.*the arm was told to stop"):
             arm.move_linear(shifted(HOME, dy=0.2), speed=0.1, acceleration=1.0, timeout=MOVE_TIMEOUT_S)
@@ -193,7 +185,7 @@ def test_a_dropped_connection_ends_the_move_and_releases_everything(emu: UREmula
     emu.call("set_time_scale", time_scale=1.0)
     arm = make_arm()
     arm.connect()
-    injector = later(0.2, lambda: emu.call("drop_connections", refuse_s=-1.0))  # the controller goes away
+    injector = once_moving(emu, lambda: emu.call("drop_connections", refuse_s=-1.0))  # the controller goes away
     t0 = time.monotonic()
     with pytest.raises(MotionError, match="contact lost during moveL"):
         arm.move_linear(shifted(HOME, dy=-0.2), speed=0.1, acceleration=1.0, timeout=MOVE_TIMEOUT_S)

@@ -140,7 +140,7 @@ def test_lost_reply_to_a_move_is_never_resent_and_the_arm_is_stopped(leak_check:
         took = time.monotonic() - t0
         assert emu.requests[Reg.MOVE_LINE] == 1  # the command went out once
         assert "stopped" in str(err.value) and not sim.is_moving()
-        assert took < drv.config.reply_timeout_s + drv.config.stop_timeout_s + 0.5
+        assert took < drv.config.reply_timeout_s + drv.config.stop_timeout_s + 2.0  # 2 s for a busy machine
     finally:
         _close(made)
 
@@ -206,8 +206,8 @@ def test_report_garbage_is_a_typed_error_and_the_registers_take_over(fault: str,
     seen = stream.latest().seq if stream.latest() is not None else 0  # type: ignore[union-attr]
     t0 = time.monotonic()
     with pytest.raises(ProtocolError, match="report"):
-        stream.wait_newer(seen, time.monotonic() + 1.0)
-    assert time.monotonic() - t0 < 1.5
+        stream.wait_newer(seen, time.monotonic() + 1.0)  # the stream's error once the deadline passes
+    assert time.monotonic() - t0 < 1.0 + 2.0  # the deadline (with room for a busy machine), not a hang
     assert stream.stats["bad_reports"] >= 1 and drv.latest_report() is None
     target = _down(0.30, 0.05, 0.38)
     drv.move_linear(target, speed=0.3, acceleration=2.0)  # state polled over the control port instead
@@ -228,7 +228,7 @@ def test_report_port_that_never_answers_times_out_as_typed_error(leak_check: Non
         with pytest.raises(Exception) as err:
             stream.wait_newer(0, time.monotonic() + 0.6)
         assert type(err.value).__name__ in ("DeviceTimeoutError", "DeviceConnectionError")
-        assert time.monotonic() - t0 < 1.0
+        assert time.monotonic() - t0 < 0.6 + 2.0  # the deadline (with room for a busy machine), not a hang
     finally:
         stream.close()
         silent.close()

@@ -79,8 +79,8 @@ def test_an_overrunning_call_is_a_timeout_and_its_late_reply_is_discarded(host: 
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeoutError, match=r"^test 127.0.0.1: sleep in the library \(sleep\) did not finish"), \
             host.deadline(0.3, "sleep in the library"):
-        remote_time.sleep(1.0)
-    assert time.monotonic() - t0 < 0.6
+        remote_time.sleep(2.0)
+    assert time.monotonic() - t0 < 1.5                     # the deadline, not the 2 s sleep (room for a busy machine)
     # the worker finishes the sleep, then answers the next call: its late reply is skipped, not taken for this one
     assert host.module("operator").add(2, 3) == 5
     assert host.module("operator").mul(4, 5) == 20
@@ -125,7 +125,7 @@ def test_a_reply_over_the_bound_is_refused_and_the_worker_stopped(host: NativeHo
     with pytest.raises(DeviceConnectionError, match="worker sent an unreadable reply to mul"):
         host.module("operator").mul("x", MAX_MESSAGE_BYTES + 10)
     assert host.pid is not None
-    deadline = time.monotonic() + 2.0
+    deadline = time.monotonic() + 60.0
     while _alive(host.pid) and time.monotonic() < deadline:
         os.waitpid(host.pid, os.WNOHANG)
         time.sleep(0.02)
@@ -139,7 +139,7 @@ def test_close_ends_a_worker_stuck_in_a_call(host: NativeHost) -> None:
         host.module("time").sleep(60)
     t0 = time.monotonic()
     host.close(0.5)
-    assert time.monotonic() - t0 < 2.0 and not _alive(pid)
+    assert time.monotonic() - t0 < 10.0 and not _alive(pid)  # not the 60 s of its sleep
 
 
 def test_dropped_objects_are_disconnected_on_the_reaper_not_the_main_thread(host: NativeHost) -> None:
@@ -156,7 +156,7 @@ def test_the_libraries_own_output_goes_to_the_debug_log(host: NativeHost, caplog
     with caplog.at_level(logging.DEBUG, logger="cellcal.devices.isolation.host"):
         os_ = host.module("os")
         os_.write(1, b"connect: Connection refused\n")    # as ur_rtde's std::cout does
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + 60.0
         while not caplog.records and time.monotonic() < deadline:
             time.sleep(0.01)
     assert [r.getMessage() for r in caplog.records] == ["test 127.0.0.1: libtest: connect: Connection refused"]

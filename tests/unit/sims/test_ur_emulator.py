@@ -112,7 +112,7 @@ def turned_away(port: int) -> bool:
 def upload(emu: UREmulator, text: str = SCRIPT) -> None:
     with socket.create_connection(("127.0.0.1", emu.ports[1]), timeout=2.0) as sock:
         sock.sendall(text.encode())
-        deadline = time.monotonic() + 2.0
+        deadline = time.monotonic() + 60.0
         while emu.role.programs_received == 0 and time.monotonic() < deadline:
             time.sleep(0.005)
 

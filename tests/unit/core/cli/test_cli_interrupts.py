@@ -29,7 +29,8 @@ def test_ctrl_c_at_any_moment_of_a_run_is_one_line_and_status_130(tmp_path: Path
     """From main's first line on. Before it lies Python's own start-up (the interpreter, ``site``,
     ``import cellcal.core``: ADR 0008, "Interrupts"); the process announces the call so the
     clock starts there, however slow the start-up on a loaded machine."""
-    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=0.5))
+    # 3 x 2 s of settling: the run goes on for seconds after the last delay (its Ctrl-C ends it early)
+    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=2.0))
     for i, delay in enumerate(DELAYS_S):
         run = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(tmp_path / f"out{i}")],
                              announce=True)
@@ -61,14 +62,14 @@ def test_ctrl_c_pressed_three_times_is_still_130(tmp_path: Path, gap_s: float) -
 
 def test_an_ignored_sigint_stays_ignored(tmp_path: Path) -> None:
     """A background job started with SIGINT ignored is not made interruptible by cellcal."""
-    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=0.3))
-    run = CellcalProcess(["calibrate", "--quiet", "--config", str(config), "--out", str(tmp_path / "out")],
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN), announce=True)
-    run.wait_ready()
-    time.sleep(0.5)
+    config = write_toml(tmp_path / "slow.toml", slow_cell_document(settle_s=0.5))
+    run = CellcalProcess(["calibrate", "--no-report", "--config", str(config), "--out", str(tmp_path / "out")],
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    assert run.wait_for_line("pose 1/3 done"), run.stderr_so_far()  # the devices connected, 2 poses to go
     run.interrupt()
     code, out, err = run.finish()
     assert code == 0, err
+    assert "interrupted" not in err and err.endswith("pose 3/3 done\n"), err
     assert "result written to" in out and (tmp_path / "out" / "result.json").exists()
 
 

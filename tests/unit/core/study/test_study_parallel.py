@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 from pathlib import Path
@@ -82,7 +83,8 @@ def test_ctrl_c_during_a_parallel_study_is_130_and_leaves_no_worker(tmp_path: Pa
         time.sleep(0.05)
         workers = _children(run.pid)
     assert len(workers) == 2, f"workers never started: {run.stderr_so_far()!r}"
-    time.sleep(0.5)  # trials under way in both workers
+    # trials under way: the first progress line of a finished trial (hundreds of trials remain)
+    assert run.wait_for_line(re.compile(r"trial \d+/\d+ done"), timeout_s=120.0), run.stderr_so_far()
     os.killpg(run.pid, signal.SIGINT)
     code, _out, err = run.finish(timeout_s=60.0)
     assert code == EXIT_INTERRUPTED, err

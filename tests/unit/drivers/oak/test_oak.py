@@ -385,7 +385,7 @@ def test_depth_without_its_image_times_out_bounded(camera: OakCamera, oak: FakeO
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeoutError, match=r"no depth \+ image pair within 0\.2 s"):
         camera.capture(timeout=0.2)
-    assert 0.15 < time.monotonic() - t0 < 1.0
+    assert 0.15 < time.monotonic() - t0 < 3.0  # its 0.2 s (with room for a busy machine)
 
 
 def test_colour_image_captured_too_far_apart_is_refused(camera: OakCamera, oak: FakeOak) -> None:

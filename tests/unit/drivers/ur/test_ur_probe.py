@@ -37,7 +37,7 @@ def test_a_silent_stream_is_a_timeout_within_the_time_given(emulator: UREmulator
     t0 = time.monotonic()
     with pytest.raises(DeviceTimeoutError, match=r"sent no data within 0\.3 s"):
         probe_stream("127.0.0.1", 0.3, port=emulator.ports[0])
-    assert 0.3 <= time.monotonic() - t0 < 1.3
+    assert 0.3 <= time.monotonic() - t0 < 3.0                 # the time given (with room for a busy machine)
 
 
 def test_no_listener_is_a_connection_error(emulator: UREmulator) -> None:

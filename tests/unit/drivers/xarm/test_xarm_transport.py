@@ -110,8 +110,12 @@ def test_two_replies_to_one_request_confirm_nothing(link: Callable[..., tuple[Sc
 def test_stray_bytes_before_a_request_are_flushed_first(link: Callable[..., tuple[
         ScriptedPeer, SerialTransport]]) -> None:
     peer, transport = link(lambda r: encode_reply(0, b"\x02"))
-    peer.send(encode_reply(0))  # a late reply to something before: it must not answer the next request
-    time.sleep(0.05)
+    stray = encode_reply(0)
+    peer.send(stray)  # a late reply to something before: it must not answer the next request
+    deadline = time.monotonic() + 60.0
+    while peer.pending_at_host() < len(stray):  # the pty hands it on a moment later
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
     assert transport.transact(Reg.GET_STATE, expect_len=1).data == b"\x02"
     assert transport.stats["stale_bytes"] == 6 and transport.stats["resyncs"] == 1 and transport.stats["retries"] == 0
 
