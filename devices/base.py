@@ -117,11 +117,17 @@ class Device(ABC):
         """Whether the device is connected and usable."""
         return self._connected
 
+    @property
+    def connect_timeout_s(self) -> float:
+        """Seconds a caller should give :meth:`connect`: :attr:`default_timeout_s`, more for a backend that
+        first starts what it talks to (an emulator process)."""
+        return float(self.default_timeout_s)
+
     def connect(self, timeout: float | None = None) -> Self:
         """Connect to the device; a no-op when already connected.
 
         Args:
-            timeout: Seconds to wait for the device; None uses :attr:`default_timeout_s`.
+            timeout: Seconds to wait for the device; None uses :attr:`connect_timeout_s`.
 
         Returns:
             The device itself, so ``cam = Backend(...).connect()`` reads naturally.
@@ -132,7 +138,7 @@ class Device(ABC):
         """
         with self._lifecycle_lock:
             if not self._connected:
-                t = self._resolve_timeout(timeout)
+                t = self.connect_timeout_s if timeout is None else self._resolve_timeout(timeout)
                 try:
                     self._connect(t)
                 except BaseException:

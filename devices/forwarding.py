@@ -39,6 +39,11 @@ class ForwardingDevice(Device, Generic[D]):
         self.backend_name = inner.backend_name  # type: ignore[misc]
         self.default_timeout_s = inner.default_timeout_s
 
+    @property
+    def connect_timeout_s(self) -> float:
+        """The wrapped device's (it may start an emulator first)."""
+        return self.inner.connect_timeout_s
+
     def _connect(self, timeout: float) -> None:
         self.inner.connect(timeout)
 

@@ -9,6 +9,7 @@ it. What differs per vendor is only how the emulator runs and what it needs.
 from __future__ import annotations
 
 import dataclasses
+import time
 from abc import abstractmethod
 from collections.abc import Callable, Mapping
 from typing import Any, get_type_hints
@@ -18,7 +19,7 @@ from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
-from cellcal.devices.errors import NotConnectedError
+from cellcal.devices.errors import DeviceTimeoutError, NotConnectedError
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.devices.types import ArmStatus, DeviceInfo
@@ -109,13 +110,27 @@ class EmulatedArm(RobotArm):
     def _after_motion(self) -> None:
         """Called after every move and stop, successful or not."""
 
+    def _start_allowance_s(self) -> float:
+        """Seconds starting the emulator may take (0: it starts at once)."""
+        return 0.0
+
     # ------------------------------------------------------------------ the shell
+    @property
+    def connect_timeout_s(self) -> float:
+        """Starting the emulator's allowance plus the driver's connect timeout, s."""
+        return self._start_allowance_s() + float(self.default_timeout_s)
+
     def _connect(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout  # the emulator's start and the driver's connect share it
         section = {"backend": self.driver_backend, **self._start_emulator(timeout)}
         self.driver = default_registry().create_arm(section, self.context)
         self.driver.default_motion_timeout_s = self.default_motion_timeout_s
         self._configure_driver(self.driver)
-        self.driver.connect(timeout)
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise DeviceTimeoutError(f"arm backend '{self.backend_name}': its emulator took the whole connect "
+                                     f"timeout of {timeout:g} s to start")
+        self.driver.connect(remaining)
 
     def _configure_driver(self, driver: RobotArm) -> None:
         """Settings passed on to the driver before it connects (none by default)."""

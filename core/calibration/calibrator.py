@@ -352,7 +352,7 @@ class Calibrator:
         """Connect ``device`` under its guard; ``stack`` closes it (bounded) when it unwinds."""
         guard = self.guards[kind]
         stack.callback(self._close, guard, device)
-        t = device.default_timeout_s
+        t = device.connect_timeout_s  # an emulated arm's includes starting its emulator process
         guard.call(lambda: device.connect(t), t, f"connect(timeout={t:g} s)")
 
     @staticmethod

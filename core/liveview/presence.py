@@ -13,6 +13,10 @@ __all__ = ["POLL_S", "linger", "live_view_session", "wait_for_viewer"]
 
 #: How often the waits look at the server's subscriptions, s.
 POLL_S = 0.05
+#: A viewer's subscriptions count as complete after this long without a new one, s (or when every channel has one).
+SETTLE_S = 0.5
+#: Longest wait for a viewer's subscriptions to settle, s.
+MAX_SETTLE_S = 5.0
 
 
 def _say(text: str) -> None:
@@ -36,8 +40,23 @@ def wait_for_viewer(view: LiveView, timeout_s: float) -> bool:
             _say(f"no viewer after {timeout_s:g} s; starting without one")
             return False
         time.sleep(min(POLL_S, left))
+    _settle(view)
     _say("a viewer subscribed; starting")
     return True
+
+
+def _settle(view: LiveView) -> None:
+    """Let a viewer finish subscribing: until every channel is subscribed, or no new subscription came for
+    :data:`SETTLE_S`, at most :data:`MAX_SETTLE_S` (a viewer subscribes channel by channel; the run's first
+    scenes must not go out between its first subscription and its last)."""
+    settle_end = time.monotonic() + MAX_SETTLE_S
+    count, quiet_since = view.subscriptions, time.monotonic()
+    while not view.all_subscribed() and time.monotonic() < settle_end:
+        if view.subscriptions != count:
+            count, quiet_since = view.subscriptions, time.monotonic()
+        elif time.monotonic() - quiet_since >= SETTLE_S:
+            return
+        time.sleep(POLL_S)
 
 
 def linger(view: LiveView, seconds: float) -> None:

@@ -141,6 +141,10 @@ class LiveView:
         """Whether a client is subscribed to any channel now."""
         return any(channel.has_sinks() for channel in self._channels.values())
 
+    def all_subscribed(self) -> bool:
+        """Whether every channel has a subscribed client now."""
+        return all(channel.has_sinks() for channel in self._channels.values())
+
     def republish(self) -> None:
         """Publish again the last scene of each camera (for clients that subscribed after it was published)."""
         for scene in list(self._last.values()):

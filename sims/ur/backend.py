@@ -71,6 +71,10 @@ class EmulatedURArm(EmulatedArm):
         """The emulator's address ("" when not connected)."""
         return self.emulator.host if self.emulator is not None else ""
 
+    def _start_allowance_s(self) -> float:
+        """The emulator process's start allowance (``start_timeout_s``)."""
+        return float(self.config.start_timeout_s)
+
     def _start_emulator(self, timeout: float) -> dict[str, Any]:
         cfg = self.config
         emulator = UREmulatorProcess(
@@ -78,7 +82,7 @@ class EmulatedURArm(EmulatedArm):
             flange_pose=[float(v) for v in pose_to_ur(self.world.arm.flange_pose())],
             unlock_delay_s=cfg.unlock_delay_s, seed=self.world.seed)
         self.emulator = emulator
-        emulator.start(cfg.start_timeout_s)
+        emulator.start(min(cfg.start_timeout_s, timeout))  # within the connect's timeout
         self._sim_elapsed = 0.0
         if self.on_emulator_started is not None:
             self.on_emulator_started(emulator)

@@ -68,3 +68,18 @@ def test_the_backend_shares_the_sim_world_and_ends_its_emulator() -> None:
     while emulator.running and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not emulator.running
+
+
+def test_a_slow_emulator_start_is_within_the_connect_the_calibrator_allows(tmp_path: Path) -> None:
+    """On a loaded machine the emulator process takes seconds to start: the calibrator's connect allows its
+    start_timeout_s on top of the driver's timeout (it gave 2 s + 2 s grace, and abandoned the connect)."""
+    config = load_config(CONFIGS / "ur_emulated.toml")
+    camera, arm = build_devices(config)
+    inner = arm.inner
+    assert isinstance(inner, EmulatedURArm)
+    assert arm.connect_timeout_s == inner.config.start_timeout_s + inner.default_timeout_s  # through SafeArm
+    inner.on_emulator_started = lambda _emulator: time.sleep(inner.default_timeout_s + 3.0)  # a start beyond 4 s
+    calibrator = Calibrator(config, camera, arm)
+    t0 = time.monotonic()
+    result = calibrator.run()
+    assert time.monotonic() - t0 > inner.default_timeout_s + 3.0 and len(result["poses"]) == 3
