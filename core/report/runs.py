@@ -14,7 +14,6 @@ import shlex
 import signal
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,6 +22,7 @@ from typing import Any
 from cellcal.core.console import Interrupted, say
 from cellcal.core.report.render import REPORT_DATA_FILENAME, REPORT_HTML_FILENAME, new_report_data, write_report_data
 from cellcal.core.report.text import SummaryText
+from cellcal.devices.interrupts import interrupts_held
 
 __all__ = ["DRAW_TIMEOUT_S", "STOP_GRACE_S", "CalibrationReport", "RunReport", "camera_name", "draw_command",
            "draw_in_child"]
@@ -49,7 +49,7 @@ def draw_in_child(out_dir: str | Path, timeout_s: float = DRAW_TIMEOUT_S) -> tup
     """
     proc = None
     try:
-        with _ctrl_c_held():  # a Ctrl-C while the child starts comes once it is known (to be stopped)
+        with interrupts_held():  # a Ctrl-C while the child starts comes once it is known (to be stopped)
             proc = subprocess.Popen(draw_command(out_dir), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                     stderr=subprocess.PIPE, text=True, start_new_session=_OWN_GROUP)
         _, err = proc.communicate(timeout=timeout_s)
@@ -67,27 +67,6 @@ def draw_in_child(out_dir: str | Path, timeout_s: float = DRAW_TIMEOUT_S) -> tup
     if proc.returncode != 0:
         return None, f"report not drawn: {lines[-1] if lines else f'exit status {proc.returncode}'}"
     return Path(out_dir) / REPORT_HTML_FILENAME, lines[-1] if lines else ""
-
-
-@contextmanager
-def _ctrl_c_held() -> Iterator[None]:
-    """Ctrl-C inside the block is handed to the SIGINT handler when the block ends, not where it lands.
-
-    Only in the main thread, where Python runs signal handlers, and only for a handler set
-    from Python (cellcal's, or Python's own KeyboardInterrupt); otherwise nothing is held.
-    """
-    previous = signal.getsignal(signal.SIGINT)
-    if not callable(previous) or threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    pressed: list[Any] = []
-    signal.signal(signal.SIGINT, lambda _signum, frame: pressed.append(frame))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        if pressed:
-            previous(signal.SIGINT, pressed[0])
 
 
 def _stop(proc: subprocess.Popen[str], first: signal.Signals) -> None:

@@ -5,11 +5,10 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
@@ -17,6 +16,7 @@ from typing import Any, Self
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CellcalError, RecordingError, RecordingWriteError
+from cellcal.devices.interrupts import interrupts_held
 from cellcal.devices.version import cellcal_version
 
 from .codec import dumps, encode_error, seconds_to_ns
@@ -153,7 +153,7 @@ class SessionRecorder:
             numbered = "event" in SCHEMAS.get(CHANNELS.get(topic, ""), {}).get("properties", {})
             data = dumps({**payload, "event": seq} if numbered else payload)
             try:
-                with _interrupts_held():
+                with interrupts_held():
                     self._writer.add_message(channel_id=self._channels[topic], log_time=now, data=data,
                                              publish_time=publish, sequence=seq)
                     self.message_counts[topic] = self.message_counts.get(topic, 0) + 1
@@ -172,7 +172,7 @@ class SessionRecorder:
         """
         with self._lock:
             if self._tmp is not None and TOPIC_POINTS not in self._channels:
-                with _interrupts_held():
+                with interrupts_held():
                     for topic, name in SCENE_CHANNELS.items():
                         schema_id = self._writer.register_schema(
                             name=name, encoding="jsonschema", data=json.dumps(SCENE_SCHEMAS[name]).encode("utf-8"))
@@ -204,7 +204,7 @@ class SessionRecorder:
             if self._tmp is None:
                 return self.path
             try:
-                with _interrupts_held():
+                with interrupts_held():
                     self._writer.finish()
                     self._fh.flush()
                     os.fsync(self._fh.fileno())
@@ -265,26 +265,3 @@ class SessionRecorder:
         except Exception as exc:  # reported through finish_error: the Ctrl-C goes on regardless
             self.finish_error = exc
             self.abort()
-
-
-@contextlib.contextmanager
-def _interrupts_held() -> Iterator[None]:
-    """Hold back Ctrl-C (SIGINT) while the MCAP writer changes state, and deliver it right after.
-
-    A KeyboardInterrupt raised half-way through a record would leave the writer's
-    chunk and index state torn, and the file unreadable. Python runs signal handlers
-    in the main thread only, so elsewhere there is nothing to hold back; a handler
-    installed outside Python cannot be restored, so it is left alone.
-    """
-    previous = signal.getsignal(signal.SIGINT) if threading.current_thread() is threading.main_thread() else None
-    if previous is None:
-        yield
-        return
-    held: list[int] = []
-    signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        if held:
-            signal.raise_signal(signal.SIGINT)  # now, to the handler it was meant for
