@@ -30,6 +30,7 @@ __all__ = [
     "fit_plane_robust",
     "fit_plane_tls",
     "plane_covariance",
+    "tangent_basis",
     "validate_points",
 ]
 
@@ -536,3 +537,12 @@ def plane_covariance(normal_covariance: ArrayLike, offset_sigma_m: float, normal
     cov[3, 3] = offset_sigma_m ** 2                       # the offset's variance, m^2
     cov[:3, 3] = cov[3, :3] = normal_offset_covariance    # their correlation
     return cov
+
+
+def tangent_basis(normal: FloatArray) -> FloatArray:
+    """Two orthonormal vectors across ``normal`` (3x2; columns), the first as close to x as possible."""
+    n = normal / np.linalg.norm(normal)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = ref - (ref @ n) * n  # the reference axis made perpendicular to the normal
+    a /= np.linalg.norm(a)
+    return np.column_stack([a, np.cross(n, a)])

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.core.geometry.planes import tangent_basis
 from cellcal.devices.errors import CalibrationQualityError
 from cellcal.devices.pose import Pose
 
@@ -115,14 +116,6 @@ class ViewChange:
         return self.decisive and self.fraction <= MAX_STATIC_FRACTION
 
 
-def _tangent_basis(n: FloatArray) -> FloatArray:
-    """Two orthonormal vectors across the unit vector ``n`` (3x2, columns)."""
-    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    a = ref - (ref @ n) * n
-    a /= np.linalg.norm(a)
-    return np.column_stack([a, np.cross(n, a)])
-
-
 def _angle(a: FloatArray, b: FloatArray) -> float:
     """Angle between two vectors, rad (exact for small angles too)."""
     return float(math.atan2(np.linalg.norm(np.cross(a, b)), float(a @ b)))
@@ -175,7 +168,7 @@ def view_change(a: ViewSample, b: ViewSample, mount: Pose, *, arm_translation_si
     motion = (a.flange @ mount).inv() @ (b.flange @ mount)  # camera b in camera a's frame
     n_pred = motion.rotation_matrix.T @ n_a
     shift_pred = float(n_a @ motion.translation)
-    sigma_turn, sigma_shift = _sigmas(a, b, _tangent_basis(n_a), arm_translation_sigma_m, arm_rotation_sigma_rad,
+    sigma_turn, sigma_shift = _sigmas(a, b, tangent_basis(n_a), arm_translation_sigma_m, arm_rotation_sigma_rad,
                                       float(np.linalg.norm(mount.translation)))
     turn_pred = _angle(n_a, n_pred)
     least_turn, least_shift = _least_change(a, b, mount, n_a)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.geometry.planes import Plane, plane_covariance
+from cellcal.core.geometry.planes import Plane, plane_covariance, tangent_basis
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 
@@ -48,15 +48,6 @@ class PlaneObservation:
     normal: FloatArray
     offset_m: float
     covariance: FloatArray
-
-
-def tangent_basis(normal: FloatArray) -> FloatArray:
-    """Two orthonormal vectors across ``normal`` (3x2; columns), the first as close to x as possible."""
-    n = normal / np.linalg.norm(normal)
-    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    a = ref - (ref @ n) * n  # the reference axis made perpendicular to the normal
-    a /= np.linalg.norm(a)
-    return np.column_stack([a, np.cross(n, a)])
 
 
 @dataclass(frozen=True)
