@@ -510,8 +510,8 @@ class Calibrator:
             CalibrationQualityError: Gate ``view_follows_arm``; the resume journal is dropped (poses of a
                 camera that is not on the arm are no start for a run on the corrected rig).
         """
-        if self.view_check is None:
-            return
+        if self.view_check is None or self.view_check.decided is not None:
+            return  # decided at an earlier pose: no plane to fit for it
         if fit is None:
             try:
                 fit = fit_full_frame(list(frames), self.config.full_frame)
