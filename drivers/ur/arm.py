@@ -283,9 +283,10 @@ class URArm(RobotArm):
         """Poll until the asynchronous moveL ``before`` was followed by has finished at ``pose``."""
         seen = False
         while True:
-            try:
+            try:  # the link may go at any of these reads: each is the same contact lost during the move
                 receive = self._fresh_receive(deadline)
                 self._require_control_link("moveL")
+                status = self._async_status()
             except NativeCrashError:
                 raise  # the worker told the arm to stop on its way out; its message says so
             except (DeviceConnectionError, DeviceTimeoutError, ProtocolError) as exc:
@@ -293,7 +294,6 @@ class URArm(RobotArm):
                                   f"{self._stop_quietly()}") from None
             if self._not_ready_reason(receive):
                 self._raise_failure("moveL")
-            status = self._async_status()
             running = bool(status.isAsyncOperationRunning())
             seen = seen or running or int(status.operationId()) != before
             if seen and not running:

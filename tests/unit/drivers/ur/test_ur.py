@@ -34,6 +34,7 @@ from cellcal.devices.errors import (
     DeviceConnectionError,
     DeviceTimeoutError,
     MissingDependencyError,
+    MotionError,
     ProtocolError,
     SafetyError,
     VendorError,
@@ -340,6 +341,23 @@ def test_no_command_on_a_control_link_that_reports_itself_down(robot: URArm, ctl
     with pytest.raises(DeviceConnectionError, match="control connection is lost"):
         robot.stop()
     assert ctl.moves == [] and ctl.stops == []
+
+
+def test_a_control_link_lost_at_the_status_read_of_a_move_is_contact_lost_and_never_a_second_move(
+        robot: URArm, ctl: FakeController) -> None:
+    """The link goes between the wait's link check and its status read: the same MotionError as anywhere else
+    in the wait (it escaped as a bare DeviceConnectionError), the move not sent again."""
+    looks_after_move = []
+
+    def connected() -> bool:
+        if ctl.moves:
+            looks_after_move.append(1)
+        return len(looks_after_move) < 2  # up for the wait's link check, down at the status read after it
+
+    robot._control.isConnected.side_effect = connected
+    with pytest.raises(MotionError, match=r"contact lost during moveL.*read the motion state.*not sent again"):
+        robot.move_linear(Pose.from_xyz_rotvec([0.3, 0, 0.4], [math.pi, 0, 0]), speed=0.1, acceleration=1.0)
+    assert len(ctl.moves) == 1
 
 
 def test_remote_control_off_is_reported(vendor: FakeController, mocker: Any) -> None:
