@@ -32,6 +32,7 @@ from cellcal.devices.arm import RobotArm
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError, OutputError, SafetyError
 from cellcal.devices.forwarding import ForwardingArm, ForwardingCamera
+from cellcal.devices.interrupts import interrupts_held
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
@@ -265,15 +266,22 @@ class TrackRun:
             raise OutputError(f"cannot write {path}: {exc.strerror or exc}", errno=exc.errno) from None
 
     def _row(self, row: dict[str, Any], outcome: str) -> None:
-        """Count the frame and its outcome and write its row: the counters and the rows always agree."""
-        self.counters["frames"] += 1
-        self.counters[outcome] += 1
-        if self._rows is None:
-            return
-        try:
-            self._rows.write(json.dumps(json_safe(row), allow_nan=False) + "\n")
-        except OSError as exc:
-            raise OutputError(f"cannot write {self._rows.name}: {exc.strerror or exc}", errno=exc.errno) from None
+        """Count the frame and its outcome and write its row: the counters and the rows always agree.
+
+        Ctrl-C is held over the count and the write (delivered right after), so that an
+        interruption never lands between them and leaves one more count than rows.
+        """
+        line = None if self._rows is None else json.dumps(json_safe(row), allow_nan=False) + "\n"
+        with interrupts_held():
+            self.counters["frames"] += 1
+            self.counters[outcome] += 1
+            if self._rows is None or line is None:
+                return
+            try:
+                self._rows.write(line)
+            except OSError as exc:
+                raise OutputError(f"cannot write {self._rows.name}: {exc.strerror or exc}",
+                                  errno=exc.errno) from None
         self._written += 1
         if self._written % FLUSH_EVERY == 0:
             self._rows.flush()

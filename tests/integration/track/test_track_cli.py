@@ -224,6 +224,32 @@ def test_ctrl_c_writes_both_files_whole_and_exits_130(tmp_path: Path) -> None:
     assert doc["meta"]["interrupted"] is True and doc["counters"]["frames"] == len(rows) > 0
 
 
+def test_ctrl_c_between_a_frames_count_and_its_row_still_leaves_them_equal(tmp_path: Path) -> None:
+    import collections
+    import signal
+
+    from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.track.run import ReadOnlyArm, TrackRun, device_clock
+
+    class InterruptAtThirdCount(collections.Counter[str]):
+        """Ctrl-C arrives the moment the third frame is counted, before its row could be written."""
+
+        def __setitem__(self, key: str, value: int) -> None:
+            super().__setitem__(key, value)
+            if key == "frames" and value == 3:
+                signal.raise_signal(signal.SIGINT)
+
+    config = load_config(_variant(tmp_path, ""))
+    camera, arm = build_devices(config)
+    out = tmp_path / "out"
+    with camera, ReadOnlyArm(arm) as reader:
+        session = TrackRun(config, camera, reader, out_dir=out, now=device_clock(camera))
+        session.counters = InterruptAtThirdCount()
+        outcome = session.run(max_frames=10)
+    rows = (out / "track.jsonl").read_text().splitlines()
+    assert outcome.interrupted and outcome.counters["frames"] == len(rows) == 3
+
+
 def test_an_output_directory_that_cannot_be_written_is_one_line(tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
     blocker = tmp_path / "file"
