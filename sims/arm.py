@@ -26,6 +26,7 @@ from cellcal.devices.geometry.reach import ReachClass, orientation_violation
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 
+from .motion import LinearMotion
 from .world import SimWorld, world_from_context
 
 # xArm-5-like geometry, metres.
@@ -33,8 +34,6 @@ SHOULDER_HEIGHT_M = 0.267
 UPPER_ARM_M = 0.2895
 FOREARM_M = 0.3512
 WRIST_TO_FLANGE_M = math.hypot(0.076, 0.097)
-#: Effective radius converting a rotation angle into path length, metres per radian.
-ROTATION_RADIUS_M = 0.1
 #: xArm 5 TCP limits.
 MAX_SPEED_M_S = 1.0
 MAX_ACCELERATION_M_S2 = 50.0
@@ -62,73 +61,6 @@ ERROR_OUT_OF_REACH = 21
 def error_meaning(code: int) -> str:
     """Human-readable meaning of an xArm-like controller error code."""
     return ERROR_MEANINGS.get(int(code), f"Controller Error {int(code)}")
-
-
-def trapezoid_duration(distance: float, speed: float, acceleration: float) -> float:
-    """Time (s) to travel ``distance`` (m) from rest to rest with a trapezoidal profile."""
-    if distance <= 0.0:
-        return 0.0
-    if distance >= speed * speed / acceleration:
-        return distance / speed + speed / acceleration
-    return 2.0 * math.sqrt(distance / acceleration)
-
-
-def trapezoid_position(t: float, distance: float, speed: float, acceleration: float) -> float:
-    """Distance (m) travelled after ``t`` seconds along the trapezoidal profile."""
-    total = trapezoid_duration(distance, speed, acceleration)
-    if t <= 0.0 or total <= 0.0:
-        return 0.0
-    if t >= total:
-        return distance
-    v_peak = min(speed, math.sqrt(distance * acceleration))
-    t_acc = v_peak / acceleration
-    d_acc = 0.5 * acceleration * t_acc * t_acc
-    if t < t_acc:
-        return 0.5 * acceleration * t * t
-    if t <= total - t_acc:
-        return d_acc + v_peak * (t - t_acc)
-    tr = total - t
-    return distance - 0.5 * acceleration * tr * tr
-
-
-class LinearMotion:
-    """A straight-line flange motion with a trapezoidal profile.
-
-    Straight line in position, slerp in orientation, both following one trapezoidal
-    speed profile over the path length ``L = max(|Δp|, angle · 0.1 m)`` (so pure
-    rotations take time too): ``T = L/v + v/a`` when ``L >= v²/a``, else
-    ``T = 2·sqrt(L/a)``.
-
-    Args:
-        start, target: Flange poses in the base frame.
-        speed: m/s; acceleration: m/s².
-    """
-
-    def __init__(self, start: Pose, target: Pose, speed: float, acceleration: float) -> None:
-        self.start = start
-        self.target = target
-        self.speed = float(speed)
-        self.acceleration = float(acceleration)
-        self._dp = target.translation - start.translation
-        self._drot = start.rotvec_to(target)
-        self.length_m = max(float(np.linalg.norm(self._dp)), float(np.linalg.norm(self._drot)) * ROTATION_RADIUS_M)
-        self._duration = trapezoid_duration(self.length_m, self.speed, self.acceleration)
-
-    @property
-    def duration_s(self) -> float:
-        """Simulated duration, seconds."""
-        return self._duration
-
-    def pose_at(self, t_s: float) -> Pose:
-        """Flange pose ``t_s`` simulated seconds after the start."""
-        if t_s >= self._duration:
-            return self.target
-        return self.pose_at_fraction(trapezoid_position(t_s, self.length_m, self.speed, self.acceleration)
-                                     / self.length_m)
-
-    def pose_at_fraction(self, s: float) -> Pose:
-        """Flange pose after the fraction ``s`` (0..1) of the path."""
-        return self.start.interpolate(self.target, s)
 
 
 def _wrap_near(angle: float, reference: float) -> float:

@@ -11,19 +11,13 @@ from __future__ import annotations
 
 from bisect import bisect_right
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 
-
-class _Leg(Protocol):
-    @property
-    def duration_s(self) -> float: ...
-
-    def pose_at(self, t_s: float) -> Pose: ...
+from .motion import LinearMotion, Motion
 
 
 class _Rest:
@@ -106,10 +100,8 @@ class WorkPlan:
     """
 
     def __init__(self, start: Pose, config: WorkConfig) -> None:
-        from .arm import LinearMotion  # sims.arm imports sims.world, which imports this module
-
         targets = [p.pose() for p in config.poses]
-        self._legs: list[tuple[float, _Leg]] = []                   # (start time, a motion or a rest)
+        self._legs: list[tuple[float, Motion]] = []                 # (start time, a motion or a rest)
         t, here = 0.0, start
         for target in targets + targets[:1]:                          # the cycle closes on its first pose
             motion = LinearMotion(here, target, config.speed_m_s, config.acceleration_m_s2)

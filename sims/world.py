@@ -12,7 +12,7 @@ import time
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -23,6 +23,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.scene_view import SceneSnapshot, publish_scene_view
 
 from .charuco import CharucoConfig
+from .motion import Motion
 from .scene import DEFAULT_REFLECTIVITY, MAX_REFLECTIVITY, Box, Scene
 from .tof import ArtefactsConfig
 from .work import EventConfig, WorkConfig, WorkPlan
@@ -175,15 +176,6 @@ class SimClock:
         with self._lock:
             self._elapsed = max(self._elapsed, float(elapsed_s))
             return self._elapsed
-
-
-class Motion(Protocol):
-    """A planned flange trajectory (see :class:`cellcal.sims.arm.LinearMotion`)."""
-
-    @property
-    def duration_s(self) -> float: ...
-
-    def pose_at(self, t_s: float) -> Pose: ...
 
 
 class SimArmModel:

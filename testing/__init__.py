@@ -25,10 +25,10 @@ if TYPE_CHECKING:  # the names as the type checker sees them; at run time they l
 
     from ._runner import Check, CheckResult, ConformanceReport, run_check
     from .arm import ARM_CHECKS, ARM_RULES, ArmOptions, check_arm
-    from .camera import CAMERA_CHECKS, CAMERA_RULES, CameraOptions, check_camera
+    from .camera import CAMERA_CHECKS, CAMERA_RULES, check_camera
+    from .camera_options import CameraOptions, ScenePlane
     from .emulators import O3RAddress, URAddress, XArmAddress, o3r_emulator, ur_emulator, xarm_emulator
     from .faults import CellFaults
-    from .readiness import ScenePlane
     from .sim import SimCell, sim_arm, sim_camera, sim_cell
     from .suite import ArmConformance, CameraConformance
 
@@ -36,9 +36,9 @@ if TYPE_CHECKING:  # the names as the type checker sees them; at run time they l
 _HOMES: dict[str, str] = {
     **dict.fromkeys(("Check", "CheckResult", "ConformanceReport", "run_check"), "._runner"),
     **dict.fromkeys(("ARM_CHECKS", "ARM_RULES", "ArmOptions", "check_arm"), ".arm"),
-    **dict.fromkeys(("CAMERA_CHECKS", "CAMERA_RULES", "CameraOptions", "check_camera"), ".camera"),
+    **dict.fromkeys(("CAMERA_CHECKS", "CAMERA_RULES", "check_camera"), ".camera"),
+    **dict.fromkeys(("CameraOptions", "ScenePlane"), ".camera_options"),
     **dict.fromkeys(("CameraConformance", "ArmConformance"), ".suite"),
-    "ScenePlane": ".readiness",
     "ConformanceError": "cellcal.devices.errors",
     **dict.fromkeys(("SimCell", "sim_cell", "sim_camera", "sim_arm"), ".sim"),
     **dict.fromkeys(("CellFaults",), ".faults"),

@@ -11,22 +11,54 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
+from cellcal.devices.base import Device
 from cellcal.devices.errors import CellcalError, DeviceConnectionError, DeviceTimeoutError
 from cellcal.devices.pose import Pose
+from cellcal.sims.arm import SimArm
+from cellcal.sims.camera_shell import SimCameraShell
+from cellcal.sims.world import SimWorld
 
-if TYPE_CHECKING:
-    from cellcal.sims.arm import SimArm
-
-    from .sim import SimCell
-
-__all__ = ["MAX_STALL_S", "CellFaults"]
+__all__ = ["MAX_STALL_S", "CellFaults", "FaultableCell"]
 
 #: Longest stall a fault may inject, seconds (a bound, so a mistaken test cannot hang for ever).
 MAX_STALL_S = 600.0
 #: The camera turned to face away from the scene: half a turn about its own x axis.
 _LOOK_AWAY = Pose.from_xyz_rpy([0.0, 0.0, 0.0], [math.pi, 0.0, 0.0])
+
+
+class FaultableCell(Protocol):
+    """What :class:`CellFaults` needs of a cell (:class:`~cellcal.testing.sim.SimCell` is one).
+
+    The cell owns its faults, so the faults see it through this protocol rather than
+    importing the cell's module (which imports this one).
+    """
+
+    @property
+    def camera(self) -> Device:
+        """The camera as the configuration builds it (its ``backend_name`` decides which faults apply)."""
+        ...
+
+    @property
+    def arm(self) -> Device:
+        """The arm as the configuration builds it."""
+        ...
+
+    @property
+    def sim_camera(self) -> SimCameraShell:
+        """The simulated camera behind :attr:`camera` (carries the ``fault_hook``)."""
+        ...
+
+    @property
+    def sim_arm(self) -> SimArm | None:
+        """The simulated arm behind :attr:`arm`; None when it runs in another process."""
+        ...
+
+    @property
+    def world(self) -> SimWorld:
+        """The simulated world both devices share."""
+        ...
 
 
 @dataclass(eq=False)  # identity: two equal faults are two faults
@@ -77,7 +109,7 @@ class CellFaults:
     and undoes a blank frame still in effect; :attr:`fired` says how often each fault has fired.
     """
 
-    def __init__(self, cell: SimCell) -> None:
+    def __init__(self, cell: FaultableCell) -> None:
         self._cell = cell
         self._lock = threading.Lock()
         self._armed: list[_Armed] = []

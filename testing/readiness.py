@@ -12,12 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
-import numpy as np
-
-from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe import check_gates, fit_full_frame
 from cellcal.core.methods.fullframe.expected import (
     DEFAULT_SEARCH_TOLERANCE_DEG,
@@ -26,43 +21,14 @@ from cellcal.core.methods.fullframe.expected import (
 )
 from cellcal.core.methods.paper import DEFAULT_PERIMETERS_PX, DEFAULT_WINDOW_PX, perimeter_problem
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import CalibrationError, CalibrationQualityError, CellcalError
+from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 
 from ._runner import Check, Violation, connected, expect, make
+from .camera_options import CameraOptions
 
-if TYPE_CHECKING:
-    from .camera import CameraOptions
-
-__all__ = ["ScenePlane", "calibrate_checks"]
+__all__ = ["calibrate_checks"]
 
 Factory = Callable[[], Camera3D]
-
-
-@dataclass(frozen=True)
-class ScenePlane:
-    """The plane a camera sees in the kit's test scene, in the camera frame (OpenCV: x right, y down, z forward).
-
-    Attributes:
-        normal: The plane's normal, either orientation (it need not be a unit vector).
-        axis_distance_m: Where the optical axis meets the plane, metres from the camera.
-    """
-
-    normal: tuple[float, float, float]
-    axis_distance_m: float
-
-    def __post_init__(self) -> None:
-        n = np.asarray(self.normal, dtype=np.float64).reshape(-1)
-        if n.shape != (3,) or not np.all(np.isfinite(n)) or not np.linalg.norm(n) > 0:
-            raise CellcalError(f"ScenePlane.normal must be a finite, non-zero 3-vector, got {self.normal!r}")
-        d = self.axis_distance_m
-        if isinstance(d, bool) or not isinstance(d, (int, float)) or not (math.isfinite(d) and d > 0):
-            raise CellcalError(f"ScenePlane.axis_distance_m must be a positive number of metres, got {d!r}")
-        if abs(n[2]) < 1e-6 * float(np.linalg.norm(n)):
-            raise CellcalError("ScenePlane.normal is across the optical axis: the axis never meets the plane")
-
-    def plane(self) -> Plane:
-        """As a :class:`~cellcal.core.geometry.planes.Plane`, normal toward the camera, metres."""
-        return Plane.from_point_normal((0.0, 0.0, self.axis_distance_m), self.normal).oriented_toward_origin()
 
 
 #: What a vendor is told when the kit does not know the test scene's plane.

@@ -11,7 +11,7 @@ import copy
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from cellcal.core.calibration import CellConfig, build_devices, load_config, parse_config
 from cellcal.core.calibration.calibrator import Calibrator
@@ -22,8 +22,7 @@ from cellcal.sims.arm import SimArm
 from cellcal.sims.camera_shell import SimCameraShell
 from cellcal.sims.world import SimWorld
 
-if TYPE_CHECKING:
-    from .faults import CellFaults
+from .faults import CellFaults
 
 __all__ = ["ConfigSource", "SimCell", "cell_config", "sim_arm", "sim_camera", "sim_cell"]
 
@@ -54,8 +53,6 @@ class SimCell:
     faults: CellFaults = field(init=False)
 
     def __post_init__(self) -> None:
-        from .faults import CellFaults
-
         self.faults = CellFaults(self)
 
     @property

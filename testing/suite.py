@@ -24,7 +24,8 @@ from cellcal.devices.camera import Camera3D
 
 from ._runner import CheckResult, find_check, run_check
 from .arm import ARM_CHECKS, ARM_RULES, ArmOptions
-from .camera import CAMERA_CHECKS, CAMERA_RULES, CameraOptions
+from .camera import CAMERA_CHECKS, CAMERA_RULES
+from .camera_options import CameraOptions
 
 
 class CameraConformance:

@@ -18,7 +18,7 @@ from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
-from cellcal.sims.arm import trapezoid_duration
+from cellcal.sims.motion import trapezoid_duration
 from cellcal.sims.ur.backend import EmulatedURArm
 
 pytest.importorskip("rtde_control")  # the ur extra

@@ -23,10 +23,9 @@ from cellcal.sims.arm import (
     error_meaning,
     forward_position,
     inverse_kinematics,
-    trapezoid_duration,
-    trapezoid_position,
 )
 from cellcal.sims.camera import SimCamera, SimCameraConfig
+from cellcal.sims.motion import trapezoid_duration, trapezoid_position
 from cellcal.sims.scene import Scene
 from cellcal.sims.world import SimWorld
 

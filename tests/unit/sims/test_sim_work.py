@@ -12,7 +12,7 @@ from cellcal.devices.base import BackendContext
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
-from cellcal.sims.arm import trapezoid_duration
+from cellcal.sims.motion import trapezoid_duration
 from cellcal.sims.work import WorkConfig, WorkPlan
 from cellcal.sims.world import world_from_context
 
@@ -70,7 +70,7 @@ def test_the_arm_follows_its_work_and_the_truth_changes_at_the_events() -> None:
 
 
 def test_a_commanded_motion_ends_the_work() -> None:
-    from cellcal.sims.arm import LinearMotion
+    from cellcal.sims.motion import LinearMotion
 
     world = _world({"work": {"poses": [{"translation_m": A}]}})
     here = world.arm.flange_pose()
