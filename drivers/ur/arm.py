@@ -2,7 +2,9 @@
 
 Poses are flange poses in the base frame (metres, radians). ``ur_rtde`` is imported
 only in :meth:`URArm._connect`; every False it returns becomes a typed error
-(:meth:`URArm._raise_failure`). Design: docs/adr/0015-vendor-drivers.md; what the real
+(:meth:`URArm._raise_failure`). This module holds the links (connect, a fresh receive
+interface, bounded commands, recovery); the wait for a move is :class:`~.motion.URMotion`'s,
+what the arm's state says :mod:`.status`'s. Design: docs/adr/0015-vendor-drivers.md; what the real
 conversation with ur_rtde 1.6.5 taught (GIL, script start, reconnects): docs/adr/0017-ur-emulator.md.
 """
 
@@ -10,77 +12,53 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import time
 import traceback
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar, NoReturn
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.devices.arm import RobotArm
 from cellcal.devices.base import BackendContext
 from cellcal.devices.discovery import HostScan
 from cellcal.devices.errors import (
     CellcalError,
     DeviceConnectionError,
     DeviceTimeoutError,
-    MotionError,
-    NativeCrashError,
     ProtocolError,
-    SafetyError,
     VendorError,
 )
-from cellcal.devices.geometry.vendor_poses import pose_from_ur, pose_to_ur
+from cellcal.devices.geometry.vendor_poses import pose_from_ur
 from cellcal.devices.isolation import InlineHost, NativeHost
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 
 from . import availability, discover
-from .codes import (
-    FLAG_NO_WAIT,
-    ROBOT_MODE_RUNNING,
-    ROBOT_MODES,
-    RUNTIME_STATES,
-    SAFETY_MODES,
-    SAFETY_OK,
-    SAFETY_REDUCED,
-    STATUS_PROGRAM_RUNNING,
-    name,
-)
-from .config import UR_MAX_TOOL_ACCELERATION_M_S2, UR_MAX_TOOL_SPEED_M_S, URConfig
+from .codes import FLAG_NO_WAIT, ROBOT_MODE_RUNNING, ROBOT_MODES, RUNTIME_STATES, SAFETY_OK, name
+from .config import URConfig
 from .dashboard import DashboardLink, stop_program
 from .fd_capture import captured_output
-from .limits import checked_mode, checked_tcp
+from .limits import checked_tcp
+from .motion import URMotion
 from .rtde_probe import probe_stream
+from .status import (
+    arm_status,
+    not_ready_reason,
+    program_running,
+    ready_for_program,
+    robot_mode,
+    runtime_state,
+    safety_mode,
+)
 
 log = logging.getLogger(__name__)
 
 #: Seconds the dashboard gets to stop the program after ur_rtde's worker process died.
 CRASH_STOP_TIMEOUT_S = 1.0
-#: After a move, a pose short of the target is read again until this many newer receive
-#: packages arrived (or for at most SETTLE_S seconds).
-SETTLE_PACKAGES = 3
-SETTLE_S = 0.2
 
 
-def _safety(receive: Any) -> int:
-    """The receive interface's safety mode, checked against the documented set."""
-    return checked_mode(receive.getSafetyMode(), SAFETY_MODES, "getSafetyMode")
-
-
-def _robot(receive: Any) -> int:
-    """The receive interface's robot mode, checked against the documented set."""
-    return checked_mode(receive.getRobotMode(), ROBOT_MODES, "getRobotMode")
-
-
-def _runtime(receive: Any) -> int:
-    """The receive interface's program state, checked against the documented set."""
-    return checked_mode(receive.getRuntimeState(), RUNTIME_STATES, "getRuntimeState")
-
-
-class URArm(RobotArm):
+class URArm(URMotion):
     """A Universal Robots arm (CB3 / e-Series / UR Series) over ``ur_rtde`` 1.6.
 
     Three ``ur_rtde`` interfaces are used, all imported only inside :meth:`_connect`:
@@ -213,7 +191,7 @@ class URArm(RobotArm):
             self._start_script(deadline)
         else:  # status() says why; clear_errors() starts the script once the arm can run it
             log.warning("ur %s: the arm cannot run programs yet (%s); control script not started",
-                        self.config.host, self._not_ready_reason(self._receive))
+                        self.config.host, not_ready_reason(self._receive))
 
     def _close(self) -> None:
         handles = [h for h in (self._control, self._receive) if h is not None]
@@ -243,101 +221,9 @@ class URArm(RobotArm):
         return self._vector(receive.getActualQ(), 6, "getActualQ")
 
     def _status(self, timeout: float) -> ArmStatus:
-        receive = self._fresh_receive(self._clock() + timeout)
-        safety = _safety(receive)
-        if safety not in SAFETY_OK:
-            return ArmStatus(error_code=safety, message=f"safety mode {name(SAFETY_MODES, safety)}",
-                             can_move=False)
-        warning = safety if safety == SAFETY_REDUCED else 0
-        reason = self._not_ready_reason(receive)
-        if reason:
-            return ArmStatus(warning_code=warning, can_move=False, message=reason)
-        return ArmStatus(warning_code=warning, message="reduced mode" if warning else "", can_move=True)
+        return arm_status(self._fresh_receive(self._clock() + timeout))
 
-    # ------------------------------------------------------------ motion
-    def _move_linear(self, pose: Pose, speed: float, acceleration: float, timeout: float) -> None:
-        cfg = self.config
-        if speed > cfg.max_speed_m_s:
-            raise SafetyError(f"ur: speed {speed:g} m/s exceeds the limit {cfg.max_speed_m_s:g} m/s "
-                              f"(UR allows at most {UR_MAX_TOOL_SPEED_M_S:g}); nothing moved")
-        if acceleration > cfg.max_acceleration_m_s2:
-            raise SafetyError(f"ur: acceleration {acceleration:g} m/s^2 exceeds the limit "
-                              f"{cfg.max_acceleration_m_s2:g} m/s^2 (UR allows at most "
-                              f"{UR_MAX_TOOL_ACCELERATION_M_S2:g}); nothing moved")
-        deadline = self._clock() + timeout
-        target = [float(v) for v in pose_to_ur(pose)]
-        receive = self._fresh_receive(deadline)
-        if self._not_ready_reason(receive):
-            self._raise_failure("moveL")
-        before = self._async_status().operationId()
-        try:
-            accepted = self._command(lambda c: c.moveL(target, speed, acceleration, True), deadline, "moveL")
-        except DeviceTimeoutError as exc:
-            raise MotionError(f"ur: moveL was not confirmed ({exc}); the command was not sent again; "
-                              f"{self._stop_quietly()}") from None
-        if not accepted:
-            self._raise_failure("moveL")
-        self._await_motion(pose, int(before), deadline, timeout)
-
-    def _await_motion(self, pose: Pose, before: int, deadline: float, timeout: float) -> None:
-        """Poll until the asynchronous moveL ``before`` was followed by has finished at ``pose``."""
-        seen = False
-        while True:
-            try:  # the link may go at any of these reads: each is the same contact lost during the move
-                receive = self._fresh_receive(deadline)
-                self._require_control_link("moveL")
-                status = self._async_status()
-            except NativeCrashError:
-                raise  # the worker told the arm to stop on its way out; its message says so
-            except (DeviceConnectionError, DeviceTimeoutError, ProtocolError) as exc:
-                raise MotionError(f"ur: contact lost during moveL ({exc}); the command was not sent again; "
-                                  f"{self._stop_quietly()}") from None
-            if self._not_ready_reason(receive):
-                self._raise_failure("moveL")
-            running = bool(status.isAsyncOperationRunning())
-            seen = seen or running or int(status.operationId()) != before
-            if seen and not running:
-                self._check_arrival(receive, pose)
-                return
-            if self._clock() >= deadline:
-                raise DeviceTimeoutError(f"ur: moveL did not finish within {timeout:g} s; {self._stop_quietly()}")
-            self._sleep(self.config.poll_interval_s)
-
-    def _check_arrival(self, receive: Any, pose: Pose) -> None:
-        """After the control script reported the move finished: the received pose must be at ``pose``.
-
-        The receive interface has its own RTDE connection, which can lag the control
-        interface's by a package or two; a pose short of the target is read again until
-        the receive timestamp has advanced :data:`SETTLE_PACKAGES` times.
-        """
-        cfg = self.config
-        # wait for the read-back to settle within the contract's tolerance (checked next by
-        # RobotArm) as well as this driver's own, so that check does not read a lagging package
-        contract = self.arrival_tolerance
-        tight_m, tight_rad = min(cfg.arrival_tolerance_m, contract.position_m), \
-            min(cfg.arrival_tolerance_rad, contract.angle_rad)
-        last, fresh = float(receive.getTimestamp()), 0
-        until = self._clock() + SETTLE_S
-        while True:
-            actual = pose_from_ur(self._tcp_pose(receive))
-            if actual.distance_to(pose) <= tight_m and actual.angle_to(pose) <= tight_rad:
-                return
-            if fresh >= SETTLE_PACKAGES or self._clock() >= until:
-                break
-            self._sleep(0.002)
-            receive = self._fresh_receive(until + cfg.timeout_s)
-            ts = float(receive.getTimestamp())
-            fresh, last = (fresh + 1, ts) if ts != last else (fresh, last)
-        if actual.distance_to(pose) <= cfg.arrival_tolerance_m and actual.angle_to(pose) <= cfg.arrival_tolerance_rad:
-            return  # within this driver's tolerance: RobotArm's arrival check judges the rest
-        # The motion ended short: a safety stop that landed after the status read above is the
-        # usual cause, so read the status again before concluding.
-        if self._not_ready_reason(receive):
-            self._raise_failure("moveL")
-        raise VendorError("ur", 0, (
-            f"moveL ended {actual.distance_to(pose) * 1000:.1f} mm / {math.degrees(actual.angle_to(pose)):.2f} deg "
-            "from the target without a safety stop (stopped by another program?)"))
-
+    # ------------------------------------------------------------ motion (the wait: URMotion)
     def _stop(self, timeout: float) -> None:
         decel = self.config.stop_deceleration_m_s2
         self._command(lambda c: c.stopL(decel), self._clock() + timeout, "stopL")
@@ -348,13 +234,13 @@ class URArm(RobotArm):
         receive = self._fresh_receive(deadline)
         if receive.isEmergencyStopped():
             self._raise_failure("clear_errors")  # an e-stop is released by hand, never remotely
-        if receive.isProtectiveStopped() or _safety(receive) not in SAFETY_OK \
-                or _robot(receive) != ROBOT_MODE_RUNNING:
+        if receive.isProtectiveStopped() or safety_mode(receive) not in SAFETY_OK \
+                or robot_mode(receive) != ROBOT_MODE_RUNNING:
             dash = self._dash.open(self._remaining(deadline), required=True)
             self._dash.call("closeSafetyPopup", "close safety popup")
             self._unlock_protective_stop(dash, deadline)
             self._power_up(deadline, timeout)
-        if not self._program_running(self._fresh_receive(deadline)):
+        if not program_running(self._fresh_receive(deadline)):
             self._start_script(deadline)
         status = self._status(self._remaining(deadline))
         if not status.ok:
@@ -369,13 +255,13 @@ class URArm(RobotArm):
             except RuntimeError as exc:  # ur_rtde raises when the controller refuses
                 refusal = str(exc)
             if self._clock() >= deadline:
-                raise VendorError("ur", _safety(self._fresh_receive(deadline)), (
+                raise VendorError("ur", safety_mode(self._fresh_receive(deadline)), (
                     f"clear_errors could not unlock the protective stop in time ({refusal or 'still stopped'})"))
             self._sleep(max(self.config.poll_interval_s, 0.05))
 
     def _power_up(self, deadline: float, timeout: float) -> None:
         receive = self._fresh_receive(deadline)
-        robot = _robot(receive)
+        robot = robot_mode(receive)
         if robot == ROBOT_MODE_RUNNING:
             return
         if not self.config.allow_power_on:
@@ -384,10 +270,10 @@ class URArm(RobotArm):
                 "or set allow_power_on = true"))
         self._dash.call("powerOn", "power on")
         self._dash.call("brakeRelease", "brake release")
-        while _robot(receive) != ROBOT_MODE_RUNNING:
+        while robot_mode(receive) != ROBOT_MODE_RUNNING:
             if self._clock() >= deadline:
                 raise DeviceTimeoutError(f"ur: arm not RUNNING within {timeout:g} s after power on "
-                                         f"(robot mode {name(ROBOT_MODES, _robot(receive))})")
+                                         f"(robot mode {name(ROBOT_MODES, robot_mode(receive))})")
             self._sleep(max(self.config.poll_interval_s, 0.05))
             receive = self._fresh_receive(deadline)
 
@@ -397,12 +283,12 @@ class URArm(RobotArm):
             self._raise_failure("start the control script (reuploadScript)")
         receive = self._fresh_receive(deadline)
         # Both links must see it: ur_rtde refuses commands while its own stream says STOPPED.
-        while not (self._program_running(receive) and self._control.isProgramRunning()):
+        while not (program_running(receive) and self._control.isProgramRunning()):
             if self._clock() >= deadline:
-                state = _runtime(receive)
+                state = runtime_state(receive)
                 raise DeviceTimeoutError(
                     f"ur {self.config.host}: the control script did not start in time (program state "
-                    f"{name(RUNTIME_STATES, state)}; {self._not_ready_reason(receive) or 'arm ready'})"
+                    f"{name(RUNTIME_STATES, state)}; {not_ready_reason(receive) or 'arm ready'})"
                     f"{self._dash.remote_control_hint()}")
             self._sleep(self.config.poll_interval_s)
             receive = self._fresh_receive(deadline)
@@ -410,25 +296,8 @@ class URArm(RobotArm):
             self._raise_failure("setTcp (TCP offset to the flange)")
 
     # ------------------------------------------------------------ state helpers
-    @staticmethod
-    def _program_running(receive: Any) -> bool:
-        return bool(int(receive.getRobotStatus()) & STATUS_PROGRAM_RUNNING)
-
-    @staticmethod
-    def _ready_for_program(receive: Any) -> bool:
-        return _safety(receive) in SAFETY_OK and _robot(receive) == ROBOT_MODE_RUNNING
-
-    def _not_ready_reason(self, receive: Any) -> str:
-        """Why the arm cannot move now ("" when it can): safety, power, or the control script."""
-        safety = _safety(receive)
-        if safety not in SAFETY_OK:
-            return f"safety mode {name(SAFETY_MODES, safety)}"
-        robot = _robot(receive)
-        if robot != ROBOT_MODE_RUNNING:
-            return f"robot mode {name(ROBOT_MODES, robot)} (needs power on, brakes released)"
-        if not self._program_running(receive):
-            return "the RTDE control script is not running on the controller"
-        return ""
+    #: Whether the arm can run the control script (:func:`.status.ready_for_program`).
+    _ready_for_program = staticmethod(ready_for_program)
 
     def _async_status(self) -> Any:
         self._require_control_link("read the motion state")
@@ -467,16 +336,6 @@ class URArm(RobotArm):
         control = self._control
         remaining = min(self._remaining(deadline), self.config.timeout_s)
         return self._host.bounded(lambda: fn(control), remaining, what)
-
-    def _stop_quietly(self) -> str:
-        """Tell the arm to stop, ignoring errors; says what happened, for messages."""
-        if self._crash_stop:  # ur_rtde's worker died and the dashboard was asked already
-            return self._crash_stop
-        try:
-            self._stop(self.config.timeout_s)
-        except CellcalError as exc:
-            return f"the arm could not be told to stop ({exc})"
-        return "the arm was told to stop"
 
     def _new_receive(self, deadline: float) -> Any:
         rtde_receive = self._rtde_receive
@@ -564,52 +423,3 @@ class URArm(RobotArm):
         if arr.shape != (n,) or not np.all(np.isfinite(arr)):
             raise ProtocolError(f"ur: {what} returned {arr.tolist()!r}, expected {n} finite numbers")
         return arr
-
-    # ------------------------------------------------------------ failures
-    def _raise_failure(self, operation: str) -> NoReturn:
-        """Explain a False return (or a refused motion) from the receive interface's state and raise.
-
-        :class:`VendorError` with the safety-mode code (the robot's own safety system stopped
-        it: not :class:`SafetyError`, which means *our* envelope refused a command), the
-        robot-mode code (not powered, brakes on) or the program-state code (control script
-        not running); :class:`DeviceConnectionError` for a lost link (ADR 0015).
-        """
-        receive = self._receive
-        if receive is None or not receive.isConnected():
-            raise DeviceConnectionError(f"ur {self.config.host}: {operation} failed: RTDE connection lost")
-        self._require_control_link(f"{operation} failed")
-        # The control link can see the cause a package or two before the receive link does.
-        last, fresh = float(receive.getTimestamp()), 0
-        until = self._clock() + SETTLE_S
-        while True:
-            self._raise_known_cause(receive, operation)
-            if fresh >= SETTLE_PACKAGES or self._clock() >= until:
-                break
-            self._sleep(0.002)
-            ts = float(receive.getTimestamp())
-            fresh, last = (fresh + 1, ts) if ts != last else (fresh, last)
-        raise VendorError("ur", 0, f"{operation} returned False with the arm in normal mode "
-                                   "(ur_rtde internal timeout?)")
-
-    def _raise_known_cause(self, receive: Any, operation: str) -> None:
-        """Raise the typed error for the state the receive interface reports, if any."""
-        safety = _safety(receive)
-        if receive.isEmergencyStopped():
-            raise VendorError("ur", safety, (
-                f"{operation} failed: emergency stop engaged (safety mode {name(SAFETY_MODES, safety)}); "
-                "release the e-stop by hand, then call clear_errors()"))
-        if receive.isProtectiveStopped():
-            raise VendorError("ur", safety, (
-                f"{operation} failed: protective stop (safety mode {name(SAFETY_MODES, safety)}); "
-                "remove the cause, then call clear_errors()"))
-        if safety not in SAFETY_OK:
-            raise VendorError("ur", safety, f"{operation} failed: safety mode {name(SAFETY_MODES, safety)}")
-        robot = _robot(receive)
-        if robot != ROBOT_MODE_RUNNING:
-            raise VendorError("ur", robot, (
-                f"{operation} failed: robot mode {name(ROBOT_MODES, robot)} (power on and release the brakes)"))
-        if not self._program_running(receive):
-            state = _runtime(receive)
-            raise VendorError("ur", state, (
-                f"{operation} failed: the RTDE control script is not running (program state "
-                f"{name(RUNTIME_STATES, state)}){self._dash.remote_control_hint()}; clear_errors() restarts it"))
