@@ -19,7 +19,7 @@ from cellcal.core.methods.fullframe.expected import (
     DEFAULT_SEARCH_TOLERANCE_M,
     ExpectedPlane,
 )
-from cellcal.core.methods.paper import DEFAULT_PERIMETERS_PX, DEFAULT_WINDOW_PX, perimeter_problem
+from cellcal.core.methods.grid import DEFAULT_PERIMETERS_PX, DEFAULT_WINDOW_PX, perimeter_problem
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 

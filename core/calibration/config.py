@@ -25,7 +25,7 @@ import numpy as np
 
 from cellcal.core.methods.fullframe import FullFrameSettings
 from cellcal.core.methods.fullframe.expected import DEFAULT_SEARCH_TOLERANCE_DEG, DEFAULT_SEARCH_TOLERANCE_M
-from cellcal.core.methods.paper import DEFAULT_PERIMETERS_PX, DEFAULT_WINDOW_PX
+from cellcal.core.methods.grid import DEFAULT_PERIMETERS_PX, DEFAULT_WINDOW_PX
 from cellcal.devices import boundedjson
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError

@@ -17,9 +17,11 @@ from cellcal.core.geometry.planes import (
     Plane,
     PlaneFit,
     fit_plane_ols,
-    fit_plane_robust,
     fit_plane_tls,
     validate_points,
+)
+from cellcal.core.geometry.robust_fit import (
+    fit_plane_robust,
 )
 from cellcal.core.geometry.sampling import (
     Sample,

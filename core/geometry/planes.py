@@ -1,4 +1,4 @@
-"""Planes and plane fits with first-order 1-sigma uncertainty: OLS, TLS and robust (RANSAC).
+"""Planes and plane fits with first-order 1-sigma uncertainty: OLS and TLS (robust: :mod:`.robust_fit`).
 
 A :class:`Plane` is ``{x : normal · x + offset_m = 0}`` with a unit ``normal``. Fits in the
 camera frame (OpenCV: x right, y down, z along the optical axis; metres) orient the normal
@@ -27,7 +27,6 @@ __all__ = [
     "Plane",
     "PlaneFit",
     "fit_plane_ols",
-    "fit_plane_robust",
     "fit_plane_tls",
     "plane_covariance",
     "tangent_basis",
@@ -294,7 +293,7 @@ def validate_points(points: ArrayLike, *, what: str = "points") -> FloatArray:
     return p
 
 
-def _scatter(p: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+def scatter(p: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Centroid, ascending eigenvalues and eigenvectors (columns) of the scatter matrix.
 
     Shifts by the first point before the BLAS products (cheap and keeps precision when
@@ -309,17 +308,25 @@ def _scatter(p: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     return c0 + mu, np.maximum(w, 0.0), v
 
 
-def _check_spread(w: FloatArray, what: str = "points") -> None:
+def check_spread(w: FloatArray, what: str = "points") -> None:
+    """Raise CalibrationError unless the scatter eigenvalues ``w`` (ascending) span a plane."""
     if w[2] <= 0.0:
         raise CalibrationError(f"{what} are all coincident; no plane is defined")
     if w[1] <= _COLLINEAR_RATIO * w[2]:
         raise CalibrationError(f"{what} are collinear; no unique plane is defined")
 
 
-def _tls(p: FloatArray, method: str, inliers: BoolArray | None = None) -> PlaneFit:
+def tls_fit(p: FloatArray, method: str, inliers: BoolArray | None = None) -> PlaneFit:
+    """Total least squares on validated points ``p`` (N, 3), metres, with its first-order uncertainty.
+
+    Args:
+        p: Output of :func:`validate_points` (or a subset of it).
+        method: Recorded in :attr:`PlaneFit.method`.
+        inliers: The mask ``p`` was taken with (a robust fit's), recorded in the fit.
+    """
     n_pts = p.shape[0]
-    c, w, v = _scatter(p)
-    _check_spread(w, "inlier points" if inliers is not None else "points")
+    c, w, v = scatter(p)
+    check_spread(w, "inlier points" if inliers is not None else "points")
     normal = v[:, 0]
     plane = Plane(normal, -float(normal @ c)).oriented_toward_origin()
     n = plane.normal
@@ -351,7 +358,7 @@ def fit_plane_tls(points: ArrayLike) -> PlaneFit:
     Raises:
         CalibrationError: Fewer than 3 points, NaN/inf, or coincident/collinear points.
     """
-    return _tls(validate_points(points), "tls")
+    return tls_fit(validate_points(points), "tls")
 
 
 def fit_plane_ols(points: ArrayLike) -> PlaneFit:
@@ -407,120 +414,6 @@ def fit_plane_ols(points: ArrayLike) -> PlaneFit:
     # (flipping the orientation changes neither covariance)
     return PlaneFit(plane, rms, n_pts, math.sqrt(float(np.trace(cov_n))), math.sqrt(var_d),
                     cov_n, None, "ols")
-
-
-def _hypotheses(p: FloatArray, idx: NDArray[np.intp]) -> tuple[FloatArray, FloatArray, BoolArray]:
-    """Planes through point triplets: unit normals (K, 3), offsets (K,), valid mask."""
-    a, b, c = p[idx[:, 0]], p[idx[:, 1]], p[idx[:, 2]]
-    n = np.cross(b - a, c - a)
-    norm = np.linalg.norm(n, axis=1)
-    scale = np.maximum(np.linalg.norm(b - a, axis=1) * np.linalg.norm(c - a, axis=1), 1e-300)
-    valid = norm > 1e-9 * scale
-    n = n / np.where(valid, norm, 1.0)[:, None]
-    d = -np.einsum("kj,kj->k", n, a)
-    return n, d, valid
-
-
-def _check_robust_args(threshold_m: float, max_iterations: int, confidence: float) -> None:
-    if not (math.isfinite(threshold_m) and threshold_m > 0):
-        raise CalibrationError(f"threshold_m must be positive, got {threshold_m!r}")
-    if max_iterations < 1:
-        raise CalibrationError(f"max_iterations must be >= 1, got {max_iterations}")
-    if not (0.0 < confidence < 1.0):
-        raise CalibrationError(f"confidence must be in (0, 1), got {confidence}")
-
-
-def _ransac(p: FloatArray, threshold_m: float, max_iterations: int, confidence: float,
-            rng: np.random.Generator, max_score_points: int) -> Plane:
-    """Seeded RANSAC with MSAC scoring: the best triplet plane (see :func:`fit_plane_robust`).
-
-    Raises:
-        CalibrationError: If no non-degenerate triplet was drawn (points collinear).
-    """
-    n_pts = p.shape[0]
-    # hypotheses are scored on a fixed random subset (drawn with replacement)
-    score_pts = p if n_pts <= max_score_points else p[rng.integers(0, n_pts, max_score_points)]
-    t2 = threshold_m * threshold_m
-    best_cost = math.inf
-    best: tuple[FloatArray, float] | None = None
-    drawn = 0
-    needed = float(max_iterations)
-    batch = 64
-    while drawn < min(needed, max_iterations):
-        k = int(min(batch, max_iterations - drawn))
-        idx = rng.integers(0, n_pts, size=(k, 3))          # a batch of random triplets
-        drawn += k
-        normals, offsets, valid = _hypotheses(p, idx)
-        if not valid.any():
-            continue
-        normals, offsets = normals[valid], offsets[valid]
-        dist2 = (score_pts @ normals.T + offsets) ** 2     # (M, K) squared distances
-        cost = np.minimum(dist2, t2).sum(axis=0)           # MSAC: squared distance capped at the threshold
-        j = int(np.argmin(cost))
-        if cost[j] < best_cost:
-            best_cost = float(cost[j])
-            best = (normals[j].copy(), float(offsets[j]))
-            best_ratio = float(np.count_nonzero(dist2[:, j] <= t2)) / score_pts.shape[0]   # inlier ratio
-            if best_ratio >= 1.0:
-                needed = 0.0
-            elif best_ratio > 0:
-                # draws after which an all-inlier triplet was drawn with probability `confidence`
-                needed = math.log(1 - confidence) / math.log(1 - best_ratio**3)
-    if best is None:
-        _, w, _ = _scatter(p)
-        _check_spread(w)
-        raise CalibrationError("RANSAC drew no non-degenerate sample; points may be collinear")
-    return Plane(best[0], best[1])
-
-
-def _refit_inliers(p: FloatArray, plane: Plane, threshold_m: float, refine_iterations: int) -> PlaneFit:
-    """TLS on the points within ``threshold_m`` of ``plane``; re-select and refit until stable."""
-    inliers = np.abs(plane.signed_distance(p)) <= threshold_m
-    fit: PlaneFit | None = None
-    for _ in range(max(refine_iterations, 0) + 1):
-        if np.count_nonzero(inliers) < 3:
-            raise CalibrationError(
-                f"robust plane fit found only {int(np.count_nonzero(inliers))} inlier(s) "
-                f"within {threshold_m} m")
-        fit = _tls(np.compress(inliers, p, axis=0), "robust", inliers)
-        new = np.abs(fit.plane.signed_distance(p)) <= threshold_m   # inliers of the refit plane
-        if np.array_equal(new, inliers):
-            break
-        inliers = new
-    assert fit is not None
-    return fit  # its inlier mask is the one it was fitted on
-
-
-def fit_plane_robust(points: ArrayLike, threshold_m: float, *, max_iterations: int = 1000,
-                     confidence: float = 0.999, seed: int | None = 0,
-                     max_score_points: int = 2000, refine_iterations: int = 2) -> PlaneFit:
-    """Robust plane: seeded RANSAC (MSAC scoring) then a TLS refit on the inliers.
-
-    Hypotheses are drawn in vectorised batches and scored on a fixed random subset
-    (drawn with replacement) of ``max_score_points`` points; sampling stops once ``confidence`` is reached
-    for the best inlier ratio seen. The best hypothesis's inliers (over all points) are
-    refit with TLS, and inliers/refit are iterated ``refine_iterations`` times.
-
-    Args:
-        points: Shape (N, 3), metres, N >= 3, finite (mask invalid pixels first).
-        threshold_m: Inlier distance threshold, metres (e.g. 3-5x the depth noise).
-        max_iterations: Maximum number of RANSAC hypotheses.
-        confidence: Probability of having drawn an all-inlier sample before stopping.
-        seed: Seed of the random generator (same seed, same result).
-        max_score_points: Size of the subset used to score hypotheses.
-        refine_iterations: Inlier re-selection / refit rounds after RANSAC.
-
-    Returns:
-        The fit on the inliers, with ``inliers`` the mask over the input points.
-
-    Raises:
-        CalibrationError: On invalid input or if fewer than 3 non-collinear inliers exist.
-    """
-    p = validate_points(points)
-    _check_robust_args(threshold_m, max_iterations, confidence)
-    rng = np.random.default_rng(seed)
-    plane = _ransac(p, threshold_m, max_iterations, confidence, rng, max_score_points)
-    return _refit_inliers(p, plane, threshold_m, refine_iterations)
 
 
 def plane_covariance(normal_covariance: ArrayLike, offset_sigma_m: float, normal_offset_covariance: ArrayLike

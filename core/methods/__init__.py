@@ -9,6 +9,17 @@ from cellcal.core.methods.fullframe import (
     fit_full_frame,
     fit_plane_points,
 )
+from cellcal.core.methods.grid import (
+    GRID_METHODS,
+    GRID_NAMES,
+    GridPoint,
+    camera_grid,
+    grid_phi_theta,
+    grid_pixels,
+    grid_points,
+    max_perimeter_px,
+    sample_grid,
+)
 from cellcal.core.methods.measure import (
     FULL_FRAME,
     ExpectedGeometry,
@@ -19,26 +30,17 @@ from cellcal.core.methods.measure import (
     measure_full_frame,
 )
 from cellcal.core.methods.paper import (
-    GRID_METHODS,
-    GRID_NAMES,
     GridEstimate,
-    GridPoint,
     PaperResult,
-    camera_grid,
     error_pct,
     grid_estimates,
-    grid_phi_theta,
-    grid_pixels,
-    grid_points,
     law_of_cosines_angle,
     law_of_cosines_estimate,
-    max_perimeter_px,
     nominal_model,
     paper_methods,
     plane_fit,
     plane_fit_angle,
     plane_fit_estimate,
-    sample_grid,
     spherical_to_cartesian,
 )
 from cellcal.core.methods.paper_data import (

@@ -141,7 +141,7 @@ def measure_frames(frames: Sequence[Frame], *, perimeters_px: Sequence[int], met
     Args:
         frames: Frames captured at the pose (their samples are pooled).
         perimeters_px: Grid half-sizes, pixels.
-        methods: Method names (:data:`~cellcal.core.methods.paper.GRID_METHODS`, ``full_frame``).
+        methods: Method names (:data:`~cellcal.core.methods.grid.GRID_METHODS`, ``full_frame``).
         window_px: Odd sampling window, pixels.
         expected: Expected geometry, to compute each estimate's error.
         nominal_fov_rad: Datasheet field of view (x, y), rad, for ``plane_fit_nominal``.

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.methods.paper import GRID_NAMES
+from cellcal.core.methods.grid import GRID_NAMES
 from cellcal.devices.errors import CalibrationError
 
 __all__ = ["REQUIRED_COLUMNS", "PaperDataSet", "load_paper_table", "parse_paper_rows"]

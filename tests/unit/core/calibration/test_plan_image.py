@@ -10,7 +10,7 @@ import pytest
 
 from cellcal.core.calibration.config import PlanSection, parse_config
 from cellcal.core.calibration.plan_image import check_plan_image, describe_plan_image, plan_image_problem
-from cellcal.core.methods.paper import (
+from cellcal.core.methods.grid import (
     DEFAULT_PERIMETERS_PX,
     DEFAULT_WINDOW_PX,
     grid_pixels,

@@ -15,9 +15,9 @@ from cellcal.core.geometry.planes import (
     Plane,
     PlaneFit,
     fit_plane_ols,
-    fit_plane_robust,
     fit_plane_tls,
 )
+from cellcal.core.geometry.robust_fit import fit_plane_robust
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 

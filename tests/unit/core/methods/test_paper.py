@@ -10,12 +10,9 @@ import pytest
 from repo_paths import TEST_DATA
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.grid import GRID_NAMES, grid_phi_theta, grid_pixels, grid_points
 from cellcal.core.methods.paper import (
-    GRID_NAMES,
     error_pct,
-    grid_phi_theta,
-    grid_pixels,
-    grid_points,
     law_of_cosines_angle,
     paper_methods,
     plane_fit_angle,

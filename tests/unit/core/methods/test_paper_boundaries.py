@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from cellcal.core.geometry.sampling import sample_points, sample_window
-from cellcal.core.methods.paper import camera_grid, grid_pixels, grid_points, max_perimeter_px, sample_grid
+from cellcal.core.methods.grid import camera_grid, grid_pixels, grid_points, max_perimeter_px, sample_grid
 from cellcal.devices import CalibrationError, Frame, Intrinsics
 
 PAPER = Intrinsics(width=224, height=172, fx=190.0, fy=200.0, cx=111.5, cy=85.5)
