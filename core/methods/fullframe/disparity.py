@@ -12,14 +12,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.expected import ExpectedPlane
-from cellcal.core.methods.fullframe.passes import basis, truncation
+from cellcal.core.methods.fullframe.passes import Model, basis, truncation
+from cellcal.core.methods.fullframe.points import Points, Sample, pixels_of
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
+from cellcal.core.methods.fullframe.space import Floors, SpaceFit
 from cellcal.core.methods.fullframe.start import FIXED_SEED, fixed_subsample
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import MeasurementModel
@@ -29,7 +32,7 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["DISTANCE_EXPONENT", "DisparityFit", "design_effect", "disparity_lattice", "fit_disparity"]
+__all__ = ["DISTANCE_EXPONENT", "DisparityFit", "DisparitySpace", "design_effect", "disparity_lattice", "fit_disparity"]
 
 #: Depth noise of a disparity camera grows as Z² (σ_Z = Z²/(f·B)·σ_d): the range exponent it implies.
 DISTANCE_EXPONENT = 2.0
@@ -315,12 +318,53 @@ def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int],
     d = fb / z                                                  # the measured disparity, px
     stated = model.disparity_sigma_px is not None
     sigma_model = model.disparity_noise_px                      # sqrt(σ_d² + q²/12), px
-    k_sig = settings.inlier_threshold_sigma
-    band = max(k_sig * sigma_model, q)                          # never narrower than one step
+    band = max(settings.inlier_threshold_sigma * sigma_model, q)   # never narrower than one step
     v = _start(a, d, band, settings, fb, expected)
-    # ---- hard-cut least squares until the inlier set settles; the band follows the scale, which grows
-    # from the model's (or the rounding's) to the smallest self-consistent one (ADR 0007, "Robustness")
-    inl = np.zeros(z.size, dtype=bool)
+    v, ata_inv, inl, sigma, band = _settle(a, d, v, band, sigma_model, settings.inlier_threshold_sigma, q)
+    # ---- weakly dithered rounding: remove its expected pattern at the fitted disparities (a few passes)
+    a_in = a[inl]
+    sigma_d = float((model.disparity_sigma_px if stated else math.sqrt(max(sigma * sigma - q * q / 12.0, 0.0)))
+                    or 0.0)
+    v, r_in, b = _unround(a_in, d[inl], v, ata_inv, sigma_d, q)
+    sigma_used, cov_factor, notes = _scale(r_in, band, sigma, sigma_model, stated, q)
+    # ---- spatial correlation: block means of the residuals (pooled frames of a static scene count here)
+    n_in = int(r_in.size)
+    deff = design_effect(r_in, pixel_index[inl], shape)
+    if deff > 1.05:
+        notes.append(f"spatially correlated residuals: variance x{deff:.3g} (about {n_in / deff:.0f} "
+                     f"independent points of {n_in})")
+    cov_v = ata_inv * (sigma_used * sigma_used * deff * cov_factor)
+    b *= RESIDUAL_ROUNDING_SHARE                                  # what the correction above leaves
+    if b > 1e-6 * q:
+        cov_v, seen = _rounding_pattern(a_in, v, ata_inv, cov_v, b, q, sigma_used * sigma_used * cov_factor, deff)
+        if seen:
+            notes.append(f"disparity rounding weakly dithered (sigma_d {sigma_d:.2g} px for steps of "
+                         f"{q:.3g} px): its pattern removed, up to {b:.2g} px left in the intervals")
+    plane, e1, e2, cov = _metric(v, fb, cov_v)
+    pts = p[:, inl].astype(np.float64)
+    n = np.asarray(plane.normal, dtype=np.float64)
+    ortho = n @ pts + plane.offset_m                             # orthogonal residuals, m
+    zin = pts[2]
+    lever = zin * zin / fb * np.abs(a_in @ n)                    # |d(orthogonal)/d(disparity)|, m/px
+    expected_px = sigma_model if stated else sigma_used
+    return DisparityFit(
+        plane=plane, cov=cov, e1=e1, e2=e2, inliers=inl,
+        residual_rms_m=math.sqrt(float(ortho @ ortho) / n_in),
+        expected_rms_m=expected_px * math.sqrt(float(lever @ lever) / n_in),
+        floor_rms_m=q / math.sqrt(12.0) * math.sqrt(float(lever @ lever) / n_in),
+        noise_scale_m=sigma_used / fb, notes=tuple(notes), disparity=v, disparity_cov=cov_v,
+        residual_rms_px=math.sqrt(float(r_in @ r_in) / n_in), sigma_used_px=sigma_used, design_effect=deff,
+        band_px=band)
+
+
+def _settle(a: FloatArray, d: FloatArray, v: FloatArray, band: float, sigma_model: float, k_sig: float, q: float
+            ) -> tuple[FloatArray, FloatArray, BoolArray, float, float]:
+    """Hard-cut least squares until the inlier set settles: ``(v, (AᵀA)⁻¹, inliers, sigma, band)``.
+
+    The band follows the scale, which grows from the model's (or the rounding's) to the smallest
+    self-consistent one (ADR 0007, "Robustness"); it is never narrower than one step ``q``.
+    """
+    inl = np.zeros(d.size, dtype=bool)
     sigma = sigma_model
     normal = _Normal(a, d)
     for _ in range(MAX_REFITS):
@@ -328,7 +372,7 @@ def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int],
         new = np.abs(r) < band
         n_now = int(np.count_nonzero(new))
         if n_now < MIN_POINTS:
-            raise CalibrationError(f"full-frame fit: only {n_now} of {z.size} points lie within "
+            raise CalibrationError(f"full-frame fit: only {n_now} of {d.size} points lie within "
                                    f"{band:.3g} px of the plane; no plane is defined")
         if np.array_equal(new, inl):
             break
@@ -340,25 +384,33 @@ def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int],
         sigma = max(math.sqrt(r2 / max(n_now - 3, 1) / kept_var), sigma_model)   # truncation-corrected
         band = max(k_sig * sigma, q)
     v, ata_inv = normal.solve(inl)
-    # ---- weakly dithered rounding: remove its expected pattern at the fitted disparities (a few passes)
-    a_in, d_in = a[inl], d[inl]
-    sigma_d = model.disparity_sigma_px if stated else math.sqrt(max(sigma * sigma - q * q / 12.0, 0.0))
-    b = rounding_bias_px(float(sigma_d or 0.0), q)
+    return v, ata_inv, inl, sigma, band
+
+
+def _unround(a_in: FloatArray, d_in: FloatArray, v: FloatArray, ata_inv: FloatArray, sigma_d: float, q: float
+             ) -> tuple[FloatArray, FloatArray, float]:
+    """Remove the rounding's expected pattern when weakly dithered: ``(v, inlier residuals, pattern amplitude)``."""
+    b = rounding_bias_px(sigma_d, q)
     if b > 1e-3 * q:
         for _ in range(3):
-            mu = rounding_mean_px(a_in @ v, float(sigma_d or 0.0), q)
+            mu = rounding_mean_px(a_in @ v, sigma_d, q)
             v = ata_inv @ (a_in.T @ (d_in - mu))
         d_in = d_in - mu
-    r_in = d_in - a_in @ v
-    n_in = int(r_in.size)
-    rms_px = math.sqrt(float(r_in @ r_in) / n_in)
-    # ---- the scale: the model's sigma, or the data's when it is larger (or when none is stated)
+    return v, d_in - a_in @ v, b
+
+
+def _scale(r_in: FloatArray, band: float, sigma: float, sigma_model: float, stated: bool, q: float
+           ) -> tuple[float, float, list[str]]:
+    """The sigma the covariance is scaled by (the model's, or the data's when larger or none is stated).
+
+    Returns ``(sigma_used, cov_factor, notes)``: the cut estimator's variance is
+    ``σ²/(N (p - 2cφ))``; ``(AᵀA)⁻¹ ≈ 1/(N p)`` is scaled by the truncation-corrected ``σ²``, so
+    its factor is ``p / (p - 2cφ)``: the square root of the sandwich's factor (which multiplies
+    the uncorrected inlier meat).
+    """
     kept_var, sandwich_factor = truncation(band / max(sigma, 1e-12))
-    # the cut estimator's variance is σ²/(N (p - 2cφ)); (AᵀA)⁻¹ ≈ 1/(N p) is scaled below by the
-    # truncation-corrected σ², so its factor is p / (p - 2cφ): the square root of the sandwich's factor
-    # (which multiplies the uncorrected inlier meat)
     cov_factor = math.sqrt(sandwich_factor)
-    observed = math.sqrt(float(r_in @ r_in) / max(n_in - 3, 1) / kept_var)   # truncation-corrected
+    observed = math.sqrt(float(r_in @ r_in) / max(int(r_in.size) - 3, 1) / kept_var)   # truncation-corrected
     notes: list[str] = []
     if stated:
         sigma_used = max(sigma_model, observed)
@@ -368,42 +420,68 @@ def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int],
     else:
         sigma_used = max(observed, q / math.sqrt(12.0))
         notes.append(RESIDUAL_FLOOR_NOTE)
-    # ---- spatial correlation: block means of the residuals (pooled frames of a static scene count here)
-    deff = design_effect(r_in, pixel_index[inl], shape)
-    if deff > 1.05:
-        notes.append(f"spatially correlated residuals: variance x{deff:.3g} (about {n_in / deff:.0f} "
-                     f"independent points of {n_in})")
-    cov_v = ata_inv * (sigma_used * sigma_used * deff * cov_factor)
-    # ---- the rounding's systematic part: a pattern b·sin(2π d/q + φ) of the true disparity d that no
-    # number of pixels averages out (what its correction leaves of it); its effect on (α, β, γ) through
-    # this fit, RMS over the unknown phase φ
-    b *= RESIDUAL_ROUNDING_SHARE                                  # what the correction above leaves
-    if b > 1e-6 * q:
-        phase = (2.0 * math.pi / q) * (a_in @ v)                   # 2π d/q at the fitted disparity
-        shift_sin = ata_inv @ (a_in.T @ np.sin(phase)) * b         # LS response to b·sin, px
-        shift_cos = ata_inv @ (a_in.T @ np.cos(phase)) * b         # ... and to b·cos
-        sys_var = (shift_sin**2 + shift_cos**2) / 2.0              # mean square over φ
-        # the correlation factor already widened by (deff - 1)·iid: add only what it does not cover
-        iid = np.diag(ata_inv) * (sigma_used * sigma_used * cov_factor)
-        cov_v = cov_v + np.diag(np.maximum(sys_var - (deff - 1.0) * iid, 0.0))
-        if np.any(sys_var > 0.1 * np.diag(cov_v)):
-            notes.append(f"disparity rounding weakly dithered (sigma_d {float(sigma_d or 0.0):.2g} px for steps of "
-                         f"{q:.3g} px): its pattern removed, up to {b:.2g} px left in the intervals")
-    # ---- metric plane, its tangent covariance, residuals in metres
+    return sigma_used, cov_factor, notes
+
+
+def _rounding_pattern(a_in: FloatArray, v: FloatArray, ata_inv: FloatArray, cov_v: FloatArray, b: float, q: float,
+                      iid_scale: float, deff: float) -> tuple[FloatArray, bool]:
+    """``cov_v`` with what the rounding's pattern left does to ``(α, β, γ)``, and whether it matters.
+
+    The pattern ``b·sin(2π d/q + φ)`` of the true disparity ``d`` is systematic: no number of
+    pixels averages it out. Its effect through this fit is taken as the RMS over the unknown
+    phase ``φ``; the correlation factor already widened by ``(deff - 1)·iid`` (``iid``: the
+    independent variance, ``diag((AᵀA)⁻¹)·iid_scale``), so only what that does not cover is added.
+    """
+    phase = (2.0 * math.pi / q) * (a_in @ v)                     # 2π d/q at the fitted disparity
+    shift_sin = ata_inv @ (a_in.T @ np.sin(phase)) * b           # LS response to b·sin, px
+    shift_cos = ata_inv @ (a_in.T @ np.cos(phase)) * b           # ... and to b·cos
+    sys_var = (shift_sin**2 + shift_cos**2) / 2.0                # mean square over φ
+    iid = np.diag(ata_inv) * iid_scale
+    cov_v = cov_v + np.diag(np.maximum(sys_var - (deff - 1.0) * iid, 0.0))
+    return cov_v, bool(np.any(sys_var > 0.1 * np.diag(cov_v)))
+
+
+def _metric(v: FloatArray, fb: float, cov_v: FloatArray) -> tuple[Plane, FloatArray, FloatArray, FloatArray]:
+    """The metric plane of ``v``, its tangent basis and the covariance of its steps ``(d_e1, d_e2, d_offset)``."""
     plane = plane_from_disparity(v, fb)
     e1, e2 = basis(np.asarray(plane.normal, dtype=np.float64))
     jac = _tangent_jacobian(v, fb, e1, e2)
-    cov = jac @ cov_v @ jac.T
-    pts = p[:, inl].astype(np.float64)
-    n = np.asarray(plane.normal, dtype=np.float64)
-    ortho = n @ pts + plane.offset_m                             # orthogonal residuals, m
-    zin = pts[2]
-    lever = zin * zin / fb * np.abs(a[inl] @ n)                  # |d(orthogonal)/d(disparity)|, m/px
-    expected_px = sigma_model if stated else sigma_used
-    return DisparityFit(
-        plane=plane, cov=cov, e1=e1, e2=e2, inliers=inl,
-        residual_rms_m=math.sqrt(float(ortho @ ortho) / n_in),
-        expected_rms_m=expected_px * math.sqrt(float(lever @ lever) / n_in),
-        floor_rms_m=q / math.sqrt(12.0) * math.sqrt(float(lever @ lever) / n_in),
-        noise_scale_m=sigma_used / fb, notes=tuple(notes), disparity=v, disparity_cov=cov_v,
-        residual_rms_px=rms_px, sigma_used_px=sigma_used, design_effect=deff, band_px=band)
+    return plane, e1, e2, jac @ cov_v @ jac.T
+
+
+# ---------------------------------------------------------------------- the space
+@dataclass(frozen=True)
+class DisparitySpace:
+    """A stereo or structured-light camera's measurement space: :func:`fit_disparity` for the full-frame fit.
+
+    Attributes:
+        settings: The ``[full_frame]`` table.
+        measurement: The camera's model (``triangulating``: baseline, focal, subpixel bits, sigma).
+    """
+
+    settings: FullFrameSettings
+    measurement: MeasurementModel
+    name: ClassVar[str] = "disparity"
+
+    @property
+    def noise_shape(self) -> Model:
+        """Depth noise grows as Z² (:data:`DISTANCE_EXPONENT`): the flatness gate's weights."""
+        return Model(self.settings.weighted, DISTANCE_EXPONENT)
+
+    def fit(self, points: Points, expected: ExpectedPlane | None) -> SpaceFit:
+        """:func:`fit_disparity` on the pooled points (each one's pixel from the frames' masks)."""
+        pixel_index = pixels_of(np.arange(points.n), points.masks)
+        d = fit_disparity(points.p, pixel_index, points.shape, self.measurement, self.settings, expected)
+        no_bias = (math.nan, math.nan, np.zeros(3))              # no radial range bias in disparity space
+        return SpaceFit(d.plane, np.asarray(d.cov, dtype=np.float64), np.asarray(d.e1, dtype=np.float64),
+                        np.asarray(d.e2, dtype=np.float64), np.asarray(d.inliers, dtype=bool),
+                        float(d.residual_rms_m), float(d.noise_scale_m), math.nan, no_bias, None,
+                        float(d.expected_rms_m), float(d.floor_rms_m), tuple(d.notes))
+
+    def floors(self, fit: SpaceFit, points: Points, sample: Sample) -> Floors:
+        """The disparity step and the model's sigma across the plane (found by the fit); depth is Z.
+
+        The spatial correlation is already in the covariance (in disparity units), so no residuals.
+        """
+        return Floors(fit.floor_rms_m, fit.expected_rms_m, (self.measurement.disparity_sigma_px or 0.0) > 0, 0.0,
+                      points.p[2], None)

@@ -1,7 +1,8 @@
-"""Where the fit should look: the plane the user means (:class:`ExpectedPlane`) and a pixel region.
+"""Where the fit should look: the plane the user means (:class:`ExpectedPlane`).
 
-The calibration layer builds both from ``[reference]``, ``[mount]``, the arm pose and the
-region of interest; the fit only takes them (ADR 0027, "The plane the user means").
+The calibration layer builds it from ``[reference]``, ``[mount]`` and the arm pose; the fit
+only takes it (ADR 0027, "The plane the user means"). The pixel region is checked where the
+frames become points (``points.check_region``).
 """
 
 from __future__ import annotations
@@ -10,12 +11,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.devices.errors import CalibrationError
 
-__all__ = ["DEFAULT_SEARCH_TOLERANCE_DEG", "DEFAULT_SEARCH_TOLERANCE_M", "ExpectedPlane", "check_region"]
+__all__ = ["DEFAULT_SEARCH_TOLERANCE_DEG", "DEFAULT_SEARCH_TOLERANCE_M", "ExpectedPlane"]
 
 #: How far the fitted normal may be from the expected one by default (``[reference] search_tolerance_deg``), deg.
 DEFAULT_SEARCH_TOLERANCE_DEG = 15.0
@@ -55,20 +55,3 @@ class ExpectedPlane:
         """Whether ``plane`` lies within both tolerances."""
         angle, offset = self.departure(plane)
         return angle <= self.angle_tolerance_rad and offset <= self.offset_tolerance_m
-
-
-def check_region(region: NDArray[np.bool_] | None, shape: tuple[int, int]) -> NDArray[np.bool_] | None:
-    """A region of interest as an (H, W) bool mask of the frame's shape, or None for the whole image.
-
-    Raises:
-        CalibrationError: A mask of another shape or type, or an empty one.
-    """
-    if region is None:
-        return None
-    mask = np.asarray(region)
-    if mask.dtype != np.bool_ or mask.shape != shape:
-        raise CalibrationError(f"the region of interest must be a bool mask of shape {shape}, got "
-                               f"{mask.dtype} of shape {mask.shape}")
-    if not mask.any():
-        raise CalibrationError("the region of interest holds no pixel")
-    return mask

@@ -21,10 +21,19 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.core.methods.fullframe.passes import Model, basis
+from cellcal.core.methods.fullframe.points import Points, gather, pixels_of
+from cellcal.core.methods.fullframe.settings import FullFrameSettings
+from cellcal.core.methods.fullframe.space import SpaceFit
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
+#: Inliers (strided) the flatness grid uses at most.
+MAX_FLAT_POINTS = 1 << 16
+#: Off-plane maps are subsampled to about this many pixels across before finding regions.
+REGION_MAP_PX = 320
 #: A cell needs this many points for a local plane.
 MIN_CELL_POINTS = 30
 #: A region counts as one surface when its robust residual scale is at most this many
@@ -276,4 +285,82 @@ def _cell_map(shape: tuple[int, int], grid: tuple[int, int]) -> NDArray[np.intp]
 def grid_cells(pixels: NDArray[np.intp], shape: tuple[int, int], grid: tuple[int, int]) -> NDArray[np.intp]:
     """Cell ``row * columns + column`` of a ``(columns, rows)`` grid for each flat pixel index."""
     out: NDArray[np.intp] = np.take(_cell_map(shape, grid), pixels)
+    return out
+
+
+# ---------------------------------------------------------------------- the gate's value of a fit
+def fit_flatness(fit: SpaceFit, points: Points, model: Model, cfg: FullFrameSettings) -> Flatness:
+    """The flatness gate's value: local planes of grid cells and of large planar off-plane regions.
+
+    Args:
+        fit: The global fit (its inliers, plane and noise scale).
+        points: The pooled points it was fitted to (frames: their masks and image shape).
+        model: The range-noise shape the local planes are weighted with (the space's).
+        cfg: ``flatness_grid``, ``flatness_sigma`` and ``flatness_min_region``.
+    """
+    h, w = points.shape
+    pl = fit.plane
+    e1, e2 = basis(pl.normal)
+    frame = PlaneFrame(pl.normal, e1, e2, pl.offset_m)
+    sel = np.flatnonzero(fit.inliers)
+    sel = sel[:: max(1, -(-sel.size // MAX_FLAT_POINTS))]   # strided inliers
+    grid = (min(cfg.flatness_grid[0], w), min(cfg.flatness_grid[1], h))
+    cell = grid_cells(pixels_of(sel, points.masks), (h, w), grid)
+    p_in = gather(points.p, sel)
+    wt = _noise_orth(p_in, points.dm[sel], frame, model).astype(np.float64)
+    del sel                                                 # point-sized arrays go as soon as they are used
+    np.square(wt, out=wt)
+    np.divide(1.0, wt, out=wt)                              # weights 1 / noise^2
+    uvw = frame.uvw(p_in)
+    del p_in
+    best = grid_flatness(uvw, wt, cell, grid, fit.noise_scale_m, cfg.flatness_sigma)
+    del uvw, wt, cell
+    step = max(1, round(max(h, w) / REGION_MAP_PX))
+    start = 0
+    for m in points.masks:
+        k = int(np.count_nonzero(m))
+        inl = fit.inliers[start:start + k]
+        if k - int(np.count_nonzero(inl)) >= cfg.flatness_min_region * k:   # enough outliers for a region
+            reg = _frame_regions(frame, points.p[:, start:start + k], points.dm[start:start + k], m, inl, (h, w),
+                                 step, fit.noise_scale_m, model, cfg)
+            if reg.excess_m > best.excess_m:
+                best = reg
+        start += k
+    return best
+
+
+def _frame_regions(frame: PlaneFrame, p: F32, dm: F32, m: BoolArray, inl: BoolArray, shape: tuple[int, int],
+                   step: int, scale_m: float, model: Model, cfg: FullFrameSettings) -> Flatness:
+    """Flatness of the large off-plane regions of one frame (points ``p`` of the pixels ``m``)."""
+    h, w = shape
+    k = inl.size
+    off = np.zeros(h * w, dtype=np.uint8)
+    off[m] = ~inl
+    labels, sizes = off_plane_regions(off.reshape(h, w), step)
+    min_size = math.ceil(cfg.flatness_min_region * k / step ** 2)
+    big = np.flatnonzero(sizes >= min_size)
+    if big.size == 0:
+        return Flatness(0.0, "")
+    lab = labels.reshape(-1)[m]
+    pick = np.flatnonzero(np.isin(lab, big))
+    pick = pick[:: max(1, -(-pick.size // MAX_FLAT_POINTS))]                # strided, at most 65536
+    p_off = gather(p, pick)
+    noise = scale_m * _noise_orth(p_off, dm[pick], frame, model).astype(np.float64)
+    return region_flatness(frame, p_off, noise, lab[pick], sizes, min_size, cfg.flatness_sigma, step ** 2, k)
+
+
+def _noise_orth(p: F32, dm: F32, frame: PlaneFrame, model: Model) -> F32:
+    """Orthogonal noise shape ``sigma_range |cos|`` of points with ranges ``dm`` (up to the fitted scale).
+
+    Evaluated at the range the plane predicts along each ray, never at the noisy one
+    (weights correlated with the noise bias the local planes, as in ADR 0007, "Weighting").
+    """
+    pn = frame.n.astype(np.float32) @ p
+    cos = np.abs(pn) / dm
+    if model.weighted:
+        t = np.abs(np.float32(-frame.offset) * dm / pn)   # predicted range along the ray
+        shape = t ** np.float32(model.exponent) / np.sqrt(np.maximum(cos, np.float32(1e-6)))
+    else:
+        shape = np.ones_like(dm)
+    out: F32 = shape * cos
     return out

@@ -8,23 +8,30 @@ Points are in the camera frame (OpenCV), metres. Rationale: docs/adr/0028-honest
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.methods.fullframe.disparity import disparity_lattice
+from cellcal.core.methods.fullframe.expected import ExpectedPlane
+from cellcal.core.methods.fullframe.flatness import Flatness
+from cellcal.core.methods.fullframe.points import Points, Sample
+from cellcal.core.methods.fullframe.result import IntervalFactors
+from cellcal.core.methods.fullframe.space import MeasurementSpace, SpaceFit
+from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["design_effect", "lock_on", "quantisation_floor", "rounding_allowance_m"]
+__all__ = ["Honest", "allow_rounding", "design_effect", "honest_intervals", "lock_on", "quantisation_floor",
+           "rounding_allowance_m"]
 
-#: Inliers (strided) examined for a lock-on and for the quantisation floor's geometry.
-SAMPLE = 4096
 #: Inlier depths taking at most this many distinct values sit on quantisation levels.
 MAX_LEVELS = 2
 #: Share of inliers with a zero residual (|r| <= ZERO_M) that means the same.
@@ -201,3 +208,62 @@ def rounding_allowance_m(floor_m: float, rms_m: float) -> float:
     q = math.sqrt(12.0) * floor_m                         # the step across the plane
     s = math.sqrt(max(rms_m * rms_m - floor_m * floor_m, 0.0))   # the noise before rounding (Sheppard)
     return q / math.pi * math.exp(-2.0 * math.pi ** 2 * (s / q) ** 2)
+
+
+# ---------------------------------------------------------------------- the checks on a fit
+@dataclass(frozen=True)
+class Honest:
+    """The sensor's floor and expectation for the inliers, a lock-on, and what widened the intervals."""
+
+    measurement: MeasurementModel = UNKNOWN_MODEL
+    native_space: str = "range"
+    expected_m: float = math.nan
+    floor_m: float = 0.0
+    sigma_stated: bool = False
+    multipath_m: float = 0.0
+    lock_on: str = ""
+    factors: IntervalFactors = field(default_factory=IntervalFactors)
+    notes: tuple[str, ...] = ()
+    expected: ExpectedPlane | None = None
+    region_pixels: int = 0
+
+
+def honest_intervals(fit: SpaceFit, space: MeasurementSpace, points: Points, expected: ExpectedPlane | None
+                     ) -> tuple[SpaceFit, Honest]:
+    """The space's floors for the inliers, a lock-on, and the covariance widened where they say so.
+
+    Covariance (d_e1, d_e2, d_offset): times the spatial design effect when significant (unless
+    the space allowed for it in its own units), then never below the quantisation floor spread
+    over the inliers' extent.
+    """
+    sample = Sample.of(points, fit.inliers)
+    floors = space.floors(fit, points, sample)
+    ortho = fit.plane.normal @ sample.p + fit.plane.offset_m   # orthogonal residuals of the sample, m
+    locked = lock_on(np.take(floors.depth, sample.index), ortho, floors.depth)
+    spatial = 1.0
+    if floors.resid is not None:                               # significant correlation only
+        deff, se = design_effect(floors.resid, points.masks, points.shape)
+        spatial = deff if deff > 1.0 + DEFF_SIGNIFICANCE * se else 1.0
+    uv = np.stack([fit.e1 @ sample.p, fit.e2 @ sample.p])     # in-plane coordinates, m
+    cov, held = quantisation_floor(fit.cov * spatial, floors.floor_m, uv, int(np.count_nonzero(fit.inliers)))
+    ratio = fit.residual_rms_m / floors.expected_m if floors.expected_m > 0 else math.nan
+    notes = [*fit.notes, *floors.notes]
+    if spatial > 1.0:
+        notes.append(f"intervals {math.sqrt(spatial):.3g} x wider for residuals correlated across neighbouring "
+                     f"pixels (design effect {spatial:.3g})")
+    if held:
+        notes.append(f"intervals held at the quantisation floor ({floors.floor_m * 1000:.3g} mm RMS across the plane)")
+    honest = Honest(points.measurement, space.name, floors.expected_m, floors.floor_m, floors.stated,
+                    floors.multipath_m, locked, IntervalFactors(ratio, spatial, held), tuple(notes), expected,
+                    points.n_pixels)
+    return dataclasses.replace(fit, cov=cov, resid=None), honest   # the residuals' scratch goes before flatness
+
+
+def allow_rounding(flat: Flatness, honest: Honest, rms_m: float) -> tuple[Flatness, Honest]:
+    """The flatness value less what undithered rounding bends local planes by, and a note when it did."""
+    bend = rounding_allowance_m(honest.floor_m, rms_m)
+    if not (bend > 1e-5 and flat.excess_m > 0):
+        return flat, honest
+    left = max(flat.excess_m - bend, 0.0)
+    note = f"flatness allows {bend * 1000:.3g} mm for the rounding's sawtooth (weakly dithered depth steps)"
+    return Flatness(left, flat.where if left > 0 else ""), dataclasses.replace(honest, notes=(*honest.notes, note))
