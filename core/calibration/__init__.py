@@ -16,14 +16,6 @@ from cellcal.core.calibration.calibrator import (
 )
 from cellcal.core.calibration.config import (
     CellConfig,
-    CellSection,
-    MonitorSection,
-    MountSection,
-    PlanPose,
-    PlanSection,
-    ReferenceSection,
-    RegionSection,
-    SafetySection,
     load_config,
     look_at_pose,
     parse_config,
@@ -55,6 +47,16 @@ from cellcal.core.calibration.report import (
     summarize_poses,
     write_bytes_atomic,
     write_json_atomic,
+)
+from cellcal.core.calibration.sections import (
+    CellSection,
+    MonitorSection,
+    MountSection,
+    PlanPose,
+    PlanSection,
+    ReferenceSection,
+    RegionSection,
+    SafetySection,
 )
 from cellcal.devices.lazy import lazy_exports
 

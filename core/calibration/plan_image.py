@@ -7,7 +7,8 @@ that does not suit the camera (ADR 0044).
 
 from __future__ import annotations
 
-from cellcal.core.calibration.config import CellConfig, PlanSection
+from cellcal.core.calibration.config import CellConfig
+from cellcal.core.calibration.sections import PlanSection
 from cellcal.core.methods.grid import GRID_METHODS, largest_perimeter_px, perimeter_problem
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.types import Intrinsics

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cellcal.core.calibration.config import ReferenceSection, RegionSection
+from cellcal.core.calibration.sections import ReferenceSection, RegionSection
 from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.measure import ExpectedGeometry
 from cellcal.devices.errors import CalibrationError, ConfigError

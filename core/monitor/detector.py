@@ -9,7 +9,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from cellcal.core.calibration.config import MonitorSection
+from cellcal.core.calibration.sections import MonitorSection
 from cellcal.core.monitor.samples import Baseline, PlaneSample
 from cellcal.devices.errors import CalibrationError
 

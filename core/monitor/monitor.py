@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from cellcal.core.calibration.config import MonitorSection
+from cellcal.core.calibration.sections import MonitorSection
 from cellcal.core.methods.fullframe import FullFrameSettings
 from cellcal.core.monitor.detector import DetectorStatus, DriftDetector, DriftEvent, Phase
 from cellcal.core.monitor.samples import Baseline, PlaneSample, plane_sample

@@ -8,8 +8,9 @@ from importlib import resources
 
 import pytest
 
-from cellcal.core.calibration.config import PlanSection, parse_config
+from cellcal.core.calibration.config import parse_config
 from cellcal.core.calibration.plan_image import check_plan_image, describe_plan_image, plan_image_problem
+from cellcal.core.calibration.sections import PlanSection
 from cellcal.core.methods.grid import (
     DEFAULT_PERIMETERS_PX,
     DEFAULT_WINDOW_PX,

@@ -12,9 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from cellcal.core.calibration.config import RegionSection, look_at_pose, parse_config
+from cellcal.core.calibration.config import look_at_pose, parse_config
 from cellcal.core.calibration.dryrun import dry_run
 from cellcal.core.calibration.region import box_mask, polygon_mask, region_document, region_mask
+from cellcal.core.calibration.sections import RegionSection
 from cellcal.devices.errors import CalibrationError, ConfigError
 from cellcal.devices.geometry.camera_model import pixel_grid_rays, project
 from cellcal.devices.pose import Pose

@@ -21,7 +21,7 @@ from dataclasses import replace
 import pytest
 from test_monitor import run_detector
 
-from cellcal.core.calibration.config import MonitorSection
+from cellcal.core.calibration.sections import MonitorSection
 from cellcal.core.monitor import Baseline, DriftDetector, DriftEvent, PlaneSample
 from cellcal.core.monitor.detector import DetectorStatus
 from cellcal.devices.errors import CalibrationError

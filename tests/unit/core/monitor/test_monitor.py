@@ -18,7 +18,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cellcal.core.calibration.config import CellConfig, MonitorSection, load_config, parse_config
+from cellcal.core.calibration.config import CellConfig, load_config, parse_config
+from cellcal.core.calibration.sections import MonitorSection
 from cellcal.core.cli import main
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.monitor import (
