@@ -94,7 +94,10 @@ class RobotArm(Device):
         """Current flange pose in the base frame.
 
         Raises:
-            NotConnectedError, DeviceTimeoutError, DeviceConnectionError, ProtocolError.
+            NotConnectedError: Before ``connect``.
+            DeviceTimeoutError: If the read takes longer than ``timeout``.
+            DeviceConnectionError: If the link to the arm is lost.
+            ProtocolError: If the arm's reply cannot be read.
         """
         self._require_connected("read the pose")
         return self._get_pose(self._resolve_timeout(timeout))

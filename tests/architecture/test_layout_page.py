@@ -1,4 +1,4 @@
-"""The README's Layout section names every folder of the tree, and only folders that exist."""
+"""The site's layout page (docs/contributing/layout.md) names every folder of the tree, and only ones that exist."""
 
 from __future__ import annotations
 
@@ -9,14 +9,19 @@ import tomllib
 
 from repo_paths import REPO_ROOT
 
+#: The page whose first code block is the layout (it was the README's "## Layout" section).
+LAYOUT_PAGE = REPO_ROOT / "docs" / "contributing" / "layout.md"
+
 #: An entry line of the layout block: indentation (a few spaces; a continuation line's is the description column's),
 #: then a folder name ending in '/'.
 _ENTRY = re.compile(r"^(?P<indent> {0,12})(?P<name>[\w.-]+(?:/[\w.-]+)*)/(?: |$)")
 
 
-def layout_entries(readme: str) -> dict[str, str]:
-    """Folder path (``core/track``) -> its text in the README's layout block (continuation lines included)."""
-    block = readme.split("## Layout\n", 1)[1].split("```\n", 2)[1]
+def layout_entries(page: str) -> dict[str, str]:
+    """Folder path (``core/track``) -> its text in the page's layout block (continuation lines included)."""
+    found = re.search(r"^```\w*\n(.*?)^```$", page, flags=re.S | re.M)
+    assert found is not None, "the layout page has no code block"
+    block = found[1]
     entries: dict[str, str] = {}
     stack: list[tuple[int, str]] = []
     current = ""
@@ -47,12 +52,12 @@ def tracked_top_level() -> set[str]:
 
 def test_the_entry_parser_reads_nesting_and_continuations() -> None:
     indent = " " * 20
-    readme = f"## Layout\n\n```\na/    one\n  b/  two\n{indent}x/ more\n    c/\nd/e/  three\n```\n"
-    assert layout_entries(readme) == {"a": "one", "a/b": "two x/ more", "a/b/c": "", "d/e": "three"}
+    page = f"# Layout\n\n```text\na/    one\n  b/  two\n{indent}x/ more\n    c/\nd/e/  three\n```\n\n```\nz/ no\n```\n"
+    assert layout_entries(page) == {"a": "one", "a/b": "two x/ more", "a/b/c": "", "d/e": "three"}
 
 
 def test_the_layout_names_every_folder_of_the_tree() -> None:
-    entries = layout_entries((REPO_ROOT / "README.md").read_text(encoding="utf-8"))
+    entries = layout_entries(LAYOUT_PAGE.read_text(encoding="utf-8"))
     assert sorted(path for path in entries if not (REPO_ROOT / path).is_dir()) == []
 
     top = {path.split("/", 1)[0] for path in entries}
@@ -74,7 +79,7 @@ def test_the_layout_names_every_folder_of_the_tree() -> None:
 
 
 def test_the_layout_names_every_benchmark_doc_and_ci_script() -> None:
-    entries = layout_entries((REPO_ROOT / "README.md").read_text(encoding="utf-8"))
+    entries = layout_entries(LAYOUT_PAGE.read_text(encoding="utf-8"))
     expected = {
         "benchmarks": [p.stem for p in (REPO_ROOT / "benchmarks").glob("*.py")],
         "docs": [p.name for p in (REPO_ROOT / "docs").iterdir()],
