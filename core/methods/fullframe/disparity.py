@@ -19,11 +19,11 @@ from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.expected import ExpectedPlane
-from cellcal.core.methods.fullframe.passes import Model, basis, truncation
-from cellcal.core.methods.fullframe.points import Points, Sample, pixels_of
+from cellcal.core.methods.fullframe.honesty import disparity_lattice
+from cellcal.core.methods.fullframe.passes import basis, truncation
+from cellcal.core.methods.fullframe.points import FIXED_SEED, Points, Sample, fixed_subsample, pixels_of
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
-from cellcal.core.methods.fullframe.space import Floors, SpaceFit
-from cellcal.core.methods.fullframe.start import FIXED_SEED, fixed_subsample
+from cellcal.core.methods.fullframe.space import Floors, Model, SpaceFit
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.readable import quantity_pair
@@ -112,46 +112,6 @@ def _tangent_jacobian(v: FloatArray, fb_px_m: float, e1: FloatArray, e2: FloatAr
     norm = float(np.linalg.norm(v))
     n = -v / norm
     return np.stack([-e1 / norm, -e2 / norm, fb_px_m * n / norm**2])
-
-
-def disparity_lattice(z_m: F32 | FloatArray, *, min_share: float = 0.002, min_levels: int = 4,
-                      max_rms_step: float = 0.1) -> float | None:
-    """``f·B / q`` (px·m per disparity step) of a depth image quantised on a disparity lattice, or None.
-
-    A stereo camera's depths are ``Z = f·B / (k q)`` for integers ``k``: the populated depth
-    values have ``1/Z`` on a lattice of pitch ``q / (f·B)``. The pitch is first guessed from the
-    smallest gap between populated levels, then refined so that ``(f·B/q) / Z`` of every level is
-    closest to an integer. Depths rounded to a millimetre (the OAK's output) still resolve it.
-
-    Args:
-        z_m: Z-depths, metres (any shape; non-finite and non-positive values ignored).
-        min_share: A depth value is a populated level when it holds this share of the depths.
-        min_levels: Fewer populated levels than this: no lattice can be told.
-        max_rms_step: The levels must sit this close (RMS, in steps) to the lattice.
-
-    Returns:
-        ``f·B/q`` in px·m, or None when the depths show no lattice (a ToF camera, subpixel
-        disparity finer than the depth unit, too few levels).
-    """
-    z = np.asarray(z_m, dtype=np.float64).ravel()
-    z = z[np.isfinite(z) & (z > 0)]
-    if z.size == 0:
-        return None
-    values, counts = np.unique(z, return_counts=True)
-    levels = values[counts >= max(min_share * z.size, 16)]     # populated depth values
-    if levels.size < min_levels:
-        return None
-    inv = np.sort(1.0 / levels)
-    gap = float(np.min(np.diff(inv)))                            # adjacent populated levels: one step, at best
-    if gap <= 0:
-        return None
-    candidates = np.linspace(0.8, 1.2, 4001) / gap               # f·B/q around the first guess, px·m
-    k = candidates[:, None] * inv[None, :]                       # each level's disparity in steps
-    cost = np.mean((k - np.round(k)) ** 2, axis=1)               # squared distance to the nearest integer
-    best = int(np.argmin(cost))
-    if cost[best] > max_rms_step**2:
-        return None
-    return float(candidates[best])
 
 
 # ---------------------------------------------------------------------- statistics

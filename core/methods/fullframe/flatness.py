@@ -21,10 +21,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.methods.fullframe.passes import Model, basis
+from cellcal.core.methods.fullframe.passes import basis
 from cellcal.core.methods.fullframe.points import Points, gather, pixels_of
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
-from cellcal.core.methods.fullframe.space import SpaceFit
+from cellcal.core.methods.fullframe.space import Model, SpaceFit
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -1,13 +1,10 @@
-"""Quality gates of a full-frame fit: the gate table, :func:`check_gates` and image coverage."""
+"""Quality gates of a full-frame fit: the gate table and :func:`check_gates` (image coverage: ``points.py``)."""
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
-import numpy as np
-from numpy.typing import NDArray
-
+from cellcal.core.methods.fullframe.points import CoverageCells, coverage_cells, image_coverage
 from cellcal.core.methods.fullframe.result import FullFrameResult
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.devices.errors import CalibrationQualityError
@@ -179,47 +176,3 @@ def check_gates(result: FullFrameResult, settings: FullFrameSettings | None = No
         if not ok:
             raise CalibrationQualityError(name, value, threshold, _message(name, value, threshold, result, cfg),
                                           unit=GATE_UNITS[name])
-
-
-def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings,
-                   region: NDArray[np.bool_] | None = None) -> float:
-    """Fraction of the ``coverage_grid`` cells with at least ``min_cell_inlier_fraction`` inliers.
-
-    Args:
-        mask: (H, W) inlier mask of the image.
-        settings: Grid and per-cell threshold.
-        region: (H, W) region of interest: a cell's share is taken over its region pixels,
-            and cells holding none are not counted. None: the whole image.
-    """
-    cells = coverage_cells(mask, settings, region)
-    seen = cells.area > 0
-    return float(np.mean(cells.counts[seen] >= settings.min_cell_inlier_fraction * cells.area[seen]))
-
-
-class CoverageCells(NamedTuple):
-    """The coverage grid of one image: inliers and counted pixels per cell, and the cells' first rows / columns."""
-
-    counts: NDArray[np.integer]  # (rows, cols) inliers per cell
-    area: NDArray[np.integer]    # (rows, cols) pixels counted per cell (region pixels with a region)
-    row_edges: NDArray[np.int_]  # (rows,) first image row of each cell
-    col_edges: NDArray[np.int_]  # (cols,) first image column of each cell
-
-
-def coverage_cells(mask: NDArray[np.bool_], settings: FullFrameSettings,
-                   region: NDArray[np.bool_] | None = None) -> CoverageCells:
-    """Inliers and counted pixels in each ``coverage_grid`` cell (the numbers :func:`image_coverage` judges)."""
-    h, w = mask.shape
-    cols, rows = settings.coverage_grid
-    rows, cols = min(rows, h), min(cols, w)              # no more cells than pixels
-    r_edges = (np.arange(rows) * h) // rows              # first row / column of each cell
-    c_edges = (np.arange(cols) * w) // cols
-    per_row = np.add.reduceat(mask.view(np.uint8), r_edges, axis=0, dtype=np.int32)
-    counts = np.add.reduceat(per_row, c_edges, axis=1)   # inliers per cell
-    if region is None:
-        r_size = np.diff(np.append(r_edges, h))
-        c_size = np.diff(np.append(c_edges, w))
-        area = np.outer(r_size, c_size)                  # pixels per cell
-    else:                                                # region pixels per cell
-        area = np.add.reduceat(np.add.reduceat(region.view(np.uint8), r_edges, axis=0, dtype=np.int32),
-                               c_edges, axis=1)
-    return CoverageCells(counts, area, r_edges, c_edges)

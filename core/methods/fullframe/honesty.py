@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.methods.fullframe.disparity import disparity_lattice
 from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.fullframe.flatness import Flatness
 from cellcal.core.methods.fullframe.points import Points, Sample
@@ -29,8 +28,8 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["Honest", "allow_rounding", "design_effect", "honest_intervals", "lock_on", "quantisation_floor",
-           "rounding_allowance_m"]
+__all__ = ["Honest", "allow_rounding", "design_effect", "disparity_lattice", "honest_intervals", "lock_on",
+           "quantisation_floor", "rounding_allowance_m"]
 
 #: Inlier depths taking at most this many distinct values sit on quantisation levels.
 MAX_LEVELS = 2
@@ -82,6 +81,46 @@ def _few_levels(depth: F32) -> NDArray[np.floating[Any]] | None:
     if MAX_LEVELS >= 2 and bool(np.all(rest == rest[0])):
         return np.sort(np.array([first, rest[0]]))
     return None
+
+
+def disparity_lattice(z_m: F32 | FloatArray, *, min_share: float = 0.002, min_levels: int = 4,
+                      max_rms_step: float = 0.1) -> float | None:
+    """``f·B / q`` (px·m per disparity step) of a depth image quantised on a disparity lattice, or None.
+
+    A stereo camera's depths are ``Z = f·B / (k q)`` for integers ``k``: the populated depth
+    values have ``1/Z`` on a lattice of pitch ``q / (f·B)``. The pitch is first guessed from the
+    smallest gap between populated levels, then refined so that ``(f·B/q) / Z`` of every level is
+    closest to an integer. Depths rounded to a millimetre (the OAK's output) still resolve it.
+
+    Args:
+        z_m: Z-depths, metres (any shape; non-finite and non-positive values ignored).
+        min_share: A depth value is a populated level when it holds this share of the depths.
+        min_levels: Fewer populated levels than this: no lattice can be told.
+        max_rms_step: The levels must sit this close (RMS, in steps) to the lattice.
+
+    Returns:
+        ``f·B/q`` in px·m, or None when the depths show no lattice (a ToF camera, subpixel
+        disparity finer than the depth unit, too few levels).
+    """
+    z = np.asarray(z_m, dtype=np.float64).ravel()
+    z = z[np.isfinite(z) & (z > 0)]
+    if z.size == 0:
+        return None
+    values, counts = np.unique(z, return_counts=True)
+    levels = values[counts >= max(min_share * z.size, 16)]     # populated depth values
+    if levels.size < min_levels:
+        return None
+    inv = np.sort(1.0 / levels)
+    gap = float(np.min(np.diff(inv)))                            # adjacent populated levels: one step, at best
+    if gap <= 0:
+        return None
+    candidates = np.linspace(0.8, 1.2, 4001) / gap               # f·B/q around the first guess, px·m
+    k = candidates[:, None] * inv[None, :]                       # each level's disparity in steps
+    cost = np.mean((k - np.round(k)) ** 2, axis=1)               # squared distance to the nearest integer
+    best = int(np.argmin(cost))
+    if cost[best] > max_rms_step**2:
+        return None
+    return float(candidates[best])
 
 
 def lock_on(depth_in: F32, ortho_in: FloatArray, valid_depth: F32) -> str:

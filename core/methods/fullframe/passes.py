@@ -1,26 +1,50 @@
-"""Gauss-Newton passes of the range model over camera-frame points (float32, in place).
+"""Gauss-Newton passes of the range model over camera-frame points (float32, in place), from a start plane.
 
-Method and rationale: docs/adr/0007-full-frame-fit.md ("Model", "Weighting", "Uncertainty").
+A scale from below, reweighting passes on a subsample until converged, then the answer:
+two passes over every point (the second from the first's plane), the sandwich covariance
+and the radial bias. Method and rationale: docs/adr/0007-full-frame-fit.md ("Model",
+"Weighting", "Robustness", "Uncertainty").
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.methods.fullframe.settings import MIN_POINTS
+from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
+from cellcal.core.methods.fullframe.space import Model, SpaceFit
 from cellcal.devices.errors import CalibrationError
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-#: ``(inliers, whitened residuals) -> points allowed to stay inliers`` (image-space clean-up).
-KeepMask = Callable[[BoolArray, F32], BoolArray]
+__all__ = ["Cutoff", "FinalPass", "KeepMask", "Model", "NothingLeftError", "Pass", "Scratch", "basis", "final_pass",
+           "fit_from_start", "gn_pass", "step_plane", "truncation"]
+
+#: Passes over every point (the second from the first one's plane).
+FINAL_PASSES = 2
+
+
+class KeepMask(Protocol):
+    """``(inliers, whitened residuals) -> points allowed to stay inliers`` (image-space clean-up).
+
+    Attributes:
+        scale: Robust scale of the whitened residuals, set before each pass over every point.
+    """
+
+    scale: float
+
+    def __call__(self, inliers: BoolArray, z: F32) -> BoolArray:
+        """The points allowed to stay inliers."""
+        ...
 
 _SQRT_2PI = math.sqrt(2.0 * math.pi)
 
@@ -81,19 +105,6 @@ class Cutoff:
     def at(self, scale: float) -> float:
         """The cut-off for a robust scale ``scale`` of the normalised residuals."""
         return min(max(self.k_sig * scale, self.lo), self.hi)
-
-
-@dataclass(frozen=True)
-class Model:
-    """How range residuals are normalised: the noise model's exponent, or given sigmas."""
-
-    weighted: bool
-    exponent: float
-    sigma: F32 | None = None
-
-    def subset(self, sigma: F32 | None) -> Model:
-        """The same model with the sigmas of a subset of the points."""
-        return Model(self.weighted, self.exponent, sigma)
 
 
 @dataclass
@@ -311,3 +322,130 @@ def _few_inliers(n_points: int, n_near: int, n_left: int, edge: bool) -> str:
         return (f"full-frame fit: {n_points} valid pixels, {n_near} near the plane, {n_left} left after the "
                 "edge margin (pixels next to invalid or off-plane patches, edge_margin_deg); no plane is defined")
     return f"full-frame fit: {n_points} valid points, only {n_near} near the plane; no plane is defined"
+
+
+# ---------------------------------------------------------------------- from a start to the answer
+def fit_from_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings, n: FloatArray, offset: float,
+                   keep: KeepMask | None = None) -> SpaceFit:
+    """From a start plane (unit normal ``n``, ``offset``) to the answer, on points ``p`` (3, N) with ranges ``dm``.
+
+    A scale from below on a strided subsample, passes there until converged, then the passes
+    over every point. ``keep`` maps the inlier mask (N,) and the residuals of the converged
+    plane to the points allowed in the last pass (image-space clean-up, see ``edge_margin_deg``).
+    """
+    if model.sigma is None:                                    # strided subsample for the passes
+        ps, ds = _subsample(settings.refine_points, p, dm)
+        sub = model
+    else:
+        ps, ds, ss = _subsample(settings.refine_points, p, dm, model.sigma)
+        sub = replace(model, sigma=ss)
+    s, cutoff = initial_scale(ps, ds, sub, n, offset, settings)
+    n, offset, s = refine(ps, ds, sub, n, offset, s, cutoff, settings)
+    return _final(p, dm, model, n, offset, s, cutoff, keep)
+
+
+def _subsample(limit: int, *arrays: F32) -> list[F32]:
+    """Every k-th point (last axis; contiguous copies) so that at most ``limit`` remain."""
+    step = -(-arrays[0].shape[-1] // limit)
+    if step <= 1:
+        return list(arrays)
+    return [np.ascontiguousarray(a[..., ::step]) for a in arrays]
+
+
+def initial_scale(p: F32, dm: F32, model: Model, n: FloatArray, offset: float,
+                  settings: FullFrameSettings) -> tuple[float, Cutoff]:
+    """A scale at or below the noise's, from the start plane's residuals, and the cut-off.
+
+    The ``q`` quantile of |z| is divided by the Gaussian quantile of ``q / 0.5``: exact when
+    half of the points are inliers (the least the inlier gate accepts), an underestimate
+    when more are. The passes then grow it to the smallest self-consistent scale.
+    """
+    k0 = max(1, p.shape[1] // 1024)
+    p0, d0 = p[:, ::k0], dm[::k0]
+    inv_c = d0 / (n.astype(np.float32) @ p0)   # 1 / cos(ray, normal)
+    t = inv_c * np.float32(-offset)            # predicted range along the ray
+    z = d0 - t                                 # range residual ...
+    sig_med = 1.0
+    if model.sigma is not None or model.weighted:
+        if model.sigma is not None:
+            sig = model.sigma[::k0]
+        else:                                  # ... or by the noise model t^e / sqrt|cos|
+            sig = (np.abs(t) ** np.float32(model.exponent) / np.sqrt(np.abs(inv_c))).astype(np.float32)
+        z /= sig                               # ... normalised
+        mid = sig.size // 2
+        sig_med = max(float(np.partition(sig, mid)[mid]), 1e-12)   # median pixel's sigma
+    q = settings.hypothesis_quantile
+    az = np.abs(z)
+    kq = min(int(q * az.size), az.size - 1)
+    level = min(q / 0.5, 0.98)
+    s = float(np.partition(az, kq)[kq]) / NormalDist().inv_cdf(0.5 + level / 2.0)   # |z| quantile -> Gaussian sigma
+    k_sig = settings.inlier_threshold_sigma
+    kept_var, cov_factor = truncation(k_sig)
+    cutoff = Cutoff(k_sig, settings.min_inlier_threshold_m / sig_med, settings.max_inlier_threshold_m / sig_med,
+                    kept_var, cov_factor)
+    return s, cutoff
+
+
+def _converged(it: Pass, s: float, s_new: float, floor_scale: float) -> bool:
+    """The step is a small fraction of the parameters' (subsample) sigma and the scale has settled.
+
+    Noise-free data: the cut-off sits at its floor (``floor_scale``) and the scale never settles
+    in relative terms. The full-data pass after the loop finishes the job.
+    """
+    try:
+        sd = np.sqrt(np.abs(np.diag(np.linalg.inv(it.hessian)))) * max(s_new, floor_scale)   # parameter sigmas
+    except np.linalg.LinAlgError:
+        sd = np.full(3, np.inf)
+    settled = abs(s_new - s) <= 0.01 * s or max(s, s_new) <= floor_scale
+    return bool(np.all(np.abs(it.step) <= 0.1 * sd)) and settled
+
+
+def refine(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float, cutoff: Cutoff,
+           settings: FullFrameSettings) -> tuple[FloatArray, float, float]:
+    """Reweighted Gauss-Newton passes (on the subsample) until converged: normal, offset, scale."""
+    e1, e2 = basis(n)
+    scratch = Scratch(dm.size)                                  # rows reused by every pass
+    for _ in range(settings.max_iterations):
+        it = gn_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, scratch)
+        n, offset = step_plane(n, e1, e2, offset, it.step)
+        e1, e2 = basis(n)
+        s_new = math.sqrt(it.z2_sum / it.n_inliers / cutoff.kept_var)   # inlier RMS, truncation-corrected
+        converged = _converged(it, s, s_new, cutoff.lo / cutoff.k_sig)
+        s = s_new
+        if converged:
+            break
+    return n, offset, s
+
+
+def _final(p: F32, dm: F32, model: Model, n: NDArray[np.float64], offset: float, s: float, cutoff: Cutoff,
+           keep: KeepMask | None) -> SpaceFit:
+    """Passes over every point: plane, sandwich covariance, inliers, RMS, scale, multipath.
+
+    The second pass starts from the first one's full-data plane and scale, so that the
+    inliers and the edge clean-up of the answer do not depend on where the start was.
+    """
+    scratch = Scratch(dm.size)                                 # point-sized rows reused by both passes
+    for k in range(FINAL_PASSES):
+        e1, e2 = basis(n)
+        if keep is not None:
+            keep.scale = s
+        fin: FinalPass = final_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, keep,
+                                    answer=k == FINAL_PASSES - 1, scratch=scratch)
+        n_fin, offset_fin = step_plane(n, e1, e2, offset, fin.step)
+        s = math.sqrt(fin.z2_sum / fin.n_inliers / cutoff.kept_var)   # truncation-corrected scale
+        if k < FINAL_PASSES - 1:
+            n, offset = n_fin, offset_fin
+    try:
+        h_inv = np.linalg.inv(fin.hessian)
+        h4_inv = np.linalg.inv(fin.radial[0])
+    except np.linalg.LinAlgError:
+        raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
+    dof = max(fin.n_inliers - 3, 1)
+    # sandwich H^-1 M H^-1, small-sample factor n / (n - 3), hard-rejection correction
+    cov = h_inv @ fin.meat @ h_inv * (fin.n_inliers / dof) * cutoff.cov_factor
+    rms = math.sqrt(fin.ortho2_sum / fin.n_inliers)
+    unit = math.sqrt(cutoff.kept_var * fin.model_ortho2_sum / fin.n_inliers)
+    step4 = -h4_inv @ fin.radial[1]                             # plane and radial range bias together
+    beta_sigma = s * math.sqrt(max(float(h4_inv[3, 3]), 0.0) * cutoff.cov_factor)
+    return SpaceFit(Plane(n_fin, offset_fin), cov, e1, e2, fin.inliers, rms, s, unit,
+                    (-float(step4[3]), beta_sigma, step4[:3] - fin.step), fin.z)

@@ -8,14 +8,16 @@ frame after frame), so inlier masks, samples and pixel indices go back to the im
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from cellcal.core.methods.fullframe.settings import MIN_POINTS
+from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 from cellcal.devices.types import Frame
@@ -23,13 +25,16 @@ from cellcal.devices.types import Frame
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["MAX_MEDIAN_RANGE_M", "SAMPLE", "Points", "Sample", "check_region", "cloud_points", "frame_points",
-           "gather", "pixel_inliers", "pixels_of"]
+__all__ = ["FIXED_SEED", "MAX_MEDIAN_RANGE_M", "SAMPLE", "CoverageCells", "Points", "Sample", "check_region",
+           "cloud_points", "coverage_cells", "fixed_subsample", "frame_points", "gather", "image_coverage",
+           "pixel_inliers", "pixels_of"]
 
 #: A median range above this (metres) means the distances are not in metres.
 MAX_MEDIAN_RANGE_M = 100.0
 #: Inliers (strided) examined for a lock-on and for the quantisation floor's geometry.
 SAMPLE = 4096
+#: Seed of the fixed subsample's jitter (and of the triplets when ``seed`` is None).
+FIXED_SEED = 0x5EED
 
 
 @dataclass
@@ -253,3 +258,65 @@ class Sample:
         idx = np.arange(0, inliers.size, step)
         sel = idx[inliers[idx]]
         return cls(sel, gather(points.p, sel).astype(np.float64))
+
+
+@functools.lru_cache(maxsize=16)
+def fixed_subsample(n_points: int, limit: int) -> NDArray[np.intp]:
+    """Indices of at most ``limit`` points, one at a fixed random place in each of ``limit`` equal strata.
+
+    Cached per size (read-only: callers must not modify the result).
+    """
+    if n_points <= limit:
+        out = np.arange(n_points)
+    else:
+        start = (np.arange(limit) * n_points) // limit
+        width = np.diff(np.append(start, n_points))
+        jitter = np.random.default_rng(FIXED_SEED).random(limit)
+        out = start + (jitter * width).astype(np.intp)
+    out.flags.writeable = False
+    return out
+
+
+# ---------------------------------------------------------------------- image coverage
+def image_coverage(mask: NDArray[np.bool_], settings: FullFrameSettings,
+                   region: NDArray[np.bool_] | None = None) -> float:
+    """Fraction of the ``coverage_grid`` cells with at least ``min_cell_inlier_fraction`` inliers.
+
+    Args:
+        mask: (H, W) inlier mask of the image.
+        settings: Grid and per-cell threshold.
+        region: (H, W) region of interest: a cell's share is taken over its region pixels,
+            and cells holding none are not counted. None: the whole image.
+    """
+    cells = coverage_cells(mask, settings, region)
+    seen = cells.area > 0
+    return float(np.mean(cells.counts[seen] >= settings.min_cell_inlier_fraction * cells.area[seen]))
+
+
+class CoverageCells(NamedTuple):
+    """The coverage grid of one image: inliers and counted pixels per cell, and the cells' first rows / columns."""
+
+    counts: NDArray[np.integer]  # (rows, cols) inliers per cell
+    area: NDArray[np.integer]    # (rows, cols) pixels counted per cell (region pixels with a region)
+    row_edges: NDArray[np.int_]  # (rows,) first image row of each cell
+    col_edges: NDArray[np.int_]  # (cols,) first image column of each cell
+
+
+def coverage_cells(mask: NDArray[np.bool_], settings: FullFrameSettings,
+                   region: NDArray[np.bool_] | None = None) -> CoverageCells:
+    """Inliers and counted pixels in each ``coverage_grid`` cell (the numbers :func:`image_coverage` judges)."""
+    h, w = mask.shape
+    cols, rows = settings.coverage_grid
+    rows, cols = min(rows, h), min(cols, w)              # no more cells than pixels
+    r_edges = (np.arange(rows) * h) // rows              # first row / column of each cell
+    c_edges = (np.arange(cols) * w) // cols
+    per_row = np.add.reduceat(mask.view(np.uint8), r_edges, axis=0, dtype=np.int32)
+    counts = np.add.reduceat(per_row, c_edges, axis=1)   # inliers per cell
+    if region is None:
+        r_size = np.diff(np.append(r_edges, h))
+        c_size = np.diff(np.append(c_edges, w))
+        area = np.outer(r_size, c_size)                  # pixels per cell
+    else:                                                # region pixels per cell
+        area = np.add.reduceat(np.add.reduceat(region.view(np.uint8), r_edges, axis=0, dtype=np.int32),
+                               c_edges, axis=1)
+    return CoverageCells(counts, area, r_edges, c_edges)

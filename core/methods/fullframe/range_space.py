@@ -2,11 +2,11 @@
 
 The plane ``n·p + offset = 0`` predicts the range ``t = -offset / (r·n)`` along each ray
 ``r``; residuals ``|p| - t`` are whitened by the noise law ``sigma ∝ t^e / sqrt|cos|`` (or
-given sigmas), cut at a band of robust sigmas, started from the best triplet plane
-(``start.py``) and refined by Gauss-Newton passes (``passes.py``), the last two over every
-point with the mixed-pixel clean-up (``mixed.py``). Its floors: the range step projected
-across the plane, and the camera's stated noise. Rationale: docs/adr/0007-full-frame-fit.md,
-docs/adr/0028-honest-full-frame-fit.md, docs/adr/0047-measurement-spaces.md.
+given sigmas) and cut at a band of robust sigmas. Here: the noise law, the robust start
+(the best triplet plane), the mixed-pixel clean-up at depth edges and the floors (the range
+step across the plane, the stated noise); the Gauss-Newton passes are ``passes.py``.
+Rationale: docs/adr/0007-full-frame-fit.md ("Robustness", "Mixed pixels"),
+docs/adr/0028-honest-full-frame-fit.md, docs/adr/0049-measurement-spaces.md.
 """
 
 from __future__ import annotations
@@ -15,41 +15,43 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.expected import ExpectedPlane
-from cellcal.core.methods.fullframe.mixed import EdgeClean
-from cellcal.core.methods.fullframe.passes import (
-    Cutoff,
-    FinalPass,
-    KeepMask,
-    Model,
-    NothingLeftError,
-    Scratch,
-    basis,
-    final_pass,
-    step_plane,
-)
-from cellcal.core.methods.fullframe.points import Points, Sample
-from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
-from cellcal.core.methods.fullframe.space import Floors, SpaceFit
-from cellcal.core.methods.fullframe.start import initial_scale, refine, robust_start
+from cellcal.core.methods.fullframe.passes import NothingLeftError, fit_from_start
+from cellcal.core.methods.fullframe.points import FIXED_SEED, Points, Sample, fixed_subsample
+from cellcal.core.methods.fullframe.settings import DEFAULT_NOISE_EXPONENT, MIN_POINTS, FullFrameSettings
+from cellcal.core.methods.fullframe.space import EdgeReport, Floors, Model, SpaceFit
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
+from cellcal.devices.readable import quantity_pair
 from cellcal.devices.types import Intrinsics
 
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["RangeSpace"]
+__all__ = ["EdgeClean", "RangeSpace", "robust_start"]
 
-#: Passes over every point (the second from the first one's plane).
-FINAL_PASSES = 2
 #: Rings around outlier patches examined for mixed pixels, as a multiple of the floor (+ this many pixels).
 RING_REACH = 16
 #: Frames with at most this many valid pixels are checked for what the edge margin leaves.
 SMALL_FRAME_POINTS = 4096
+#: Points whose second principal variance is below this fraction of the first lie along a line.
+LINE_RATIO = 1e-4
+#: With an expected plane, this many times ``hypotheses`` triplets are drawn (only those within
+#: its tolerances are scored: a plane holding a third of the points gives 1 in 27 triplets).
+EXPECTED_DRAWS = 8
+_K3 = np.ones((3, 3), np.uint8)
+#: Pixels beyond every examined ring needed for their mean to be the reference.
+MIN_REFERENCE = 1000
+#: A band of rings matters when its residuals could move the fit by this many of its standard errors.
+RELEVANT_PULL = 0.1
+#: Points binned into rings per block.
+CHUNK = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -58,24 +60,30 @@ class RangeSpace:
 
     Attributes:
         settings: The ``[full_frame]`` table.
-        model: The noise law's exponent, or given per-point sigmas.
-        measurement: The camera's measurement model (its quantisation and stated noise).
-        edge_floor_px: Rings always dropped around solid patches of outliers and invalid pixels
-            (``edge_margin_deg`` in pixels; 0: no mixed-pixel clean-up, as for raw clouds).
+        measurement: The camera's measurement model (its noise law, quantisation and stated noise).
+        intrinsics: The camera's intrinsics: the edge margin in pixels at its focal length
+            (None: no mixed-pixel clean-up, as for raw clouds).
+        sigma_m: (N,) given per-point range sigmas, metres, replacing the noise law (raw clouds), or None.
     """
 
     settings: FullFrameSettings
-    model: Model
     measurement: MeasurementModel = UNKNOWN_MODEL
-    edge_floor_px: int = 0
+    intrinsics: Intrinsics | None = None
+    sigma_m: F32 | None = None
     name: ClassVar[str] = "range"
 
-    @classmethod
-    def of_camera(cls, measurement: MeasurementModel, intrinsics: Intrinsics, settings: FullFrameSettings
-                  ) -> RangeSpace:
-        """The space of a camera's frames: its noise law, and the edge margin at its focal length."""
-        floor_px = math.ceil(math.radians(settings.edge_margin_deg) * max(intrinsics.fx, intrinsics.fy) - 1e-9)
-        return cls(settings, Model(settings.weighted, settings.noise_exponent(measurement)), measurement, floor_px)
+    @property
+    def model(self) -> Model:
+        """How residuals are whitened: the noise law (the config's exponent, else the camera's, else 1.5) or sigmas."""
+        return Model(self.settings.weighted, noise_exponent(self.settings, self.measurement), self.sigma_m)
+
+    @property
+    def edge_floor_px(self) -> int:
+        """Rings always dropped around solid patches of outliers and invalid pixels (``edge_margin_deg`` in px)."""
+        if self.intrinsics is None:
+            return 0
+        return math.ceil(math.radians(self.settings.edge_margin_deg) * max(self.intrinsics.fx, self.intrinsics.fy)
+                         - 1e-9)
 
     @property
     def noise_shape(self) -> Model:
@@ -85,13 +93,15 @@ class RangeSpace:
     def fit(self, points: Points, expected: ExpectedPlane | None) -> SpaceFit:
         """Robust start, passes on a subsample, then two passes over every point (with the edge clean-up)."""
         edge = None
-        if self.edge_floor_px > 0 and points.masks:
-            edge = EdgeClean(points.masks, points.shape, self.edge_floor_px, RING_REACH * (self.edge_floor_px + 1),
+        model, floor_px = self.model, self.edge_floor_px
+        if floor_px > 0 and points.masks:
+            edge = EdgeClean(points.masks, points.shape, floor_px, RING_REACH * (floor_px + 1),
                              self.settings.mixed_ring_sigma,
                              region=None if points.region is None else points.region.reshape(-1))
             _check_margin(edge, points, self.settings.min_valid_fraction)
         try:
-            fit = _robust_fit(points.p, points.dm, self.model, self.settings, keep=edge, edge=edge, expected=expected)
+            n, offset = robust_start(points.p, points.dm, model, self.settings, expected)
+            fit = fit_from_start(points.p, points.dm, model, self.settings, n, offset, keep=edge)
         except NothingLeftError as exc:
             raise _nothing_left(exc.n_points, exc.n_left, points, self.settings.min_valid_fraction,
                                 0 if edge is None else edge.floor_px) from None
@@ -116,67 +126,253 @@ class RangeSpace:
                       points.dm if tof else points.p[2], resid, notes)   # a ToF camera quantises the range
 
 
-# ---------------------------------------------------------------------- the stages
-def _subsample(limit: int, *arrays: F32) -> list[F32]:
-    """Every k-th point (last axis; contiguous copies) so that at most ``limit`` remain."""
-    step = -(-arrays[0].shape[-1] // limit)
-    if step <= 1:
-        return list(arrays)
-    return [np.ascontiguousarray(a[..., ::step]) for a in arrays]
+def noise_exponent(settings: FullFrameSettings, measurement: MeasurementModel) -> float:
+    """Exponent of the range in the noise law: the config's, else a ToF camera's stated one, else 1.5."""
+    if settings.noise_distance_exponent is not None:
+        return settings.noise_distance_exponent
+    if measurement.kind == "tof" and measurement.sigma_at_1m_m is not None:
+        return measurement.distance_exponent
+    return DEFAULT_NOISE_EXPONENT
 
 
-def _robust_fit(p: F32, dm: F32, model: Model, settings: FullFrameSettings, keep: KeepMask | None = None,
-                edge: EdgeClean | None = None, expected: ExpectedPlane | None = None) -> SpaceFit:
-    """The stages on finite camera-frame points ``p`` (3, N) with ranges ``dm``.
+# ---------------------------------------------------------------------- the robust start
+def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings,
+                 expected: ExpectedPlane | None = None) -> tuple[FloatArray, float]:
+    """The start plane: the triplet plane with the smallest ``hypothesis_quantile`` of residuals.
 
-    ``keep`` maps the inlier mask (N,) and the residuals of the converged plane to the
-    points allowed in the last pass (image-space clean-up, see ``edge_margin_deg``).
-    ``expected`` restricts the robust start to planes within its tolerances.
+    Residuals are orthogonal distances over ``range^e`` (weighted), over the given sigmas,
+    or plain (unweighted). With ``expected``, only triplet planes within its tolerances
+    compete. Returns the unit normal (toward the camera) and the offset.
+
+    Raises:
+        CalibrationQualityError: ``expected_plane``, when no triplet plane lies within the
+            expected plane's tolerances (the message names the nearest one).
     """
-    n, offset = robust_start(p, dm, model, settings, expected)
-    if model.sigma is None:                                    # strided subsample for the passes
-        ps, ds = _subsample(settings.refine_points, p, dm)
-        sub = model
+    idx = fixed_subsample(p.shape[1], settings.sample_points)
+    sub = p[:, idx].T.astype(np.float64)
+    if model.sigma is not None:
+        inv_norm = 1.0 / model.sigma[idx].astype(np.float64)
+    elif model.weighted:
+        inv_norm = dm[idx].astype(np.float64) ** -model.exponent
     else:
-        ps, ds, ss = _subsample(settings.refine_points, p, dm, model.sigma)
-        sub = model.subset(ss)
-    s, cutoff = initial_scale(ps, ds, sub, n, offset, settings)
-    n, offset, s = refine(ps, ds, sub, n, offset, s, cutoff, settings)
-    return _final(p, dm, model, n, offset, s, cutoff, keep, edge)
+        inv_norm = np.ones(idx.size)
+    spread = np.linalg.eigvalsh(np.cov(sub.T)) if sub.shape[0] > 3 else np.zeros(3)
+    if not spread[1] > LINE_RATIO * spread[2]:
+        raise CalibrationError(f"full-frame fit: the {p.shape[1]} valid points lie along a line (one image row "
+                               "or column?); no plane is defined")
+    if expected is None:
+        nrm, off = _triplet_planes(sub, settings.hypotheses, settings.seed)
+    else:                                                 # only planes near the expected one compete
+        nrm, off = _triplet_planes(sub, EXPECTED_DRAWS * settings.hypotheses, settings.seed)
+        ok, score = _within(expected, nrm, off)
+        if not ok.any():
+            raise _nearest_refusal(expected, nrm, off, score)
+        nrm, off = nrm[ok], off[ok]
+    m = idx.size
+    h = min(max(int(settings.hypothesis_quantile * m), 3), m)
+    res = np.abs(nrm.astype(np.float32) @ sub.T.astype(np.float32) + off.astype(np.float32)[:, None])
+    res *= inv_norm.astype(np.float32)[None, :]           # (hypotheses, points), rows contiguous
+    k = _best_quantile(res, h)
+    n, d = nrm[k], float(off[k])
+    if d < 0 or (d == 0 and n[2] > 0):                   # normal toward the camera
+        n, d = -n, -d
+    return np.asarray(n, dtype=np.float64), d
 
 
-def _final(p: F32, dm: F32, model: Model, n: NDArray[np.float64], offset: float, s: float, cutoff: Cutoff,
-           keep: KeepMask | None, edge: EdgeClean | None) -> SpaceFit:
-    """Passes over every point: plane, sandwich covariance, inliers, RMS, scale, multipath.
+def _triplet_planes(sub: FloatArray, count: int, seed: int | None) -> tuple[FloatArray, FloatArray]:
+    """Unit normals (K, 3) and offsets (K,) of planes through random triplets of ``sub`` (m, 3)."""
+    rng = np.random.default_rng(FIXED_SEED if seed is None else seed)
+    idx = rng.integers(0, sub.shape[0], size=(3, count))
+    a = sub[idx[0]]
+    u = sub[idx[1]] - a
+    v = sub[idx[2]] - a
+    nrm = np.cross(u, v)
+    length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))
+    ok = length > 1e-9 * np.einsum("ij,ij->i", u, u)    # drop (nearly) collinear triplets
+    if not ok.any():
+        raise CalibrationError("full-frame fit: the points are collinear or coincident; no plane is defined")
+    nrm = nrm[ok] / length[ok, None]
+    return nrm, -np.einsum("ij,ij->i", nrm, a[ok])
 
-    The second pass starts from the first one's full-data plane and scale, so that the
-    inliers and the edge clean-up of the answer do not depend on where the start was.
+
+def _within(expected: ExpectedPlane, nrm: FloatArray, off: FloatArray) -> tuple[BoolArray, FloatArray]:
+    """Which planes (unit normals (K, 3), offsets (K,)) lie within the expected plane's tolerances.
+
+    Also returns each one's departure in units of the tolerances (the larger of angle and offset).
     """
-    scratch = Scratch(dm.size)                                 # point-sized rows reused by both passes
-    for k in range(FINAL_PASSES):
-        e1, e2 = basis(n)
-        if edge is not None:
-            edge.scale = s
-        fin: FinalPass = final_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, keep,
-                                    answer=k == FINAL_PASSES - 1, scratch=scratch)
-        n_fin, offset_fin = step_plane(n, e1, e2, offset, fin.step)
-        s = math.sqrt(fin.z2_sum / fin.n_inliers / cutoff.kept_var)   # truncation-corrected scale
-        if k < FINAL_PASSES - 1:
-            n, offset = n_fin, offset_fin
-    try:
-        h_inv = np.linalg.inv(fin.hessian)
-        h4_inv = np.linalg.inv(fin.radial[0])
-    except np.linalg.LinAlgError:
-        raise CalibrationError("full-frame fit is degenerate: the inliers do not span a plane") from None
-    dof = max(fin.n_inliers - 3, 1)
-    # sandwich H^-1 M H^-1, small-sample factor n / (n - 3), hard-rejection correction
-    cov = h_inv @ fin.meat @ h_inv * (fin.n_inliers / dof) * cutoff.cov_factor
-    rms = math.sqrt(fin.ortho2_sum / fin.n_inliers)
-    unit = math.sqrt(cutoff.kept_var * fin.model_ortho2_sum / fin.n_inliers)
-    step4 = -h4_inv @ fin.radial[1]                             # plane and radial range bias together
-    beta_sigma = s * math.sqrt(max(float(h4_inv[3, 3]), 0.0) * cutoff.cov_factor)
-    return SpaceFit(Plane(n_fin, offset_fin), cov, e1, e2, fin.inliers, rms, s, unit,
-                    (-float(step4[3]), beta_sigma, step4[:3] - fin.step), fin.z)
+    n0 = np.asarray(expected.plane.normal, dtype=np.float64)
+    cos = np.minimum(np.abs(nrm @ n0), 1.0)                     # either orientation of a triplet's normal
+    angle = np.arccos(cos)                                      # rad
+    doff = np.abs(np.abs(off) - abs(expected.plane.offset_m))   # camera's distance to each plane vs expected, m
+    ok = (angle <= expected.angle_tolerance_rad) & (doff <= expected.offset_tolerance_m)
+    return ok, np.maximum(angle / expected.angle_tolerance_rad, doff / expected.offset_tolerance_m)
+
+
+def _nearest_refusal(expected: ExpectedPlane, nrm: FloatArray, off: FloatArray, score: FloatArray
+                     ) -> CalibrationQualityError:
+    """``expected_plane`` failed before the fit: no hypothesis within the tolerances; say what was nearest."""
+    k = int(np.argmin(score))
+    near = Plane(nrm[k], float(off[k])).oriented_toward_origin()
+    angle, doff = expected.departure(near)
+    a, tol_a = quantity_pair(angle, expected.angle_tolerance_rad, "rad")
+    o, tol_o = quantity_pair(doff, expected.offset_tolerance_m, "m", digits=4)
+    return CalibrationQualityError(
+        "expected_plane", angle, expected.angle_tolerance_rad,
+        f"no plane within {tol_a} and {tol_o} of the expected one among {nrm.shape[0]} candidate planes; "
+        f"the nearest is {a} and {o} from it (tilt x "
+        f"{math.degrees(near.tilt_about_x_rad()):.3g} deg, tilt y {math.degrees(near.tilt_about_y_rad()):.3g} deg, "
+        f"{near.offset_m * 1000:.4g} mm from the camera)", unit="rad")
+
+
+def _best_quantile(res: F32, h: int) -> int:
+    """Index of the row of ``res`` with the smallest ``h``-th smallest value (first on ties).
+
+    The same answer as partitioning every row, with far fewer rows ordered: a row whose
+    ``h``-th value could be at most that of a good row has at least ``h`` values ``<=`` it;
+    only those rows are ordered (exactly). The good row is the best by the same quantile
+    on every 8th column (a cheap guess; any row keeps the answer exact). Rows are sorted,
+    not partitioned: a noise-free plane gives rows of many equal residuals (zeros), where
+    numpy's introselect degrades (2.9 ms instead of 0.5 ms for 96 x 1024).
+    """
+    guess_cols = res[:, ::8]
+    g = min(max(h // 8, 1), guess_cols.shape[1]) - 1
+    guess = int(np.argmin(np.sort(guess_cols, axis=1)[:, g]))
+    q0 = np.sort(res[guess])[h - 1]                       # the guess's exact quantile
+    cand = np.flatnonzero(np.count_nonzero(res <= q0, axis=1) >= h)   # rows whose quantile is <= q0
+    score = np.full(res.shape[0], np.inf, dtype=np.float32)
+    score[cand] = np.sort(res[cand], axis=1)[:, h - 1]
+    return int(np.argmin(score))                          # rows left out have a larger quantile
+
+
+# ---------------------------------------------------------------------- mixed pixels at depth edges
+def _open(mask: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """3x3 opening: solid patches stay, isolated pixels and thin lines go."""
+    return np.asarray(cv2.morphologyEx(mask, cv2.MORPH_OPEN, _K3), dtype=np.uint8)
+
+
+def _near(patches: NDArray[np.uint8], reach: int) -> NDArray[np.uint8]:
+    """1 where a patch pixel lies within ``reach`` pixels (chessboard distance), else 0.
+
+    The same as ``_distance(patches) <= reach``, by a dilation with a square (separable,
+    several times faster than the distance transform).
+    """
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach + 1, 2 * reach + 1))
+    return np.asarray(cv2.dilate(patches, kernel), dtype=np.uint8)
+
+
+def _distance(patches: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Chessboard distance (pixels, saturating at 255) of every pixel to the nearest patch pixel."""
+    if not patches.any():
+        return np.full(patches.shape, 255, np.uint8)
+    out = cv2.distanceTransform(np.uint8(1) - patches, cv2.DIST_C, 3, dstType=cv2.CV_8U)
+    return np.asarray(out, dtype=np.uint8)
+
+
+def _ring_sums(ring: NDArray[np.uint8], inliers: BoolArray, z: F32, n_bins: int
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Sum of ``z`` and count of the inliers in each ring (bin 0: every other point).
+
+    In blocks of ``CHUNK`` points: the bin index array ``bincount`` wants (intp: other
+    index types are cast on every call, 3x slower with weights) and its float64 copy of
+    the weights then stay block-sized (16 B per point less at the peak of the fit) and in cache.
+    """
+    sums = np.zeros(n_bins)
+    counts = np.zeros(n_bins)
+    for s in range(0, ring.size, CHUNK):
+        bins = np.multiply(ring[s:s + CHUNK], inliers[s:s + CHUNK], dtype=np.uint8).astype(np.intp)
+        sums += np.bincount(bins, weights=z[s:s + CHUNK], minlength=n_bins)
+        counts += np.bincount(bins, minlength=n_bins)
+    return sums, counts
+
+
+class EdgeClean:
+    """``(inliers, z) -> keep``: drops inliers near solid patches of outliers or invalid pixels.
+
+    Per frame (pooled order of points), outliers and invalid pixels are opened with a
+    3x3 square (isolated ones go: noise tails and random flying pixels do not mark an
+    edge). Every inlier within ``floor_px`` of a patch is dropped. Around the outlier
+    patches, bands of ``floor_px`` rings beyond the floor (pooled over the frames) are
+    dropped while the sum of their normalised residuals exceeds ``ring_sigma`` standard
+    errors: the data say how far the mixing reaches, which scales with the resolution
+    (the optics' spill is an angle) and with the height of the jump over the noise.
+
+    Args:
+        masks: Per frame, the flat (H*W,) mask of the pixels that became points.
+        shape: ``(H, W)``.
+        floor_px: Rings always dropped.
+        max_px: Farthest ring examined.
+        ring_sigma: Significance of a biased ring, standard errors.
+        scale: Robust scale of the normalised residuals (z / scale is standard normal).
+        region: Flat (H*W,) region of interest; pixels outside it are neither invalid nor
+            outliers (its border is not a depth edge). None: the whole image.
+    """
+
+    def __init__(self, masks: list[BoolArray], shape: tuple[int, int], floor_px: int, max_px: int,
+                 ring_sigma: float, scale: float = 1.0, region: BoolArray | None = None) -> None:
+        self.masks = masks
+        self.shape = shape
+        self.floor_px = floor_px
+        self.max_px = min(max(max_px, floor_px), 250)
+        self.ring_sigma = ring_sigma
+        self.scale = scale
+        self.report = EdgeReport(floor_px=floor_px)
+        self.invalid = [(~m if region is None else region & ~m).astype(np.uint8) for m in masks]
+
+    def margin_keep(self) -> int:
+        """How many points lie farther than ``floor_px`` from the solid patches of invalid pixels."""
+        h, w = self.shape
+        return sum(int(np.count_nonzero(_near(_open(inv.reshape(h, w)), self.floor_px).reshape(-1)[m] == 0))
+                   for m, inv in zip(self.masks, self.invalid, strict=True))
+
+    def __call__(self, inliers: BoolArray, z: F32) -> BoolArray:
+        h, w = self.shape
+        cap = self.max_px + 1                      # rings beyond max_px: the reference bin
+        ring = np.empty(inliers.size, dtype=np.uint8)
+        start = 0
+        for m, invalid in zip(self.masks, self.invalid, strict=True):   # per frame, in image space
+            k = int(np.count_nonzero(m))
+            flat = np.zeros(h * w, dtype=np.uint8)
+            flat[m] = ~inliers[start:start + k]    # boolean scatter: 4x faster than by index at 98 % valid
+            outlier = flat.reshape(h, w)
+            # ring = distance to the outlier patches (capped), 0 within the floor of any patch:
+            # outliers and invalid pixels together there (a wall seen at grazing incidence is both)
+            code = np.minimum(_distance(_open(outlier)), np.uint8(cap))
+            far = np.subtract(np.uint8(1), _near(_open(outlier | invalid.reshape(h, w)), self.floor_px))
+            code *= far                             # 0 within the floor (multiply: no boolean-mask pass)
+            ring[start:start + k] = code.reshape(-1)[m]
+            start += k
+        sums, counts = _ring_sums(ring, inliers, z, cap + 1)
+        sums[0] = counts[0] = 0.0
+        margin = self._margin(sums, counts, float(np.count_nonzero(inliers)))
+        keep: BoolArray = ring > margin
+        self.report = EdgeReport(margin, self.floor_px, int(np.count_nonzero(inliers & ~keep)))
+        return keep
+
+    def _margin(self, sums: NDArray[np.float64], counts: NDArray[np.float64], n_total: float) -> int:
+        """The outer edge of an unbroken run of biased bands of rings beyond the floor.
+
+        Bands are ``floor_px`` rings wide (the mixing reaches farther in pixels at a higher
+        resolution; a band holds enough pixels to show it). A band is biased when the sum
+        of its residuals is significant (``ring_sigma`` standard errors) and large enough
+        to move the fit by ``RELEVANT_PULL`` of its own standard error, both measured
+        against the mean residual of the pixels beyond every band (contamination pulls the
+        fit itself, which shifts every residual).
+        """
+        width = max(self.floor_px, 1)
+        margin = self.floor_px
+        n_ref, s_ref = float(counts[-1]), float(sums[-1])
+        if n_ref < MIN_REFERENCE:                  # few pixels far from every patch: all of them
+            n_ref, s_ref = float(counts.sum()), float(sums.sum())
+        mean_ref = s_ref / max(n_ref, 1.0)         # residual level of the clean plane (the fit may be pulled)
+        while margin + width <= self.max_px:
+            band = slice(margin + 1, margin + width + 1)
+            n = float(counts[band].sum())
+            excess = abs(float(sums[band].sum()) - n * mean_ref)
+            noise = math.sqrt(n * (1.0 + n / max(n_ref, 1.0)))
+            if n < 1 or excess <= self.scale * max(self.ring_sigma * noise, RELEVANT_PULL * math.sqrt(n_total)):
+                break
+            margin += width
+        return margin
 
 
 # ---------------------------------------------------------------------- too few pixels left

@@ -130,14 +130,6 @@ class FullFrameSettings:
             return model.sigma_at_1m_m
         return DEFAULT_EXPECTED_NOISE_M
 
-    def noise_exponent(self, model: MeasurementModel) -> float:
-        """Exponent of the range in the noise law: the config's, else a ToF camera's stated one, else 1.5."""
-        if self.noise_distance_exponent is not None:
-            return self.noise_distance_exponent
-        if model.kind == "tof" and model.sigma_at_1m_m is not None:
-            return model.distance_exponent
-        return DEFAULT_NOISE_EXPONENT
-
 
 @functools.cache
 def _field_types() -> dict[str, Any]:

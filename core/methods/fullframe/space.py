@@ -8,7 +8,7 @@ on that: the residuals and their sigma, the inlier band, the robust start and th
 the quantisation and the floors the honesty checks hold the fit to. The rest of the fit
 (pooling the frames, the honesty checks, flatness, coverage, the result) is the same for
 every space. A new kind of measurement (structured light with its own noise, a depth
-correction) is one new class with this interface. Rationale: docs/adr/0047-measurement-spaces.md.
+correction) is one new class with this interface. Rationale: docs/adr/0049-measurement-spaces.md.
 """
 
 from __future__ import annotations
@@ -24,15 +24,43 @@ from cellcal.core.geometry.planes import Plane
 
 if TYPE_CHECKING:
     from cellcal.core.methods.fullframe.expected import ExpectedPlane
-    from cellcal.core.methods.fullframe.mixed import EdgeReport
-    from cellcal.core.methods.fullframe.passes import Model
     from cellcal.core.methods.fullframe.points import Points, Sample
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["Floors", "MeasurementSpace", "SpaceFit"]
+__all__ = ["EdgeReport", "Floors", "MeasurementSpace", "Model", "SpaceFit"]
+
+
+@dataclass(frozen=True)
+class Model:
+    """How range residuals are normalised: the noise law's exponent, or given sigmas.
+
+    Attributes:
+        weighted: Weight by the noise law ``sigma ∝ t^exponent / sqrt|cos|`` (False: all alike).
+        exponent: Exponent of the range in the noise law.
+        sigma: (N,) given per-point range sigmas, metres (replace the law), or None.
+    """
+
+    weighted: bool
+    exponent: float
+    sigma: F32 | None = None
+
+
+@dataclass
+class EdgeReport:
+    """What the last clean-up dropped.
+
+    Attributes:
+        margin_px: Rings (chessboard pixels) dropped around outlier patches.
+        floor_px: Rings dropped around any patch (outliers or invalid), whatever the data say.
+        n_dropped: Inliers dropped.
+    """
+
+    margin_px: int = 0
+    floor_px: int = 0
+    n_dropped: int = 0
 
 
 @dataclass

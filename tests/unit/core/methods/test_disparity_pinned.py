@@ -32,8 +32,8 @@ from cellcal.core.methods.fullframe.disparity import (
     rounding_mean_px,
 )
 from cellcal.core.methods.fullframe.expected import ExpectedPlane
+from cellcal.core.methods.fullframe.points import FIXED_SEED
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
-from cellcal.core.methods.fullframe.start import FIXED_SEED
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import MeasurementModel
 

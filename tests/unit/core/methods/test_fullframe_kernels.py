@@ -9,7 +9,8 @@ from tof_frames import ToFSetup, make_frame, scattered_boxes, with_
 from cellcal.core.methods.fullframe import fit_full_frame
 from cellcal.core.methods.fullframe.flatness import _moments, grid_cells
 from cellcal.core.methods.fullframe.passes import Model, Scratch, basis, final_pass
-from cellcal.core.methods.fullframe.start import _best_quantile, fixed_subsample
+from cellcal.core.methods.fullframe.points import fixed_subsample
+from cellcal.core.methods.fullframe.range_space import _best_quantile
 
 
 def test_best_quantile_picks_the_row_a_full_partition_picks() -> None:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from tof_frames import ToFSetup, draw, make_frame, render, scattered_boxes, with_
 
-from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings, fit_full_frame, mixed
-from cellcal.core.methods.fullframe.mixed import EdgeClean
+from cellcal.core.methods.fullframe import FullFrameResult, FullFrameSettings, fit_full_frame, range_space
+from cellcal.core.methods.fullframe.range_space import EdgeClean
 
 
 def _z(res: FullFrameResult, st: ToFSetup) -> np.ndarray:
@@ -67,8 +67,8 @@ def test_floor_by_dilation_is_the_chessboard_distance() -> None:
     patches = (rng.random((90, 130)) < 0.02).astype(np.uint8)
     patches[20:35, 40:70] = 1
     for reach in (1, 2, 6, 13):
-        near = mixed._near(patches, reach).astype(bool)
-        assert np.array_equal(near, mixed._distance(patches) <= reach), reach
+        near = range_space._near(patches, reach).astype(bool)
+        assert np.array_equal(near, range_space._distance(patches) <= reach), reach
         assert near.sum() > patches.sum()
 
 
