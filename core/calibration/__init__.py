@@ -6,11 +6,9 @@ The ``replay`` names (the MCAP recording's reader and writer) are imported on fi
 
 from typing import TYPE_CHECKING
 
+from cellcal.core.calibration.build import build_camera, build_devices
 from cellcal.core.calibration.calibrator import (
     Calibrator,
-    PoseRecord,
-    build_camera,
-    build_devices,
     poses_saved,
     run_to_file,
 )
@@ -39,6 +37,7 @@ from cellcal.core.calibration.journal import (
     remove_journal,
 )
 from cellcal.core.calibration.outlock import LOCK_NAME, OutputLock
+from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.report import (
     format_full_frame,
     format_table,

@@ -3,7 +3,8 @@
 Per plan pose: move (through the safety wrapper), settle, capture, read the arm's pose
 back and run each configured method (:mod:`cellcal.core.methods.measure`); with a
 reference plane every estimate gets an error (the paper's Tables 3 and 4). Devices
-come from the registry: this module never names a driver or a simulator.
+come from the registry (:mod:`.build`): this module never names a driver or a simulator.
+What one pose yields is a :class:`~cellcal.core.calibration.record.PoseRecord`.
 """
 
 from __future__ import annotations
@@ -13,13 +14,11 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from cellcal.core.calibration.build import build_camera, build_devices
 from cellcal.core.calibration.config import CellConfig
 from cellcal.core.calibration.journal import (
     JournalEntry,
@@ -32,6 +31,7 @@ from cellcal.core.calibration.journal import (
 from cellcal.core.calibration.outlock import OutputLock
 from cellcal.core.calibration.plan_image import check_plan_image
 from cellcal.core.calibration.reach import check_reach, reachable_plan_poses
+from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.region import expected_plane, region_document, region_mask
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
 from cellcal.core.geometry.planes import Plane, plane_covariance
@@ -39,15 +39,11 @@ from cellcal.core.geometry.view_follows import ViewFollowsArm, ViewSample
 from cellcal.core.methods.fullframe import FullFrameResult, fit_full_frame
 from cellcal.core.methods.measure import (
     FULL_FRAME,
-    ExpectedGeometry,
-    Measurement,
     expected_geometry,
     full_frame_document,
     measure_frames,
     measure_full_frame,
 )
-from cellcal.devices.arm import RobotArm
-from cellcal.devices.base import BackendContext
 from cellcal.devices.blocking import DeadlineGuard
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import (
@@ -57,156 +53,28 @@ from cellcal.devices.errors import (
     VendorError,
 )
 from cellcal.devices.pose import Pose
-from cellcal.devices.registry import Registry, default_registry
 from cellcal.devices.safety import SafeArm, format_pose
-from cellcal.devices.types import Frame, Intrinsics
+from cellcal.devices.types import Frame
 from cellcal.devices.version import cellcal_version
+
+__all__ = [
+    "CLOSE_ALLOWANCE_S",
+    "GUARD_GRACE_S",
+    "STOP_TIMEOUT_S",
+    "Calibrator",
+    "PoseObserver",
+    "PoseRecord",
+    "ProgressFactory",
+    "build_camera",  # built in core.calibration.build; named here too for the many callers that import them here
+    "build_devices",
+    "poses_saved",
+    "run_to_file",
+]
 
 ProgressFactory = Callable[[int], Any]
 #: Called after each measured plan pose with its record, its frames and the full-frame fit (None
 #: when the method is not run), e.g. to draw the scene live or write it to a bag (ADR 0020).
 PoseObserver = Callable[["PoseRecord", Sequence[Frame], FullFrameResult | None], None]
-
-
-@dataclass
-class PoseRecord:
-    """Everything measured at one plan pose.
-
-    Attributes:
-        index: 0-based index in the plan.
-        commanded: Commanded flange pose, base frame.
-        reported: Flange pose read back from the arm after the move, base frame.
-        camera: Camera pose in the base frame (``reported @ mount``).
-        expected: Geometry expected from the reference plane, or None without one.
-        measurements: One per perimeter x grid method, plus one ``full_frame`` row.
-        timings_s: Wall time of the move, settle, capture and compute steps, seconds
-            (``compute_full_frame``: the part of ``compute`` spent on the full-frame fit).
-        intrinsics: The lens model the frames were taken with.
-        full_frame: The ``full_frame`` section (:func:`full_frame_document`), or None when
-            the method is not run.
-    """
-
-    index: int
-    commanded: Pose
-    reported: Pose
-    camera: Pose
-    expected: ExpectedGeometry | None
-    measurements: list[Measurement]
-    timings_s: dict[str, float] = field(default_factory=dict)
-    intrinsics: Intrinsics | None = None
-    full_frame: dict[str, Any] | None = None
-
-    def rows(self) -> list[dict[str, Any]]:
-        """Flat rows (one per measurement) for the summary and the table."""
-        out = []
-        for m in self.measurements:
-            row = {"pose_index": self.index, **m.to_dict()}
-            if self.expected is not None:
-                row["expected_angle_deg"] = float(np.degrees(self.expected.angle_rad))
-            out.append(row)
-        return out
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON form."""
-        return {
-            "index": self.index,
-            "commanded_flange_pose": self.commanded.to_dict(),
-            "reported_flange_pose": self.reported.to_dict(),
-            "camera_pose": self.camera.to_dict(),
-            "expected": None if self.expected is None else self.expected.to_dict(),
-            "measurements": self.rows(),
-            "timings_s": dict(self.timings_s),
-            "camera_intrinsics": None if self.intrinsics is None else self.intrinsics.to_dict(),
-            "full_frame": self.full_frame,
-        }
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> PoseRecord:
-        """Rebuild a record from :meth:`to_dict`'s output (a result document or the resume journal).
-
-        Angles come back through degrees, so values may differ from the original in the
-        last bit; keys this version does not know are ignored.
-
-        Raises:
-            CalibrationError: If a required field is missing or malformed.
-        """
-        try:
-            exp = data.get("expected")
-            expected = None
-            if exp is not None:
-                pc = exp["plane_cam"]
-                expected = ExpectedGeometry(Plane.from_dict(pc),
-                                            math.radians(exp["angle_deg"]), math.radians(exp["tilt_x_deg"]),
-                                            math.radians(exp["tilt_y_deg"]), float(exp["height_m"]),
-                                            float(exp["distance_normal_m"]))
-            measurements = []
-            for m in data["measurements"]:
-                sigma = m.get("angle_sigma_deg")
-                pc = m.get("plane_cam")
-                measurements.append(Measurement(
-                    method=str(m["method"]),
-                    perimeter_px=None if m["perimeter_px"] is None else int(m["perimeter_px"]),
-                    angle_rad=math.radians(m["angle_deg"]),
-                    angle_sigma_rad=None if sigma is None else math.radians(sigma),
-                    tilt_x_rad=math.radians(m["tilt_x_deg"]), tilt_y_rad=math.radians(m["tilt_y_deg"]),
-                    height_m=float(m["height_m"]), residual_rms_m=m.get("residual_rms_m"),
-                    error_pct=m.get("error_pct"),
-                    plane=None if pc is None else Plane.from_dict(pc)))
-            intr = data.get("camera_intrinsics")
-            ff = data.get("full_frame")
-            return cls(int(data["index"]), Pose.from_dict(data["commanded_flange_pose"]),
-                       Pose.from_dict(data["reported_flange_pose"]), Pose.from_dict(data["camera_pose"]),
-                       expected, measurements, {k: float(v) for k, v in dict(data.get("timings_s") or {}).items()},
-                       None if intr is None else Intrinsics(**intr), None if ff is None else dict(ff))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise CalibrationError(f"malformed pose record: {type(exc).__name__}: {exc}") from None
-
-
-def _context_factory(document: Mapping[str, Any], source: str | None, seed: int) -> Callable[[str], BackendContext]:
-    """``section -> BackendContext`` for the backends of one document (one ``shared`` dict for all of them)."""
-    shared: dict[str, Any] = {}
-
-    def ctx(section: str) -> BackendContext:
-        return BackendContext(source=source, section=section, document=document, shared=shared, seed=seed)
-
-    return ctx
-
-
-def build_devices(config: CellConfig, registry: Registry | None = None, *, source: str | None = None,
-                  camera: Mapping[str, Any] | None = None, arm: Mapping[str, Any] | None = None,
-                  ) -> tuple[Camera3D, SafeArm]:
-    """Create the (unconnected) camera and the safety-wrapped arm of a configuration.
-
-    Args:
-        config: The validated configuration (its document, ``[cell] seed`` and envelope).
-        registry: Where to find the backends; default: the process-wide one.
-        source: Configuration source the backends see; default ``config.source``.
-        camera: Backend section to use instead of the document's ``[camera]``.
-        arm: Backend section to use instead of the document's ``[arm]``.
-
-    Raises:
-        ConfigError: If a backend is unknown or rejects its section.
-    """
-    registry = registry or default_registry()
-    ctx = _context_factory(config.document, config.source if source is None else source, config.cell.seed)
-    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx("camera"))
-    inner: RobotArm = registry.create_arm(config.arm_section if arm is None else arm, ctx("arm"))
-    return cam, SafeArm(inner, config.safety_limits())
-
-
-def build_camera(document: Mapping[str, Any], registry: Registry | None = None, *,
-                 source: str | None = None) -> Camera3D:
-    """Create the (unconnected) camera of a raw configuration document, not validated as a cell.
-
-    For documents that only describe a camera (e.g. a study trial); the seed is the
-    document's ``[cell] seed`` (default 0).
-
-    Raises:
-        ConfigError: If the camera backend is unknown or rejects its section.
-    """
-    registry = registry or default_registry()
-    ctx = _context_factory(document, source, int(document.get("cell", {}).get("seed", 0)))
-    return registry.create_camera(document["camera"], ctx("camera"))
 
 
 #: Seconds the calibrator allows the arm's stop command when a run fails.

@@ -1,0 +1,68 @@
+"""The devices of a cell configuration, built through the registry: :func:`build_devices`, :func:`build_camera`.
+
+Every backend of one document gets a :class:`~cellcal.devices.base.BackendContext` sharing
+one ``shared`` dict (so the simulated camera and arm see one world) and the ``[cell] seed``;
+the arm is wrapped in :class:`~cellcal.devices.safety.SafeArm` with the configuration's
+envelope. This module never names a driver or a simulator: the registry does.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from cellcal.core.calibration.config import CellConfig
+from cellcal.devices.arm import RobotArm
+from cellcal.devices.base import BackendContext
+from cellcal.devices.camera import Camera3D
+from cellcal.devices.registry import Registry, default_registry
+from cellcal.devices.safety import SafeArm
+
+__all__ = ["build_camera", "build_devices"]
+
+
+def _context_factory(document: Mapping[str, Any], source: str | None, seed: int) -> Callable[[str], BackendContext]:
+    """``section -> BackendContext`` for the backends of one document (one ``shared`` dict for all of them)."""
+    shared: dict[str, Any] = {}
+
+    def ctx(section: str) -> BackendContext:
+        return BackendContext(source=source, section=section, document=document, shared=shared, seed=seed)
+
+    return ctx
+
+
+def build_devices(config: CellConfig, registry: Registry | None = None, *, source: str | None = None,
+                  camera: Mapping[str, Any] | None = None, arm: Mapping[str, Any] | None = None,
+                  ) -> tuple[Camera3D, SafeArm]:
+    """Create the (unconnected) camera and the safety-wrapped arm of a configuration.
+
+    Args:
+        config: The validated configuration (its document, ``[cell] seed`` and envelope).
+        registry: Where to find the backends; default: the process-wide one.
+        source: Configuration source the backends see; default ``config.source``.
+        camera: Backend section to use instead of the document's ``[camera]``.
+        arm: Backend section to use instead of the document's ``[arm]``.
+
+    Raises:
+        ConfigError: If a backend is unknown or rejects its section.
+    """
+    registry = registry or default_registry()
+    ctx = _context_factory(config.document, config.source if source is None else source, config.cell.seed)
+    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx("camera"))
+    inner: RobotArm = registry.create_arm(config.arm_section if arm is None else arm, ctx("arm"))
+    return cam, SafeArm(inner, config.safety_limits())
+
+
+def build_camera(document: Mapping[str, Any], registry: Registry | None = None, *,
+                 source: str | None = None) -> Camera3D:
+    """Create the (unconnected) camera of a raw configuration document, not validated as a cell.
+
+    For documents that only describe a camera (e.g. a study trial); the seed is the
+    document's ``[cell] seed`` (default 0).
+
+    Raises:
+        ConfigError: If the camera backend is unknown or rejects its section.
+    """
+    registry = registry or default_registry()
+    ctx = _context_factory(document, source, int(document.get("cell", {}).get("seed", 0)))
+    return registry.create_camera(document["camera"], ctx("camera"))
