@@ -2,7 +2,8 @@
 
 - ``on_config``: mkdocstrings reads the sources through a view of the tree as the import name
   ``cellcal`` (the folders install under it through setuptools' package-dir, which griffe cannot
-  follow): a temporary folder ``cellcal/`` of links to the folders pyproject.toml maps.
+  follow): a temporary folder ``cellcal/`` of links to the folders pyproject.toml maps; the
+  docstrings' Sphinx roles are read as code (griffe extension ``griffe_rst.RstRoles``).
 - ``on_page_markdown`` expands four markers (ADR 0048):
   ``<!-- cli-options: NAME -->`` the usage and every option of ``cellcal NAME`` from its argparse parser;
   ``<!-- config-table: ID -->`` a configuration table's heading, its docstring and every key with type,
@@ -65,6 +66,8 @@ def on_config(config: MkDocsConfig) -> MkDocsConfig:
     source_view(REPO, view)
     python = config.plugins["mkdocstrings"].config["handlers"].setdefault("python", {})
     python["paths"] = [str(view)]
+    options = python.setdefault("options", {})
+    options["extensions"] = [*options.get("extensions", []), f"{Path(__file__).with_name('griffe_rst.py')}:RstRoles"]
     return config
 
 
@@ -284,7 +287,13 @@ def _packaged_comments(repo: Path) -> dict[tuple[str, str], str]:
     docs: dict[tuple[str, str], str] = {}
     for path in sorted((repo / "configs").glob("*.toml")):
         table = ""
+        last: tuple[str, str] | None = None  # the key whose comment a comment-only line below it continues
         for line in path.read_text(encoding="utf-8").splitlines():
+            more = re.match(r"^#?\s{8,}#\s*(.+)$", line)
+            if more and last is not None:
+                docs[last] += " " + more[1].strip()
+                continue
+            last = None
             header = _TOML_HEADER.match(line)
             if header:
                 table = header[1]
@@ -294,8 +303,9 @@ def _packaged_comments(repo: Path) -> dict[tuple[str, str], str]:
                 table = f"{table}:{backend[1]}"
                 continue
             found = _TOML_KEY.match(line)
-            if found and table:
-                docs.setdefault((table, found[1]), found[2].strip())
+            if found and table and (table, found[1]) not in docs:
+                docs[(table, found[1])] = found[2].strip()
+                last = (table, found[1])
     return docs
 
 

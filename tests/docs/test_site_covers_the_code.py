@@ -19,16 +19,18 @@ from repo_paths import REPO_ROOT
 DOCS = REPO_ROOT / "docs"
 
 
-def _hook() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("cellcal_docs", DOCS / "hooks" / "cellcal_docs.py")
+def _load(name: str) -> ModuleType:
+    """A module of docs/hooks/ (not a package: mkdocs and griffe load them by path)."""
+    spec = importlib.util.spec_from_file_location(name, DOCS / "hooks" / f"{name}.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("cellcal_docs", module)
+    sys.modules.setdefault(name, module)
     spec.loader.exec_module(module)
     return module
 
 
-hook = _hook()
+hook = _load("cellcal_docs")
+griffe_rst = _load("griffe_rst")
 
 
 def markers(kind: str) -> Counter[str]:
@@ -103,3 +105,9 @@ def test_fence_words_of_the_doc_tests_become_titles() -> None:
     text = "```python file=src/a.py\nx = 1\n```\n```console run\n$ ls\n```\n```bash title=\"t\"\n```\n"
     assert hook.fence_titles(text) == "```python title=\"src/a.py\"\nx = 1\n```\n```console\n$ ls\n```\n" \
         "```bash title=\"t\"\n```\n"
+
+
+def test_sphinx_roles_in_docstrings_read_as_code() -> None:
+    text = ("See :class:`~cellcal.devices.Frame`, :func:`cellcal.core.fit_full_frame`, :meth:`.capture` and "
+            ":class:`x <a.B>`.")
+    assert griffe_rst.plain_roles(text) == "See `Frame`, `cellcal.core.fit_full_frame`, `capture` and `x`."
