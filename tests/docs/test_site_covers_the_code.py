@@ -111,3 +111,9 @@ def test_sphinx_roles_in_docstrings_read_as_code() -> None:
     text = ("See :class:`~cellcal.devices.Frame`, :func:`cellcal.core.fit_full_frame`, :meth:`.capture` and "
             ":class:`x <a.B>`.")
     assert griffe_rst.plain_roles(text) == "See `Frame`, `cellcal.core.fit_full_frame`, `capture` and `x`."
+
+
+def test_doctests_in_docstrings_are_fenced() -> None:
+    text = "Example:\n    >>> x = 1\n    >>> x\n    1\n\nAfter."
+    fenced = "Example:\n    ```pycon\n    >>> x = 1\n    >>> x\n    1\n    ```\n\nAfter."
+    assert griffe_rst.fenced_doctests(text) == fenced
