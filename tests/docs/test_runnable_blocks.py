@@ -21,7 +21,7 @@ from repo_paths import REPO_ROOT
 DOCS = REPO_ROOT / "docs"
 MARKER = "<!-- runnable -->"
 #: Blocks marked when this test was written; fewer found means the marker drifted (update it when adding blocks).
-MIN_BLOCKS = 16
+MIN_BLOCKS = 17
 #: Seconds one block may take (the slowest, `cellcal track` on the built-in cell: about 10 s on a loaded 2-core box).
 BLOCK_TIMEOUT_S = 120
 #: What a page's folder holds from the checkout besides ``.venv``.
@@ -98,6 +98,7 @@ def test_the_site_marks_the_blocks_a_reader_copies() -> None:
     # the first five minutes: calibrate the sim and use its result from Python; a driver on an emulator
     assert [b.lang for b in found["getting-started.md"]] == ["bash", "bash", "python"]
     assert any("o3r_emulator" in b.body for b in found["backends.md"])
+    assert any("sim_cell(" in b.body for b in found["testing.md"])  # the fakes without pytest
     assert {f"commands/{name}.md" for name in ("calibrate", "handeye", "track", "record")} <= set(found)
 
 
