@@ -19,8 +19,8 @@ from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
 from cellcal.core.cli.options import add_viz_port_option, check_viz_options
 
 if TYPE_CHECKING:  # the tracker (numpy, scipy, the fit) is imported by run(), not by `cellcal --help`
-    from cellcal.core.track.estimator import ChangeEvent
     from cellcal.core.track.run import TrackOutcome, TrackProgress
+    from cellcal.core.track.state import ChangeEvent
 
 #: The packaged configuration tracked without --config, and how long, in seconds of frames.
 DEFAULT_CONFIG = "sim_track.toml"

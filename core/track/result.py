@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.core.track.estimator import TrackState, TrackStep
+from cellcal.core.track.state import TrackState, TrackStep
 
 #: Schema of ``track.json``; bump on any incompatible change.
 TRACK_SCHEMA = "cellcal.track/1"

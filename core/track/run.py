@@ -25,9 +25,10 @@ from cellcal.core.handeye.model import PlaneObservation, plane_covariance
 from cellcal.core.handeye.run import reference_plane
 from cellcal.core.methods.fullframe import FullFrameResult, check_gates, fit_full_frame
 from cellcal.core.track.decimate import auto_decimation, decimated
-from cellcal.core.track.estimator import Tracker, TrackSettings, TrackState, TrackStep
+from cellcal.core.track.estimator import Tracker
 from cellcal.core.track.pairing import PoseHistory, Skip
 from cellcal.core.track.result import FRAMES_FILENAME, frame_row, track_document, write_track_json
+from cellcal.core.track.state import TrackSettings, TrackState, TrackStep
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError, OutputError, SafetyError
