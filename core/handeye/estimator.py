@@ -269,8 +269,6 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
             the message names it and the poses that would fix it. Gate ``noise_model``: the
             residuals are more than ``max_interval_scale`` times the stated noise.
     """
-    from scipy.optimize import least_squares
-
     sigmas = check_given_sigma(given, given_sigma or {})
     model, problem, normals_flange = _setup(observations, nominal_mount, nominal_plane, given,
                                             arm_translation_sigma_m, arm_rotation_sigma_rad)
@@ -283,16 +281,7 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     data = problem if len(fitted) == len(free) else _Problem(model, observations, fitted, arm_translation_sigma_m,
                                                               arm_rotation_sigma_rad)
     prior_info = np.array([0.0 if i in free else sigmas[PARAMETERS[i]] ** -2 for i in fitted])  # 1/sigma²
-
-    def residuals(x: FloatArray) -> FloatArray:
-        """Whitened data residuals, then the priors' (value - configured) / sigma."""
-        return np.concatenate([data(x), (x * np.sqrt(prior_info))[prior_info > 0]])
-
-    def residual_jacobian(x: FloatArray) -> FloatArray:
-        return np.vstack([jacobian(data, x), np.diag(np.sqrt(prior_info))[prior_info > 0]])
-
-    fit = least_squares(residuals, np.zeros(len(fitted)), jac=residual_jacobian, method="lm", xtol=1e-15,
-                        ftol=1e-15)
+    fit = _solve(data, prior_info)
     jac = jacobian(data, fit.x)
     info_data, info_prior = jac.T @ jac, np.diag(prior_info)
     chi2 = float(fit.fun @ fit.fun)
@@ -302,14 +291,43 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     noise = check_noise(chi2, dof, confidence=confidence, level=noise_test_level,
                         max_interval_scale=max_interval_scale,
                         detail=f"largest residual at pose {k + 1} (chi2 {worst[k].chi2:.4g})")
-    cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
-    absolute = np.zeros_like(cov)
-    absolute[np.ix_(fitted, fitted)] = scaled_covariance(info_data, info_prior, 1.0)  # the stated noise
-    cov[np.ix_(fitted, fitted)] = scaled_covariance(info_data, info_prior, noise.interval_scale)  # Birge-scaled
+    absolute = _full_covariance(fitted, scaled_covariance(info_data, info_prior, 1.0))  # the stated noise
+    cov = _full_covariance(fitted, scaled_covariance(info_data, info_prior, noise.interval_scale))  # Birge-scaled
     params = data.full(fit.x)
     on_free = [fitted.index(i) for i in free]  # the free parameters' columns, for the observability report
     return HandEyeEstimate(model.mount(params), model.plane(params), params, cov, tuple(given), worst, chi2, dof,
                            analyse(jac[:, on_free], free, normals_flange), confidence, noise, sigmas, absolute)
+
+
+def _solve(data: _Problem, prior_info: FloatArray) -> Any:
+    """Levenberg-Marquardt from the configured values: the whitened data residuals and the priors'.
+
+    Args:
+        data: The residual function of the fitted parameters.
+        prior_info: Per fitted parameter, the information ``1/sigma²`` of its prior at the
+            configured value (0: no prior, a free parameter).
+
+    Returns:
+        scipy's ``OptimizeResult`` (``x``: the parameter steps, ``fun``: every residual).
+    """
+    from scipy.optimize import least_squares
+
+    def residuals(x: FloatArray) -> FloatArray:
+        """Whitened data residuals, then the priors' (value - configured) / sigma."""
+        return np.concatenate([data(x), (x * np.sqrt(prior_info))[prior_info > 0]])
+
+    def residual_jacobian(x: FloatArray) -> FloatArray:
+        return np.vstack([jacobian(data, x), np.diag(np.sqrt(prior_info))[prior_info > 0]])
+
+    return least_squares(residuals, np.zeros(len(prior_info)), jac=residual_jacobian, method="lm", xtol=1e-15,
+                         ftol=1e-15)
+
+
+def _full_covariance(fitted: Sequence[int], cov_fitted: FloatArray) -> FloatArray:
+    """The covariance of the fitted parameters placed in the 9x9 of all (zero for those held exact)."""
+    cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
+    cov[np.ix_(fitted, fitted)] = cov_fitted
+    return cov
 
 
 def _residuals(problem: _Problem, x: FloatArray) -> tuple[PoseResidual, ...]:
