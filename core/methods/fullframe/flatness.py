@@ -359,7 +359,9 @@ def _noise_orth(p: F32, dm: F32, frame: PlaneFrame, model: Model) -> F32:
     cos = np.abs(pn) / dm
     if model.weighted:
         t = np.abs(np.float32(-frame.offset) * dm / pn)   # predicted range along the ray
-        shape = t ** np.float32(model.exponent) / np.sqrt(np.maximum(cos, np.float32(1e-6)))
+        np.log(t, out=t)                                  # t^e as exp(e log t): float32 pow is 2x slower
+        t *= np.float32(model.exponent)
+        shape = np.exp(t, out=t) / np.sqrt(np.maximum(cos, np.float32(1e-6)))
     else:
         shape = np.ones_like(dm)
     out: F32 = shape * cos
