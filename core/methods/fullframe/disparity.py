@@ -18,10 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
-from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.fullframe.honesty import disparity_lattice
 from cellcal.core.methods.fullframe.passes import basis, truncation
-from cellcal.core.methods.fullframe.points import FIXED_SEED, Points, Sample, fixed_subsample, pixels_of
+from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Points, Sample, fixed_subsample
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import Floors, Model, SpaceFit
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
@@ -223,7 +222,8 @@ def _start(a: FloatArray, d: FloatArray, band: float, settings: FullFrameSetting
     hyp = np.linalg.solve(mats[ok], rhs[ok][..., None])[..., 0]   # (K', 3) disparity planes
     hyp = hyp[np.linalg.norm(hyp, axis=1) > 0]
     if expected is not None:                                     # only planes near the one the user means
-        near = np.array([expected.accepts(plane_from_disparity(v, fb)) for v in hyp], dtype=bool)
+        size = np.linalg.norm(hyp, axis=1)
+        near, _ = expected.within(-hyp / size[:, None], fb / size)   # metric planes: n = -v/|v|, c = f·B/|v|
         if not near.any():
             _refuse_expected(hyp, fb, sub_a, sub_d, band, expected)
         hyp = hyp[near]
@@ -430,8 +430,7 @@ class DisparitySpace:
 
     def fit(self, points: Points, expected: ExpectedPlane | None) -> SpaceFit:
         """:func:`fit_disparity` on the pooled points (each one's pixel from the frames' masks)."""
-        pixel_index = pixels_of(np.arange(points.n), points.masks)
-        d = fit_disparity(points.p, pixel_index, points.shape, self.measurement, self.settings, expected)
+        d = fit_disparity(points.p, points.pixel_index, points.shape, self.measurement, self.settings, expected)
         no_bias = (math.nan, math.nan, np.zeros(3))              # no radial range bias in disparity space
         return SpaceFit(d.plane, np.asarray(d.cov, dtype=np.float64), np.asarray(d.e1, dtype=np.float64),
                         np.asarray(d.e2, dtype=np.float64), np.asarray(d.inliers, dtype=bool),

@@ -21,11 +21,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from cellcal.core.methods.fullframe.disparity import DisparitySpace
-from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.fullframe.flatness import Flatness, fit_flatness
 from cellcal.core.methods.fullframe.gates import gate_table
 from cellcal.core.methods.fullframe.honesty import Honest, allow_rounding, honest_intervals
-from cellcal.core.methods.fullframe.points import cloud_points, frame_points, image_coverage, pixel_inliers
+from cellcal.core.methods.fullframe.points import (
+    ExpectedPlane,
+    cloud_points,
+    frame_points,
+    image_coverage,
+    pixel_inliers,
+)
 from cellcal.core.methods.fullframe.range_space import RangeSpace
 from cellcal.core.methods.fullframe.result import Estimate, FullFrameResult
 from cellcal.core.methods.fullframe.settings import FullFrameSettings

@@ -17,9 +17,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.fullframe.flatness import Flatness
-from cellcal.core.methods.fullframe.points import Points, Sample
+from cellcal.core.methods.fullframe.points import ExpectedPlane, Points, Sample
 from cellcal.core.methods.fullframe.result import IntervalFactors
 from cellcal.core.methods.fullframe.space import MeasurementSpace, SpaceFit
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel

@@ -1,9 +1,12 @@
-"""Frames to points and back: the valid pixels of one or more frames pooled as camera-frame points.
+"""What the fit is given: the valid pixels of frames pooled as camera-frame points, and the plane meant.
 
 The fit works on points ``p`` (3, N) in the camera frame (OpenCV: x right, y down, z along
 the optical axis), metres, with the sensor at the origin, and their measured ranges ``dm``.
 Each frame's flat (H*W,) mask says which of its pixels became points (in pixel order,
-frame after frame), so inlier masks, samples and pixel indices go back to the image.
+frame after frame), so inlier masks, samples and pixel indices go back to the image. The
+region of interest chooses the pixels; :class:`ExpectedPlane`, the plane the user means (the
+calibration layer builds it from ``[reference]``, ``[mount]`` and the arm pose, ADR 0027),
+chooses among the planes a robust start finds.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
@@ -25,7 +29,8 @@ from cellcal.devices.types import Frame
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
-__all__ = ["FIXED_SEED", "MAX_MEDIAN_RANGE_M", "SAMPLE", "CoverageCells", "Points", "Sample", "check_region",
+__all__ = ["DEFAULT_SEARCH_TOLERANCE_DEG", "DEFAULT_SEARCH_TOLERANCE_M", "FIXED_SEED", "MAX_MEDIAN_RANGE_M", "SAMPLE",
+           "CoverageCells", "ExpectedPlane", "Points", "Sample", "check_region",
            "cloud_points", "coverage_cells", "fixed_subsample", "frame_points", "gather", "image_coverage",
            "pixel_inliers", "pixels_of"]
 
@@ -35,6 +40,60 @@ MAX_MEDIAN_RANGE_M = 100.0
 SAMPLE = 4096
 #: Seed of the fixed subsample's jitter (and of the triplets when ``seed`` is None).
 FIXED_SEED = 0x5EED
+
+
+#: How far the fitted normal may be from the expected one by default (``[reference] search_tolerance_deg``), deg.
+DEFAULT_SEARCH_TOLERANCE_DEG = 15.0
+#: How far the camera's distance to the two planes may differ by default (``[reference] search_tolerance_m``), m.
+DEFAULT_SEARCH_TOLERANCE_M = 0.1
+
+
+@dataclass(frozen=True)
+class ExpectedPlane:
+    """The plane the fit should find, in the camera frame, and how far the found one may be from it.
+
+    Attributes:
+        plane: Expected plane, camera frame (OpenCV), normal toward the camera, metres.
+        angle_tolerance_rad: Largest angle between the expected and the fitted normal, rad.
+        offset_tolerance_m: Largest difference of the camera's distance to the two planes, metres.
+    """
+
+    plane: Plane
+    angle_tolerance_rad: float
+    offset_tolerance_m: float
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.angle_tolerance_rad <= math.pi / 2):
+            raise CalibrationError(f"ExpectedPlane.angle_tolerance_rad must be in (0, pi/2], got "
+                                   f"{self.angle_tolerance_rad!r}")
+        if not (self.offset_tolerance_m > 0.0 and math.isfinite(self.offset_tolerance_m)):
+            raise CalibrationError(f"ExpectedPlane.offset_tolerance_m must be > 0, got {self.offset_tolerance_m!r}")
+
+    def departure(self, plane: Plane) -> tuple[float, float]:
+        """Angle (rad) between the normals and offset difference (m) of ``plane`` from the expected one."""
+        n0, n1 = np.asarray(self.plane.normal, float), np.asarray(plane.normal, float)
+        sign = 1.0 if float(n0 @ n1) >= 0 else -1.0            # either orientation of the found normal
+        angle = math.atan2(float(np.linalg.norm(np.cross(n0, sign * n1))), abs(float(n0 @ n1)))
+        return angle, abs(abs(plane.offset_m) - abs(self.plane.offset_m))
+
+    def accepts(self, plane: Plane) -> bool:
+        """Whether ``plane`` lies within both tolerances."""
+        angle, offset = self.departure(plane)
+        return angle <= self.angle_tolerance_rad and offset <= self.offset_tolerance_m
+
+    def within(self, normals: NDArray[np.float64], offsets: NDArray[np.float64]
+               ) -> tuple[BoolArray, NDArray[np.float64]]:
+        """Which planes (unit normals (K, 3), offsets (K,), either orientation) lie within both tolerances.
+
+        Also returns each one's departure in units of the tolerances (the larger of angle and offset).
+        The candidate planes of a robust start are judged here, all at once.
+        """
+        n0 = np.asarray(self.plane.normal, dtype=np.float64)
+        cos = np.minimum(np.abs(normals @ n0), 1.0)                    # either orientation of a normal
+        angle = np.arccos(cos)                                          # rad
+        doff = np.abs(np.abs(offsets) - abs(self.plane.offset_m))      # camera's distance to each plane vs expected, m
+        ok = (angle <= self.angle_tolerance_rad) & (doff <= self.offset_tolerance_m)
+        return ok, np.maximum(angle / self.angle_tolerance_rad, doff / self.offset_tolerance_m)
 
 
 @dataclass
@@ -67,6 +126,13 @@ class Points:
     def n(self) -> int:
         """Number of points."""
         return int(self.p.shape[1])
+
+    @property
+    def pixel_index(self) -> NDArray[np.intp]:
+        """(N,) flat pixel index (row-major in ``shape``) of each point within its own frame."""
+        if len(self.masks) == 1:
+            return np.flatnonzero(self.masks[0])
+        return np.concatenate([np.flatnonzero(m) for m in self.masks])
 
 
 def check_region(region: NDArray[np.bool_] | None, shape: tuple[int, int]) -> NDArray[np.bool_] | None:

@@ -20,9 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
-from cellcal.core.methods.fullframe.expected import ExpectedPlane
 from cellcal.core.methods.fullframe.passes import NothingLeftError, fit_from_start
-from cellcal.core.methods.fullframe.points import FIXED_SEED, Points, Sample, fixed_subsample
+from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Points, Sample, fixed_subsample
 from cellcal.core.methods.fullframe.settings import DEFAULT_NOISE_EXPONENT, MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import EdgeReport, Floors, Model, SpaceFit
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
@@ -164,7 +163,7 @@ def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings,
         nrm, off = _triplet_planes(sub, settings.hypotheses, settings.seed)
     else:                                                 # only planes near the expected one compete
         nrm, off = _triplet_planes(sub, EXPECTED_DRAWS * settings.hypotheses, settings.seed)
-        ok, score = _within(expected, nrm, off)
+        ok, score = expected.within(nrm, off)
         if not ok.any():
             raise _nearest_refusal(expected, nrm, off, score)
         nrm, off = nrm[ok], off[ok]
@@ -193,19 +192,6 @@ def _triplet_planes(sub: FloatArray, count: int, seed: int | None) -> tuple[Floa
         raise CalibrationError("full-frame fit: the points are collinear or coincident; no plane is defined")
     nrm = nrm[ok] / length[ok, None]
     return nrm, -np.einsum("ij,ij->i", nrm, a[ok])
-
-
-def _within(expected: ExpectedPlane, nrm: FloatArray, off: FloatArray) -> tuple[BoolArray, FloatArray]:
-    """Which planes (unit normals (K, 3), offsets (K,)) lie within the expected plane's tolerances.
-
-    Also returns each one's departure in units of the tolerances (the larger of angle and offset).
-    """
-    n0 = np.asarray(expected.plane.normal, dtype=np.float64)
-    cos = np.minimum(np.abs(nrm @ n0), 1.0)                     # either orientation of a triplet's normal
-    angle = np.arccos(cos)                                      # rad
-    doff = np.abs(np.abs(off) - abs(expected.plane.offset_m))   # camera's distance to each plane vs expected, m
-    ok = (angle <= expected.angle_tolerance_rad) & (doff <= expected.offset_tolerance_m)
-    return ok, np.maximum(angle / expected.angle_tolerance_rad, doff / expected.offset_tolerance_m)
 
 
 def _nearest_refusal(expected: ExpectedPlane, nrm: FloatArray, off: FloatArray, score: FloatArray

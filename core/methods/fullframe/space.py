@@ -23,8 +23,7 @@ from numpy.typing import NDArray
 from cellcal.core.geometry.planes import Plane
 
 if TYPE_CHECKING:
-    from cellcal.core.methods.fullframe.expected import ExpectedPlane
-    from cellcal.core.methods.fullframe.points import Points, Sample
+    from cellcal.core.methods.fullframe.points import ExpectedPlane, Points, Sample
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
