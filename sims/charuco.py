@@ -38,7 +38,7 @@ class CharucoConfig:
     squares: tuple[int, int] = field(default=(7, 5), metadata={"ge": 2, "le": 40, "doc": "squares (columns, rows)"})
     square_m: float = field(default=0.04, metadata={"gt": 0.001, "le": 1.0, "doc": "square side, m"})
     marker_ratio: float = field(default=0.75, metadata={"ge": 0.3, "le": 0.95, "doc": "marker side / square side"})
-    dictionary: Dictionary = "4X4_50"
+    dictionary: Dictionary = field(default="4X4_50", metadata={"doc": "the OpenCV ArUco dictionary of the markers"})
     dark_reflectivity: float = field(default=0.05, metadata={"gt": 0.0, "le": 2.0, "doc": "reflectivity of the ink"})
     light_reflectivity: float = field(default=0.9, metadata={"gt": 0.0, "le": 2.0,
                                                              "doc": "reflectivity of the paper"})

@@ -53,6 +53,11 @@ class CellSection:
 
     ``strict = true`` is ``cellcal calibrate --strict`` for this cell: a cross-pose verdict
     saying the poses' planes disagree in the base frame fails the run (exit 1).
+
+    Attributes:
+        name: The cell's name, written into every result and report.
+        seed: The seed of every random generator of the simulated devices.
+        strict: Whether disagreeing poses fail the run (as ``--strict``).
     """
 
     name: str = field(default="cell", metadata={"max_len": 100})
@@ -62,7 +67,14 @@ class CellSection:
 
 @dataclass(frozen=True)
 class MountSection:
-    """``[mount]``: the camera frame in the flange frame (hand-eye transform)."""
+    """``[mount]``: the camera frame in the flange frame (hand-eye transform).
+
+    Attributes:
+        translation_m: The camera frame's origin in the flange frame, metres.
+        rpy_deg: The camera frame's roll, pitch, yaw about the flange's x, y, z axes, degrees.
+        from_handeye: A ``handeye.json`` of ``cellcal handeye`` (relative to the configuration
+            file) whose estimated mount replaces ``translation_m`` / ``rpy_deg``.
+    """
 
     translation_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -2.0, "le": 2.0})
     rpy_deg: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
@@ -94,6 +106,12 @@ class HandEyeSection:
     residuals exceed the stated noise (chi2 test, each tail at ``noise_test_level``) the
     intervals are scaled by sqrt(chi2/dof), and beyond ``max_interval_scale`` the fit is
     refused (docs/adr/0030-handeye-noise-model.md).
+
+    Attributes:
+        height_m: The camera's distance from ``target_m`` along its optical axis at each view, metres.
+        reach: The arm's reach model that limits the plan's orientations (``xarm5``; ``any``: none).
+        arm_rotation_sigma_deg: The 1-sigma of the arm's read-back orientation, degrees (0: exact).
+        confidence: The level of the reported intervals (0.95: 95 % intervals).
     """
 
     inclinations_deg: tuple[float, ...] = field(default=(80.0, 65.0),
@@ -136,6 +154,10 @@ class ReferenceSection:
     for the plane within ``search_tolerance_deg`` (normal) and ``search_tolerance_m``
     (distance from the camera) of this one seen from the camera, so that a floor, a wall or
     a box top is not taken for it; ``search = false`` lets the whole image decide (ADR 0031).
+
+    Attributes:
+        plane_point_m: A point of the measuring plane, base frame, metres.
+        plane_normal: The plane's normal, base frame (any length; normalised).
     """
 
     plane_point_m: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -10.0, "le": 10.0})
@@ -172,6 +194,11 @@ class RegionSection:
     metres; at each pose the region holds the pixels whose ray (from the camera pose the
     arm reports, with ``[mount]``) passes through the box. Both given: the pixels in both.
     Neither (an empty table, or no table): the whole image.
+
+    Attributes:
+        polygon_px: The polygon's vertices ``[u, v]``, pixels.
+        box_min_m: The box's lower corner (x, y, z), base frame, metres.
+        box_max_m: The box's upper corner (x, y, z), base frame, metres.
     """
 
     polygon_px: tuple[tuple[float, float], ...] | None = field(
@@ -211,6 +238,15 @@ class SafetySection:
     Ranges are those of a real cell (ADR 0016): a workspace within 10 m of the base, speeds
     from 0.1 mm/s, an arrival tolerance of at most 100 mm / 10 deg (unset: the arm's own
     default, 1 mm / 0.1 deg for an industrial arm).
+
+    Attributes:
+        workspace_min_m: The envelope's lower corner (x, y, z) for the flange, base frame, metres.
+        workspace_max_m: The envelope's upper corner (x, y, z) for the flange, base frame, metres.
+        max_speed_m_s: The fastest tool speed any command may ask, m/s.
+        max_acceleration_m_s2: The largest tool acceleration any command may ask, m/s^2.
+        min_standoff_m: The least distance from the camera's origin to the measuring plane, metres.
+        arrival_tolerance_m: How far from its target a finished move may end, metres.
+        arrival_tolerance_deg: How far from its target orientation a finished move may end, degrees.
     """
 
     workspace_min_m: Vec3 = field(default=(-0.7, -0.7, 0.0), metadata={"ge": -10.0, "le": 10.0})
@@ -229,7 +265,12 @@ class SafetySection:
 
 @dataclass(frozen=True)
 class PlanPose:
-    """One explicit flange pose of ``[[plan.poses]]``, base frame."""
+    """One explicit flange pose of ``[[plan.poses]]``, base frame.
+
+    Attributes:
+        xyz_m: The flange position, base frame, metres.
+        rpy_deg: The flange orientation as roll, pitch, yaw about the base's x, y, z axes, degrees.
+    """
 
     xyz_m: Vec3 = field(metadata={"ge": -10.0, "le": 10.0})
     rpy_deg: Vec3 = field(default=(180.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
@@ -254,6 +295,21 @@ class PlanSection:
     the target): views from several sides are what makes the cross-pose consistency of
     the plane a real check on the hand-eye transform; the default, one azimuth, is the
     paper's plan.
+
+    Attributes:
+        tilt_axis: The camera axis (``x`` or ``y``) the tilt turns about.
+        target_m: Where the optical axis meets the reference plane, base frame, metres.
+        poses: Explicit flange poses (``[[plan.poses]]``) instead of the generated ones.
+        perimeters_px: Half-sizes of the P1-P9 grid squares around the image centre, pixels.
+        methods: The paper's methods to run at each pose.
+        frames_per_pose: Frames captured at each pose (measured together).
+        window_px: The odd side of the median window around each grid point, pixels.
+        settle_s: The wait after a move before the first capture, seconds.
+        speed_m_s: The tool speed of the plan's moves, m/s (capped by ``[safety]``).
+        acceleration_m_s2: The tool acceleration of the plan's moves, m/s^2 (capped by ``[safety]``).
+        move_timeout_s: The deadline of one move, seconds.
+        capture_timeout_s: The deadline of one capture, seconds.
+        nominal_fov_deg: The datasheet field of view (x, y), degrees.
     """
 
     heights_m: tuple[float, ...] = field(default=(0.46, 0.59, 0.61),

@@ -1,4 +1,4 @@
-"""Exit statuses of the ``cellcal`` command (README, "Exit status")."""
+"""Exit statuses of the ``cellcal`` command (docs/commands/index.md, "Exit status")."""
 
 EXIT_OK = 0  # success
 EXIT_FAILURE = 1  # a device or calibration failure at run time
