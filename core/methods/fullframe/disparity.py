@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.honesty import disparity_lattice
 from cellcal.core.methods.fullframe.passes import basis, truncation
-from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Points, Sample, fixed_subsample
+from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Nearness, Points, Sample, fixed_subsample
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import Floors, Model, SpaceFit
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
@@ -223,21 +223,21 @@ def _start(a: FloatArray, d: FloatArray, band: float, settings: FullFrameSetting
     hyp = hyp[np.linalg.norm(hyp, axis=1) > 0]
     if expected is not None:                                     # only planes near the one the user means
         size = np.linalg.norm(hyp, axis=1)
-        near, _ = expected.within(-hyp / size[:, None], fb / size)   # metric planes: n = -v/|v|, c = f·B/|v|
-        if not near.any():
-            _refuse_expected(hyp, fb, sub_a, sub_d, band, expected)
-        hyp = hyp[near]
+        near = expected.within(-hyp / size[:, None], fb / size)   # metric planes: n = -v/|v|, c = f·B/|v|
+        if not near.ok.any():
+            _refuse_expected(near, hyp, sub_a, sub_d, band, expected)
+        hyp = hyp[near.ok]
     res = sub_d[None, :] - hyp @ sub_a.T                         # (K', m) residuals, px
     loss = np.minimum(res * res, band * band).sum(axis=1)       # truncated quadratic (MSAC)
     return np.asarray(hyp[int(np.argmin(loss))], dtype=np.float64)
 
 
-def _refuse_expected(hyp: FloatArray, fb: float, a: FloatArray, d: FloatArray, band: float,
+def _refuse_expected(nearness: Nearness, hyp: FloatArray, a: FloatArray, d: FloatArray, band: float,
                      expected: ExpectedPlane) -> None:
     """No hypothesis near the expected plane: name the gate and the best plane that was found instead."""
     res = d[None, :] - hyp @ a.T
-    best = hyp[int(np.argmin(np.minimum(res * res, band * band).sum(axis=1)))]
-    angle, offset = expected.departure(plane_from_disparity(best, fb))
+    best = int(np.argmin(np.minimum(res * res, band * band).sum(axis=1)))
+    angle, offset = float(nearness.angle_rad[best]), float(nearness.offset_m[best])
     shown_a, tol_a = quantity_pair(angle, expected.angle_tolerance_rad, "rad")
     shown_o, tol_o = quantity_pair(offset, expected.offset_tolerance_m, "m")
     raise CalibrationQualityError(
@@ -270,12 +270,7 @@ def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int],
         raise CalibrationError(f"fit_disparity needs a stereo or structured-light model, got {model.kind!r}")
     fb = model.fb_px_m
     q = model.disparity_step_px
-    z = p[2].astype(np.float64)
-    a = np.empty((z.size, 3))
-    np.divide(p[0], z, out=a[:, 0])                             # x/z: normalised image coordinates, exact
-    np.divide(p[1], z, out=a[:, 1])                             # y/z
-    a[:, 2] = 1.0
-    d = fb / z                                                  # the measured disparity, px
+    a, d = _disparities(p, fb)
     stated = model.disparity_sigma_px is not None
     sigma_model = model.disparity_noise_px                      # sqrt(σ_d² + q²/12), px
     band = max(settings.inlier_threshold_sigma * sigma_model, q)   # never narrower than one step
@@ -301,20 +296,35 @@ def fit_disparity(p: F32, pixel_index: NDArray[np.intp], shape: tuple[int, int],
             notes.append(f"disparity rounding weakly dithered (sigma_d {sigma_d:.2g} px for steps of "
                          f"{q:.3g} px): its pattern removed, up to {b:.2g} px left in the intervals")
     plane, e1, e2, cov = _metric(v, fb, cov_v)
-    pts = p[:, inl].astype(np.float64)
-    n = np.asarray(plane.normal, dtype=np.float64)
-    ortho = n @ pts + plane.offset_m                             # orthogonal residuals, m
-    zin = pts[2]
-    lever = zin * zin / fb * np.abs(a_in @ n)                    # |d(orthogonal)/d(disparity)|, m/px
+    rms_m, lever_m = _metric_residuals(plane, p[:, inl], a_in, fb)
     expected_px = sigma_model if stated else sigma_used
     return DisparityFit(
-        plane=plane, cov=cov, e1=e1, e2=e2, inliers=inl,
-        residual_rms_m=math.sqrt(float(ortho @ ortho) / n_in),
-        expected_rms_m=expected_px * math.sqrt(float(lever @ lever) / n_in),
-        floor_rms_m=q / math.sqrt(12.0) * math.sqrt(float(lever @ lever) / n_in),
+        plane=plane, cov=cov, e1=e1, e2=e2, inliers=inl, residual_rms_m=rms_m, expected_rms_m=expected_px * lever_m,
+        floor_rms_m=q / math.sqrt(12.0) * lever_m,
         noise_scale_m=sigma_used / fb, notes=tuple(notes), disparity=v, disparity_cov=cov_v,
         residual_rms_px=math.sqrt(float(r_in @ r_in) / n_in), sigma_used_px=sigma_used, design_effect=deff,
         band_px=band)
+
+
+def _disparities(p: F32, fb: float) -> tuple[FloatArray, FloatArray]:
+    """Rows ``(x/z, y/z, 1)`` (normalised image coordinates, exact) and the measured disparity ``f·B/z`` (px)."""
+    z = p[2].astype(np.float64)
+    a = np.empty((z.size, 3))
+    np.divide(p[0], z, out=a[:, 0])
+    np.divide(p[1], z, out=a[:, 1])
+    a[:, 2] = 1.0
+    return a, fb / z
+
+
+def _metric_residuals(plane: Plane, p_in: F32, a_in: FloatArray, fb: float) -> tuple[float, float]:
+    """The inliers' RMS orthogonal residual (m) and RMS lever ``|d(orthogonal)/d(disparity)|`` (m/px)."""
+    pts = p_in.astype(np.float64)
+    n = np.asarray(plane.normal, dtype=np.float64)
+    ortho = n @ pts + plane.offset_m                             # orthogonal residuals, m
+    zin = pts[2]
+    lever = zin * zin / fb * np.abs(a_in @ n)
+    n_in = pts.shape[1]
+    return math.sqrt(float(ortho @ ortho) / n_in), math.sqrt(float(lever @ lever) / n_in)
 
 
 def _settle(a: FloatArray, d: FloatArray, v: FloatArray, band: float, sigma_model: float, k_sig: float, q: float

@@ -30,7 +30,7 @@ BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
 
 __all__ = ["DEFAULT_SEARCH_TOLERANCE_DEG", "DEFAULT_SEARCH_TOLERANCE_M", "FIXED_SEED", "MAX_MEDIAN_RANGE_M", "SAMPLE",
-           "CoverageCells", "ExpectedPlane", "Points", "Sample", "check_region",
+           "CoverageCells", "ExpectedPlane", "Nearness", "Points", "Sample", "check_region",
            "cloud_points", "coverage_cells", "fixed_subsample", "frame_points", "gather", "image_coverage",
            "pixel_inliers", "pixels_of"]
 
@@ -81,11 +81,9 @@ class ExpectedPlane:
         angle, offset = self.departure(plane)
         return angle <= self.angle_tolerance_rad and offset <= self.offset_tolerance_m
 
-    def within(self, normals: NDArray[np.float64], offsets: NDArray[np.float64]
-               ) -> tuple[BoolArray, NDArray[np.float64]]:
-        """Which planes (unit normals (K, 3), offsets (K,), either orientation) lie within both tolerances.
+    def within(self, normals: NDArray[np.float64], offsets: NDArray[np.float64]) -> Nearness:
+        """How far planes (unit normals (K, 3), offsets (K,), either orientation) are; which are within tolerance.
 
-        Also returns each one's departure in units of the tolerances (the larger of angle and offset).
         The candidate planes of a robust start are judged here, all at once.
         """
         n0 = np.asarray(self.plane.normal, dtype=np.float64)
@@ -93,7 +91,16 @@ class ExpectedPlane:
         angle = np.arccos(cos)                                          # rad
         doff = np.abs(np.abs(offsets) - abs(self.plane.offset_m))      # camera's distance to each plane vs expected, m
         ok = (angle <= self.angle_tolerance_rad) & (doff <= self.offset_tolerance_m)
-        return ok, np.maximum(angle / self.angle_tolerance_rad, doff / self.offset_tolerance_m)
+        return Nearness(ok, np.maximum(angle / self.angle_tolerance_rad, doff / self.offset_tolerance_m), angle, doff)
+
+
+class Nearness(NamedTuple):
+    """Candidate planes against the expected one (:meth:`ExpectedPlane.within`), each (K,)."""
+
+    ok: BoolArray                      # within both tolerances
+    score: NDArray[np.float64]         # departure in units of the tolerances (the larger of angle and offset)
+    angle_rad: NDArray[np.float64]     # angle between the normals, rad
+    offset_m: NDArray[np.float64]      # difference of the camera's distance to the two planes, m
 
 
 @dataclass

@@ -163,7 +163,7 @@ def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings,
         nrm, off = _triplet_planes(sub, settings.hypotheses, settings.seed)
     else:                                                 # only planes near the expected one compete
         nrm, off = _triplet_planes(sub, EXPECTED_DRAWS * settings.hypotheses, settings.seed)
-        ok, score = expected.within(nrm, off)
+        ok, score = expected.within(nrm, off)[:2]
         if not ok.any():
             raise _nearest_refusal(expected, nrm, off, score)
         nrm, off = nrm[ok], off[ok]
