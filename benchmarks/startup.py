@@ -3,9 +3,10 @@
 Prints, as medians over ``--runs`` interleaved runs (so the three commands share the
 machine's load):
 
-* ``cellcal --help`` against ``python -c pass``: the ratio (target: within 4x);
+* ``cellcal --help`` against ``python -c pass``: the ratio (target, issue #38: <= 3.5x),
+  with PASS or FAIL;
 * ``cellcal calibrate --out DIR`` on the default sim (README, Quick start): wall time
-  end to end (target: under 0.4 s), also as a ratio to the bare interpreter;
+  end to end (target: under 0.4 s, PASS or FAIL), also as a ratio to the bare interpreter;
 * the CPU time (user + system) of each, which a loaded machine disturbs less;
 * with ``--imports``, the ten most expensive imports of each ``cellcal`` command
   (``python -X importtime``, cumulative).
@@ -29,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-HELP_TARGET_RATIO = 4.0
+HELP_TARGET_RATIO = 3.5
 CALIBRATE_TARGET_S = 0.4
 
 
@@ -99,12 +100,12 @@ def main() -> None:
             print(f"  {name:<18} {med[name] * 1000:7.1f} ms / {cpu[name] * 1000:6.1f} ms   "
                   f"(min wall {min(walls[name]) * 1000:.1f} ms; {med[name] / bare:.2f}x the bare interpreter)")
         ratio = med["cellcal --help"] / bare
-        print(f"cellcal --help: {ratio:.2f}x a bare interpreter start (target <= {HELP_TARGET_RATIO:.0f}x: "
-              f"{'met' if ratio <= HELP_TARGET_RATIO else 'MISSED'}); CPU ratio "
+        print(f"cellcal --help: {ratio:.2f}x a bare interpreter start measured in the same run "
+              f"(target <= {HELP_TARGET_RATIO:g}x: {'PASS' if ratio <= HELP_TARGET_RATIO else 'FAIL'}); CPU ratio "
               f"{cpu['cellcal --help'] / cpu['python -c pass']:.2f}x")
         cal = med["cellcal calibrate"]
         print(f"cellcal calibrate (default sim, end to end): {cal:.3f} s (target < {CALIBRATE_TARGET_S} s: "
-              f"{'met' if cal < CALIBRATE_TARGET_S else 'MISSED'}); CPU {cpu['cellcal calibrate']:.3f} s")
+              f"{'PASS' if cal < CALIBRATE_TARGET_S else 'FAIL'}); CPU {cpu['cellcal calibrate']:.3f} s")
         floor = med["import numpy, cv2"]
         print(f"  of which the floor (interpreter + numpy + OpenCV import): {floor:.3f} s; cellcal's own "
               f"imports and the 3-pose run: {cal - floor:.3f} s")

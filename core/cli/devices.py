@@ -9,11 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
-import signal
-import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -63,6 +59,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.scan:
         return 0
     print("scan:")
+    from concurrent.futures import ThreadPoolExecutor  # here: not at `cellcal --help`
+
     # one child process per backend, a few at a time; the report keeps the listing's order
     with ThreadPoolExecutor(max_workers=_SCAN_WORKERS) as pool:
         reports = pool.map(lambda e: _scan_entry(registry, e.kind, e.name, args.timeout, target), entries)
@@ -123,6 +121,10 @@ def scan_lines(kind: str, name: str, timeout: float, target: NetworkTarget | Non
     native abort in an SDK) or overruns ``timeout`` plus its start-up allowance is one line.
     With ``target`` the child runs the backend's network scan (``scan_hosts``) there.
     """
+    import json
+    import signal
+    import subprocess
+
     cmd = [sys.executable, "-m", "cellcal.core.cli.scan_child", kind, name, repr(timeout)]
     if target is not None:
         cmd.append(json.dumps({"hosts": target.hosts, "ports": target.ports}))
@@ -171,6 +173,8 @@ _CHILD_STARTUP_S = 10.0
 
 def _reply(stdout: str) -> dict[str, Any] | None:
     """The child's JSON reply (its last stdout line), or None if it printed none."""
+    import json
+
     for line in reversed(stdout.splitlines()):
         try:
             value = json.loads(line)

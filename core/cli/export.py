@@ -9,7 +9,6 @@ that is not one of those.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import re
 from collections.abc import Mapping
@@ -19,7 +18,6 @@ from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_OK
 from cellcal.core.cli.options import check_input_file
 from cellcal.core.console import say
-from cellcal.devices import boundedjson
 from cellcal.devices.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -60,6 +58,8 @@ MOUNT_BOUNDS = {"translation_m": 10.0, "rpy_deg": 360.0, "quaternion_xyzw": 1.0 
 
 def _vector(mount: Mapping[str, Any], key: str, size: int, source: str) -> list[float]:
     """``mount[key]`` as ``size`` finite numbers within :data:`MOUNT_BOUNDS` (ConfigError naming the key otherwise)."""
+    import json  # here: an error message's, not at `cellcal --help`
+
     value = mount.get(key)
     items: list[Any] = value if isinstance(value, list) else []
     numbers = [v for v in items if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
@@ -109,6 +109,8 @@ def configured_mount_note(document: Mapping[str, Any]) -> str | None:
 
 def read_document(path: str) -> dict[str, Any]:
     """The JSON object of ``path`` (ConfigError naming the file otherwise)."""
+    from cellcal.devices import boundedjson  # here: json with it, not at `cellcal --help`
+
     check_input_file(path, MAX_INPUT_BYTES)
     try:
         with open(path, encoding="utf-8") as fh:

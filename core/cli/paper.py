@@ -8,7 +8,6 @@ by perimeter. ``--json`` prints a JSON list instead, one object per data set.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -132,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
     model = NominalFovModel(width, height, math.radians(fov_x), math.radians(fov_y))
     rows = evaluate(load_paper_table(args.table), true_angle, model)
     if args.json:
+        import json
+
         print(json.dumps(rows, indent=2))
     else:
         print(format_report(rows, true_angle))

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import re
 import sys
-import threading
 from typing import IO, TYPE_CHECKING, Any
 
 from cellcal.core.console import write_line
@@ -45,6 +44,8 @@ class PlainProgress:
         self.unit = unit
         self.stream = stream
         self.n = 0
+        import threading  # here: not at `cellcal --help`
+
         self._every = max(1, -(-total // MAX_PLAIN_LINES))  # ceil: at most MAX_PLAIN_LINES lines
         self._lock = threading.Lock()  # a study's worker results arrive on another thread
         write_line(stream, f"{total} {desc} to go (0/{total})")
@@ -81,6 +82,8 @@ def progress_factory(desc: str, unit: str, quiet: bool) -> ProgressFactory | Non
             return PlainProgress(total, desc, unit, stream)
 
         return plain
+    import threading
+
     from tqdm import tqdm
 
     tqdm.set_lock(threading.RLock())  # one process draws the bars: no multiprocessing lock (7 ms to make)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shlex
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -15,6 +14,8 @@ T = TypeVar("T")
 
 def resume_command(command: str, args: Any, *extra: str) -> str:
     """The command line that continues a run of ``cellcal <command>`` with these arguments."""
+    import shlex  # here: not at `cellcal --help`
+
     config = f" --config {shlex.quote(args.config)}" if args.config else ""
     more = "".join(f" {part}" for part in extra)
     return f"cellcal {command}{config}{more} --out {shlex.quote(args.out)} --resume"

@@ -7,20 +7,27 @@ would need a DNS lookup, which cannot be bounded in time.
 from __future__ import annotations
 
 import argparse
-import ipaddress
 
-from cellcal.devices.discovery import MAX_HOSTS
-
-__all__ = ["MAX_HOSTS", "parse_hosts", "parse_ports", "parse_subnet"]
+__all__ = ["parse_hosts", "parse_ports", "parse_subnet"]
 
 #: Longest option value read, characters (a /22 written out host by host fits).
 _MAX_TEXT = 20_000
 
 
+def _max_hosts() -> int:
+    """:data:`cellcal.devices.discovery.MAX_HOSTS`, imported when a value is checked (not at ``cellcal --help``)."""
+    from cellcal.devices.discovery import MAX_HOSTS
+
+    return MAX_HOSTS
+
+
 def parse_hosts(text: str) -> list[str]:
     """``H,H,...``: IPv4 or IPv6 addresses, duplicates dropped, at most :data:`MAX_HOSTS`."""
+    import ipaddress  # here and below: not at `cellcal --help`
+
+    max_hosts = _max_hosts()
     if len(text) > _MAX_TEXT:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_HOSTS} addresses, got {len(text)} characters")
+        raise argparse.ArgumentTypeError(f"expected at most {max_hosts} addresses, got {len(text)} characters")
     hosts: dict[str, None] = {}
     for item in text.split(","):
         item = item.strip()
@@ -29,8 +36,8 @@ def parse_hosts(text: str) -> list[str]:
         except ValueError:
             raise argparse.ArgumentTypeError(
                 f"expected IP addresses separated by commas (no names), got {item[:60]!r}") from None
-    if len(hosts) > MAX_HOSTS:
-        raise argparse.ArgumentTypeError(f"expected at most {MAX_HOSTS} addresses, got {len(hosts)}")
+    if len(hosts) > max_hosts:
+        raise argparse.ArgumentTypeError(f"expected at most {max_hosts} addresses, got {len(hosts)}")
     return list(hosts)
 
 
@@ -40,6 +47,9 @@ def parse_subnet(text: str) -> list[str]:
     Host bits may be set (``192.168.1.7/24`` means the /24 around it); a /31 or /32 (IPv6:
     /127, /128) is its one or two addresses.
     """
+    import ipaddress
+
+    max_hosts = _max_hosts()
     shown = text[:60]
     if "/" not in text:
         raise argparse.ArgumentTypeError(f"expected a subnet ADDRESS/PREFIX such as 192.168.1.0/24, got {shown!r}")
@@ -48,10 +58,10 @@ def parse_subnet(text: str) -> list[str]:
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected a subnet ADDRESS/PREFIX such as 192.168.1.0/24, got {shown!r}") from None
-    if net.num_addresses > MAX_HOSTS:
-        smallest = 32 - MAX_HOSTS.bit_length() + 1 if net.version == 4 else 128 - MAX_HOSTS.bit_length() + 1
+    if net.num_addresses > max_hosts:
+        smallest = 32 - max_hosts.bit_length() + 1 if net.version == 4 else 128 - max_hosts.bit_length() + 1
         raise argparse.ArgumentTypeError(
-            f"subnet {shown} has {net.num_addresses} addresses: at most {MAX_HOSTS} (/{smallest}) in one scan")
+            f"subnet {shown} has {net.num_addresses} addresses: at most {max_hosts} (/{smallest}) in one scan")
     return [str(h) for h in net.hosts()]
 
 

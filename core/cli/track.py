@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -161,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
 
         config, camera, arm = replay_session(args.replay, strict=True)
     else:
+        from importlib import resources  # here: tempfile and random with it, not at `cellcal --help`
+
         path = args.config or str(resources.files("cellcal.configs").joinpath(DEFAULT_CONFIG))
         if args.config is None and duration is None and args.frames is None:
             duration = DEFAULT_SIM_DURATION_S

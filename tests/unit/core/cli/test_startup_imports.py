@@ -1,6 +1,7 @@
 """What the ``cellcal`` command imports at start-up, checked in fresh interpreters (ADR 0021).
 
-``cellcal --help`` (the parser with every subcommand) loads no numerics and no vendor SDK;
+``cellcal --help`` imports no subcommand module (it lists them by name and summary), and the
+parser with every subcommand loads no numerics and no vendor SDK;
 ``cellcal calibrate`` on the default sim loads numpy and OpenCV but neither scipy nor
 matplotlib nor the recording stack. Speed itself is measured by ``benchmarks/startup.py``.
 """
@@ -17,6 +18,10 @@ from cellcal.core.cli.app import SUBCOMMANDS
 #: Never imported by building the parser.
 NOT_FOR_HELP = ("numpy", "scipy", "cv2", "matplotlib", "tqdm", "depthai", "ifm3dpy", "rtde_control",
                 "rtde_receive", "xarm", "mcap", "foxglove", "cellcal.core.study.trials", "cellcal.core.calibration")
+#: Never imported by ``cellcal --help``, which lists the subcommands without their modules (issue #38).
+NOT_FOR_LISTING = (*NOT_FOR_HELP, *(f"cellcal.core.cli.{name}" for name in SUBCOMMANDS), "cellcal.core.study",
+                   "cellcal.devices.discovery", "dataclasses", "concurrent.futures", "importlib.resources",
+                   "socket", "subprocess", "threading", "tempfile")
 #: Never imported by ``cellcal calibrate`` on the default sim.
 NOT_FOR_CALIBRATE = ("scipy", "matplotlib", "depthai", "ifm3dpy", "rtde_control", "xarm", "mcap", "foxglove",
                      "cellcal.core.study.trials", "cellcal.devices.recording", "cellcal.core.liveview")
@@ -33,6 +38,11 @@ def _loaded_after(code: str, watch: tuple[str, ...]) -> list[str]:
 def test_building_the_parser_imports_no_numerics_and_no_vendor_sdk() -> None:
     code = "from cellcal.core.cli.app import build_parser\nbuild_parser()"
     assert _loaded_after(code, NOT_FOR_HELP) == []
+
+
+def test_the_listing_imports_no_subcommand_module() -> None:
+    code = "from cellcal.core.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass"
+    assert _loaded_after(code, NOT_FOR_LISTING) == []
 
 
 def test_the_help_still_lists_every_subcommand() -> None:
