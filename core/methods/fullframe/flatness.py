@@ -15,20 +15,24 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+import threading
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.methods.fullframe.passes import basis
-from cellcal.core.methods.fullframe.points import Points, gather, pixels_of
+from cellcal.core.methods.fullframe.points import KEEP_POINTS, Points, gather, pixels_of
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.core.methods.fullframe.space import Model, SpaceFit
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
+
+_KEPT = threading.local()   # point-sized arrays kept between this thread's fits (no fresh pages)
 
 #: Inliers (strided) the flatness grid uses at most.
 MAX_FLAT_POINTS = 1 << 16
@@ -68,19 +72,25 @@ class PlaneFrame:
     e2: FloatArray
     offset: float
 
-    def uvw(self, p: F32, along_ray: bool = True) -> FloatArray:
+    def uvw(self, p: F32, along_ray: bool = True, kept: bool = False) -> FloatArray:
         """(3, N) in-plane coordinates and orthogonal residual of points ``p`` (3, N), float64.
 
         With ``along_ray`` the in-plane coordinates are where the pixel's ray meets the
         plane (exact): the measured point's range noise would leak into them and bias the
         local slopes by O(noise²) (errors in variables, ADR 0007 "Model"). Without, they
         are the measured point's projection, in which another plane is linear (regions
-        far off the fit, where that bias is negligible).
+        far off the fit, where that bias is negligible). With ``kept`` the result and its
+        float64 copy of ``p`` live in this thread's kept memory (valid until its next fit).
         """
-        out = np.stack([self.e1, self.e2, self.n]) @ p.astype(np.float64)
-        w = out[2] + self.offset                          # orthogonal residual of the measured point
+        n = p.shape[1]
+        p64 = _kept("p64", 3 * n, np.float64).reshape(3, n) if kept else np.empty((3, n))
+        np.copyto(p64, p)
+        out = np.matmul(np.stack([self.e1, self.e2, self.n]), p64,
+                        out=_kept("uvw", 3 * n, np.float64).reshape(3, n) if kept else None)
+        w = np.add(out[2], self.offset, out=p64[0])       # orthogonal residual of the measured point
         if along_ray:
-            out[:2] *= -self.offset / out[2]              # the ray's point on the plane: p * t / |p|
+            ratio = np.divide(-self.offset, out[2], out=p64[1])
+            out[:2] *= ratio                              # the ray's point on the plane: p * t / |p|
         out[2] = w
         return out
 
@@ -106,9 +116,10 @@ def _moments(uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp], n_cells: i
         out[k] = np.bincount(run_cell, weights=np.add.reduceat(col, starts), minlength=n_cells)
 
     add(1, wt)
-    buf = np.empty_like(wt)
-    wu = np.multiply(wt, u)
-    wv = np.multiply(wt, v)
+    kept = wt.size <= KEEP_POINTS                           # kept memory: no fresh pages at every fit
+    buf = _kept("mom_buf", wt.size, np.float64) if kept else np.empty_like(wt)
+    wu = np.multiply(wt, u, out=_kept("mom_wu", wt.size, np.float64) if kept else None)
+    wv = np.multiply(wt, v, out=_kept("mom_wv", wt.size, np.float64) if kept else None)
     add(2, wu)
     add(3, wv)
     for k, (base, x) in enumerate(((wu, u), (wu, v), (wv, v), (wt, w), (wu, w), (wv, w)), start=4):
@@ -306,12 +317,15 @@ def fit_flatness(fit: SpaceFit, points: Points, model: Model, cfg: FullFrameSett
     sel = sel[:: max(1, -(-sel.size // MAX_FLAT_POINTS))]   # strided inliers
     grid = (min(cfg.flatness_grid[0], w), min(cfg.flatness_grid[1], h))
     cell = grid_cells(pixels_of(sel, points.masks), (h, w), grid)
-    p_in = gather(points.p, sel)
-    wt = _noise_orth(p_in, points.dm[sel], frame, model).astype(np.float64)
+    kept = sel.size <= KEEP_POINTS                          # fresh point-sized blocks cost a page fault per 4 kB
+    p_in = gather(points.p, sel,
+                  _kept("p_in", 3 * sel.size, np.float32).reshape(3, -1, order="F") if kept else None)
+    wt = _kept("wt", sel.size, np.float64) if kept else np.empty(sel.size)
+    np.copyto(wt, _noise_orth(p_in, points.dm[sel], frame, model))
     del sel                                                 # point-sized arrays go as soon as they are used
     np.square(wt, out=wt)
     np.divide(1.0, wt, out=wt)                              # weights 1 / noise^2
-    uvw = frame.uvw(p_in)
+    uvw = frame.uvw(p_in, kept=kept)
     del p_in
     best = grid_flatness(uvw, wt, cell, grid, fit.noise_scale_m, cfg.flatness_sigma)
     del uvw, wt, cell
@@ -355,14 +369,26 @@ def _noise_orth(p: F32, dm: F32, frame: PlaneFrame, model: Model) -> F32:
     Evaluated at the range the plane predicts along each ray, never at the noisy one
     (weights correlated with the noise bias the local planes, as in ADR 0007, "Weighting").
     """
-    pn = frame.n.astype(np.float32) @ p
-    cos = np.abs(pn) / dm
-    if model.weighted:
-        t = np.abs(np.float32(-frame.offset) * dm / pn)   # predicted range along the ray
-        np.log(t, out=t)                                  # t^e as exp(e log t): float32 pow is 2x slower
-        t *= np.float32(model.exponent)
-        shape = np.exp(t, out=t) / np.sqrt(np.maximum(cos, np.float32(1e-6)))
-    else:
-        shape = np.ones_like(dm)
-    out: F32 = shape * cos
-    return out
+    pn: F32 = frame.n.astype(np.float32) @ p
+    cos: F32 = np.abs(pn)
+    cos /= dm
+    if not model.weighted:
+        return cos                                        # a shape of ones times |cos|
+    t: F32 = np.multiply(np.float32(-frame.offset), dm)   # in place from here: fewer point-sized blocks
+    t /= pn
+    np.abs(t, out=t)                                      # predicted range along the ray
+    np.log(t, out=t)                                      # t^e as exp(e log t): float32 pow is 2x slower
+    t *= np.float32(model.exponent)
+    np.exp(t, out=t)
+    t /= np.sqrt(np.maximum(cos, np.float32(1e-6), out=pn), out=pn)   # the noise shape t^e / sqrt|cos|
+    t *= cos
+    return t
+
+
+def _kept(name: str, size: int, dtype: type[np.generic]) -> NDArray[Any]:
+    """A point-sized array this module keeps per thread between fits (see ``points.kept_array``)."""
+    buf: NDArray[Any] | None = getattr(_KEPT, name, None)
+    if buf is None or buf.size < size or buf.dtype != dtype:
+        buf = np.empty(size, dtype=dtype)
+        setattr(_KEPT, name, buf)
+    return buf[:size]

@@ -9,15 +9,17 @@ and the radial bias. Method and rationale: docs/adr/0007-full-frame-fit.md ("Mod
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe.points import KEEP_POINTS
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import Model, SpaceFit
 from cellcal.devices.errors import CalibrationError
@@ -25,6 +27,8 @@ from cellcal.devices.errors import CalibrationError
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
+
+_KEPT = threading.local()   # point-sized arrays kept between this thread's fits (no fresh pages)
 
 __all__ = ["Cutoff", "FinalPass", "KeepMask", "Model", "NothingLeftError", "Pass", "Scratch", "basis", "final_pass",
            "fit_from_start", "gn_pass", "step_plane", "truncation"]
@@ -142,6 +146,21 @@ class Scratch:
     def __init__(self, n: int) -> None:
         self.f = np.empty((self.ROWS, n), dtype=np.float32)
         self.mask = np.empty(n, dtype=np.bool_)
+
+    @classmethod
+    def shared(cls, n: int) -> Scratch:
+        """Rows for ``n`` points over one block of memory that this thread's fits keep between fits.
+
+        See :func:`~cellcal.core.methods.fullframe.points.kept_array`; fits of more than ``KEEP_POINTS``
+        allocate their own (the allocator keeps blocks that large in the heap). The rows are valid
+        until the thread's next fit.
+        """
+        if n > KEEP_POINTS:
+            return cls(n)
+        out = cls.__new__(cls)
+        out.f = _kept("scratch", cls.ROWS * n, np.float32).reshape(cls.ROWS, n)   # C-contiguous rows
+        out.mask = _kept("scratch_mask", n, np.bool_)
+        return out
 
 
 def residuals(b0: F32, dm: F32, offset: float, thr: float, model: Model, scratch: Scratch | None = None
@@ -406,7 +425,7 @@ def refine(p: F32, dm: F32, model: Model, n: FloatArray, offset: float, s: float
            settings: FullFrameSettings) -> tuple[FloatArray, float, float]:
     """Reweighted Gauss-Newton passes (on the subsample) until converged: normal, offset, scale."""
     e1, e2 = basis(n)
-    scratch = Scratch(dm.size)                                  # rows reused by every pass
+    scratch = Scratch.shared(dm.size)                           # rows reused by every pass
     for _ in range(settings.max_iterations):
         it = gn_pass(p, dm, n, e1, e2, offset, cutoff.at(s), model, scratch)
         n, offset = step_plane(n, e1, e2, offset, it.step)
@@ -426,7 +445,7 @@ def _final(p: F32, dm: F32, model: Model, n: NDArray[np.float64], offset: float,
     The second pass starts from the first one's full-data plane and scale, so that the
     inliers and the edge clean-up of the answer do not depend on where the start was.
     """
-    scratch = Scratch(dm.size)                                 # point-sized rows reused by both passes
+    scratch = Scratch.shared(dm.size)                          # point-sized rows reused by both passes
     for k in range(FINAL_PASSES):
         e1, e2 = basis(n)
         if keep is not None:
@@ -451,3 +470,12 @@ def _final(p: F32, dm: F32, model: Model, n: NDArray[np.float64], offset: float,
     beta_sigma = s * math.sqrt(max(float(h4_inv[3, 3]), 0.0) * cutoff.cov_factor)
     return SpaceFit(Plane(n_fin, offset_fin), cov, e1, e2, fin.inliers, rms, s, unit,
                     (-float(step4[3]), beta_sigma, step4[:3] - fin.step), fin.z)
+
+
+def _kept(name: str, size: int, dtype: type[np.generic]) -> NDArray[Any]:
+    """A point-sized array this module keeps per thread between fits (see ``points.kept_array``)."""
+    buf: NDArray[Any] | None = getattr(_KEPT, name, None)
+    if buf is None or buf.size < size or buf.dtype != dtype:
+        buf = np.empty(size, dtype=dtype)
+        setattr(_KEPT, name, buf)
+    return buf[:size]
