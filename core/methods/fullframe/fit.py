@@ -6,7 +6,7 @@ The frames' measurement model chooses the space the plane is fitted in (``space.
 stereo or structured-light camera's disparities (``disparity.py``), else ranges along the
 rays (``range_space.py``). Method and rationale: docs/adr/0007-full-frame-fit.md; region of
 interest, expected plane, quantisation floor: docs/adr/0028-honest-full-frame-fit.md; the
-spaces: docs/adr/0049-measurement-spaces.md.
+spaces: docs/adr/0050-measurement-spaces.md.
 """
 
 from __future__ import annotations

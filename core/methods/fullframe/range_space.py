@@ -6,7 +6,7 @@ given sigmas) and cut at a band of robust sigmas. Here: the noise law, the robus
 (the best triplet plane), the mixed-pixel clean-up at depth edges and the floors (the range
 step across the plane, the stated noise); the Gauss-Newton passes are ``passes.py``.
 Rationale: docs/adr/0007-full-frame-fit.md ("Robustness", "Mixed pixels"),
-docs/adr/0028-honest-full-frame-fit.md, docs/adr/0049-measurement-spaces.md.
+docs/adr/0028-honest-full-frame-fit.md, docs/adr/0050-measurement-spaces.md.
 """
 
 from __future__ import annotations

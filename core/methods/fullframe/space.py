@@ -8,7 +8,7 @@ on that: the residuals and their sigma, the inlier band, the robust start and th
 the quantisation and the floors the honesty checks hold the fit to. The rest of the fit
 (pooling the frames, the honesty checks, flatness, coverage, the result) is the same for
 every space. A new kind of measurement (structured light with its own noise, a depth
-correction) is one new class with this interface. Rationale: docs/adr/0049-measurement-spaces.md.
+correction) is one new class with this interface. Rationale: docs/adr/0050-measurement-spaces.md.
 """
 
 from __future__ import annotations
