@@ -273,7 +273,7 @@ def _ring_sums(ring: NDArray[np.uint8], inliers: BoolArray, z: F32, n_bins: int
     for s in range(0, ring.size, CHUNK):
         k = min(CHUNK, ring.size - s)                            # kept blocks: no fresh pages at every fit
         bins = _kept("ring_bins", k, np.intp)
-        np.multiply(ring[s:s + CHUNK], inliers[s:s + CHUNK], out=bins, casting="unsafe")
+        bins[...] = np.multiply(ring[s:s + CHUNK], inliers[s:s + CHUNK], dtype=np.uint8)   # 2x a mixed-type ufunc
         weights = _kept("ring_z", k, np.float64)             # bincount's float64 copy of the weights
         np.copyto(weights, z[s:s + CHUNK])
         sums += np.bincount(bins, weights=weights, minlength=n_bins)
