@@ -11,9 +11,9 @@ from cellcal.core.report.html import Picture, render_html
 from cellcal.devices import boundedjson
 from cellcal.devices.errors import ConfigError, MissingDependencyError
 
-__all__ = ["MAX_REPORT_DATA_BYTES", "NO_MATPLOTLIB", "REPORT_DATA_FILENAME", "REPORT_HTML_FILENAME", "REPORT_SCHEMA",
-           "REPORT_TXT_FILENAME", "draw_report", "load_report_data", "new_report_data", "pictures",
-           "render_to_file", "write_report", "write_report_data"]
+__all__ = ["MAX_REPORT_DATA_BYTES", "NO_MATPLOTLIB", "PLAIN_PICTURES", "REPORT_DATA_FILENAME", "REPORT_HTML_FILENAME",
+           "REPORT_SCHEMA", "REPORT_TXT_FILENAME", "draw_report", "load_report_data", "needs_matplotlib",
+           "new_report_data", "pictures", "render_to_file", "write_report", "write_report_data"]
 
 REPORT_SCHEMA = "cellcal.report/1"
 REPORT_HTML_FILENAME = "report.html"
@@ -88,6 +88,21 @@ def _draw(job: tuple[str, str, str, tuple[Any, ...]]) -> bytes:
     return getattr(figures, job[2])(*job[3])  # type: ignore[no-any-return]
 
 
+#: The pictures drawn as plain images, without matplotlib (:data:`_jobs`' functions, ADR 0051).
+PLAIN_PICTURES = frozenset({"pose_image_figure", "pose_fit_figure", "poses_figure", "consistency_figure"})
+
+
+def needs_matplotlib(data: Mapping[str, Any]) -> bool:
+    """Whether a picture of ``data`` is drawn with matplotlib (hand-eye, monitor); the calibrate report's are not.
+
+    Data that cannot be read counts as needing it: the drawing child says what is wrong with it.
+    """
+    try:
+        return any(job[2] not in PLAIN_PICTURES for job in _jobs(data))
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
+        return True
+
+
 def pictures(data: Mapping[str, Any], workers: int = 1) -> list[Picture]:
     """Every picture of the report, drawn from ``data`` alone (on up to ``workers`` forked processes).
 
@@ -97,19 +112,25 @@ def pictures(data: Mapping[str, Any], workers: int = 1) -> list[Picture]:
     import multiprocessing
     import os
 
-    from cellcal.core.report import figures
+    from cellcal.core.report import canvas, figures
 
-    figures.pyplot()  # fails early, in one line, without matplotlib; imported once, before any fork
     jobs = _jobs(data)
+    # fails early, in one line, without the plots extra; matplotlib imported once, before any fork
+    canvas.require()
+    if any(job[2] not in PLAIN_PICTURES for job in jobs):
+        figures.matplotlib_figure()
+    # the slowest first, the map images (the quickest) fill in after them
+    order = sorted(range(len(jobs)), key=lambda i: jobs[i][2] == "pose_image_figure")
     workers = min(workers, os.cpu_count() or 1, len(jobs))
     if workers > 1 and "fork" in multiprocessing.get_all_start_methods():
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork")) as pool:
-            pngs = list(pool.map(_draw, jobs))
+            drawn = list(pool.map(_draw, [jobs[i] for i in order]))
     else:
-        pngs = [_draw(job) for job in jobs]
-    return [Picture(name, caption, png) for (name, caption, _, _), png in zip(jobs, pngs, strict=True)]
+        drawn = [_draw(jobs[i]) for i in order]
+    pngs = dict(zip(order, drawn, strict=True))
+    return [Picture(name, caption, pngs[i]) for i, (name, caption, _, _) in enumerate(jobs)]
 
 
 def _safe(label: str) -> str:
@@ -130,8 +151,9 @@ def write_report_data(out_dir: str | Path, data: Mapping[str, Any]) -> Path:
     return write_json_atomic(out / REPORT_DATA_FILENAME, data)
 
 
-def draw_report(out_dir: str | Path) -> tuple[Path, str]:
-    """Draw the PNGs and ``report.html`` of ``out_dir`` from its ``report-data.json``.
+def draw_report(out_dir: str | Path, workers: int = MAX_DRAW_WORKERS) -> tuple[Path, str]:
+    """Draw the PNGs and ``report.html`` of ``out_dir`` from its ``report-data.json`` (on up to ``workers``
+    forked processes).
 
     Without matplotlib the page is written without pictures and the note says so in one line.
 
@@ -146,7 +168,7 @@ def draw_report(out_dir: str | Path) -> tuple[Path, str]:
 
     out = Path(out_dir)
     data = load_report_data(out)
-    pics, note = _pictures_or_note(data, out)
+    pics, note = _pictures_or_note(data, out, workers)
     for pic in pics:
         write_bytes_atomic(out / pic.name, pic.png)
     return write_bytes_atomic(out / REPORT_HTML_FILENAME, _page(data, pics, note, out)), note

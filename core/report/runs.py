@@ -1,10 +1,12 @@
-"""One command run's report: its data and summary text, written at the end, drawn in a child process.
+"""One command run's report: its data and summary text, written at the end, then drawn from that JSON alone.
 
-The drawing runs in a separate interpreter (``python -m cellcal.core.report DIR``) from the
-JSON just written: the command itself never imports matplotlib (it stays off the fast path,
-ADR 0021), and every report is proven to render from its JSON alone (ADR 0037). A Ctrl-C
-while it draws stops the child and says, on a line of its own, how to draw the page later
-(ADR 0043).
+Every report is drawn from the JSON just written, so every report is proven to render from
+its JSON alone (ADR 0037). Pictures that need matplotlib (hand-eye, monitor) are drawn in a
+separate interpreter (``python -m cellcal.core.report DIR``): the command itself never imports
+matplotlib (it stays off the fast path, ADR 0021). The calibrate report's pictures need none
+(ADR 0051): they are drawn in the run's own process, which a second interpreter would cost
+more than the drawing. A Ctrl-C while the report is drawn stops the child, if any, and says,
+on a line of its own, how to draw the page later (ADR 0043).
 """
 
 from __future__ import annotations
@@ -20,12 +22,18 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.core.console import Interrupted, say
-from cellcal.core.report.render import REPORT_DATA_FILENAME, REPORT_HTML_FILENAME, new_report_data, write_report_data
+from cellcal.core.report.render import (
+    REPORT_DATA_FILENAME,
+    REPORT_HTML_FILENAME,
+    needs_matplotlib,
+    new_report_data,
+    write_report_data,
+)
 from cellcal.core.report.text import SummaryText
 from cellcal.devices.interrupts import interrupts_held
 
 __all__ = ["DRAW_TIMEOUT_S", "STOP_GRACE_S", "CalibrationReport", "RunReport", "camera_name", "draw_command",
-           "draw_in_child"]
+           "draw_here", "draw_in_child"]
 
 #: Longest the drawing child may take, s (then it is killed and the run says so).
 DRAW_TIMEOUT_S = 120.0
@@ -67,6 +75,27 @@ def draw_in_child(out_dir: str | Path, timeout_s: float = DRAW_TIMEOUT_S) -> tup
     if proc.returncode != 0:
         return None, f"report not drawn: {lines[-1] if lines else f'exit status {proc.returncode}'}"
     return Path(out_dir) / REPORT_HTML_FILENAME, lines[-1] if lines else ""
+
+
+def draw_here(out_dir: str | Path) -> tuple[Path | None, str]:
+    """Draw the report of ``out_dir`` from its JSON in this process (pictures without matplotlib, ADR 0051).
+
+    A drawing that fails costs the run one line, as a failing child does: the page (None if not
+    drawn) and a note.
+
+    Raises:
+        KeyboardInterrupt: Ctrl-C while it draws (every file is written whole or not at all).
+        CellcalError: The report data cannot be read back or a file cannot be written.
+    """
+    from cellcal.core.report.render import draw_report
+    from cellcal.devices.errors import CellcalError
+
+    try:
+        return draw_report(out_dir, workers=1)  # on one core: no fork of a process that ran devices' threads
+    except CellcalError:
+        raise
+    except Exception as exc:  # a bug in drawing: no traceback, the run's results stand
+        return None, f"report not drawn: {type(exc).__name__}: {exc}"
 
 
 def _stop(proc: subprocess.Popen[str], first: signal.Signals) -> None:
@@ -113,7 +142,8 @@ class RunReport:
         self.summary.line(line)
 
     def write(self, *, quiet: bool = False) -> Path | None:
-        """Write the data and text, draw the pictures and the page; one line says where (or why not).
+        """Write the data and text, draw the pictures and the page (here or in a child); one line says where (or
+        why not).
 
         A report that cannot be written costs the run nothing but that line (stderr).
 
@@ -131,7 +161,7 @@ class RunReport:
             with OutputLock.for_directory(self.out_dir):
                 write_report_data(self.out_dir, self.data)
                 stage = "drawing"
-                page, note = draw_in_child(self.out_dir)
+                page, note = draw_in_child(self.out_dir) if needs_matplotlib(self.data) else draw_here(self.out_dir)
                 stage = "done"
         except CellcalError as exc:
             say(f"cellcal: report not written: {exc}".replace("\n", " "))

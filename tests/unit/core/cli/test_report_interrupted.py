@@ -1,9 +1,10 @@
 """Ctrl-C while a run's report is drawn: exit 130, the results stay, one line says how to draw the page later.
 
-The drawing child is held (it starts a worker of its own, as the real one forks two, says so
-in a file and waits): the Ctrl-C, a real SIGINT to this process, is sent once the child is
-known to be drawing, never after a sleep. ``cellcal.core.cli.main`` runs in process, with its
-own Ctrl-C handling.
+A hand-eye report (matplotlib's pictures) is drawn in a child: here a held one (it starts a
+worker of its own, as the real one forks two, says so in a file and waits); the Ctrl-C, a real
+SIGINT to this process, is sent once the child is known to be drawing, never after a sleep. A
+calibrate report is drawn in the run's own process (ADR 0051): the SIGINT is sent while its
+third picture is drawn. ``cellcal.core.cli.main`` runs in process, with its own Ctrl-C handling.
 """
 
 from __future__ import annotations
@@ -16,19 +17,22 @@ import signal
 import sys
 import threading
 import time
+from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import pytest
-from fault_cells import cell_document
-from toml_files import write_toml
 
 from cellcal.core.calibration.outlock import LOCK_NAME
 from cellcal.core.calibration.report import RESULT_SCHEMA
 from cellcal.core.cli import EXIT_INTERRUPTED, EXIT_OK, main
 from cellcal.core.console import Interrupted
 from cellcal.core.report import load_report_data
+from cellcal.core.report import render as render_module
 from cellcal.core.report import runs as runs_module
 from cellcal.core.report.runs import RunReport
+
+HANDEYE_CONFIG = resources.files("cellcal.configs").joinpath("sim_handeye.toml")
 
 #: The held drawing child: starts a worker, optionally writes the page first (atomically), then writes
 #: "PID WORKER_PID" to the marker file and waits for its end.
@@ -74,8 +78,8 @@ def _ctrl_c_once_drawing(marker: Path, pids: list[int]) -> threading.Thread:
 
 
 @pytest.mark.parametrize("before", ["nothing", "an earlier page", "page written"])
-def test_ctrl_c_while_the_report_is_drawn(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                          capsys: pytest.CaptureFixture[str], before: str) -> None:
+def test_ctrl_c_while_the_report_is_drawn_in_a_child(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str], before: str) -> None:
     out = tmp_path / "out"
     page = out / "report.html"
     if before == "an earlier page":
@@ -85,10 +89,9 @@ def test_ctrl_c_while_the_report_is_drawn(tmp_path: Path, monkeypatch: pytest.Mo
     writes = str(page) if before == "page written" else ""
     monkeypatch.setattr(runs_module, "draw_command", lambda _dir: [sys.executable, "-c", HELD_CHILD, str(marker),
                                                                    writes])
-    config = write_toml(tmp_path / "cell.toml", cell_document())
     pids: list[int] = []
     watcher = _ctrl_c_once_drawing(marker, pids)
-    code = main(["calibrate", "--config", str(config), "--out", str(out)])
+    code = main(["handeye", "--config", str(HANDEYE_CONFIG), "--quiet", "--out", str(out)])
     watcher.join(5.0)
     err = capsys.readouterr().err
     assert code == EXIT_INTERRUPTED and pids, err
@@ -98,30 +101,96 @@ def test_ctrl_c_while_the_report_is_drawn(tmp_path: Path, monkeypatch: pytest.Mo
         expected = (f"cellcal: interrupted while drawing the report: {page} was not written"
                     + (" (the one there is an earlier run's)" if before == "an earlier page" else "")
                     + f"; 'cellcal report {out} --out {page}' draws it from {out / 'report-data.json'}")
-    assert err.endswith(f"\n{expected}\n"), err  # the last line, on a line of its own
+    assert ("\n" + err).endswith(f"\n{expected}\n"), err  # the last line, on a line of its own
     # the child and the worker it started are stopped (SIGINT to the child's own process group)
     deadline = time.monotonic() + 30.0
     while any(_alive(pid) for pid in pids) and time.monotonic() < deadline:
         time.sleep(0.02)
     assert not any(_alive(pid) for pid in pids)
     # what was written before stays whole: the result, the report's data and text; nothing half-written
-    result = json.loads((out / "result.json").read_text())
-    assert result["schema"] == RESULT_SCHEMA and len(result["poses"]) == 3
-    assert load_report_data(out)["calibrate"]["result"]["poses"] == result["poses"]
-    assert f"result written to {out / 'result.json'}" in (out / "report.txt").read_text()
+    result = json.loads((out / "handeye.json").read_text())
+    assert load_report_data(out)["handeye"]["result"] == result and result["mount"]
+    assert f"result written to {out / 'handeye.json'}" in (out / "report.txt").read_text()
     left = sorted(p.name for p in out.iterdir())
     assert not [n for n in left if n.endswith(".tmp") or n == LOCK_NAME], left
     if before == "nothing":
         assert "report.html" not in left
-        # the command the line names draws the page
-        command = re.search(r"'(cellcal report [^']+)'", expected)
-        assert command is not None
-        assert main(shlex.split(command.group(1))[1:]) == EXIT_OK
-        assert page.read_text(encoding="utf-8").lower().startswith("<!doctype html")
+        _draws_the_page(expected, page)
     elif before == "an earlier page":
         assert page.read_text() == "an earlier run's page"
     else:
         assert "drawn by this run" in page.read_text()
+
+
+def _draws_the_page(line: str, page: Path) -> None:
+    """The command ``line`` names draws ``page`` (with every picture)."""
+    command = re.search(r"'(cellcal report [^']+)'", line)
+    assert command is not None
+    assert main(shlex.split(command.group(1))[1:]) == EXIT_OK
+    text = page.read_text(encoding="utf-8")
+    assert text.lower().startswith("<!doctype html") and text.count("<img ") >= 3
+
+
+def _interrupt_at_picture(monkeypatch: pytest.MonkeyPatch, n: int) -> list[str]:
+    """A real SIGINT to this process as the ``n``-th picture of a drawing in this process starts; the pictures
+    started (their file names)."""
+    draw = render_module._draw
+    started: list[str] = []
+
+    def counted(job: tuple[str, str, str, tuple[Any, ...]]) -> bytes:
+        started.append(job[0])
+        if len(started) == n:
+            os.kill(os.getpid(), signal.SIGINT)
+        return draw(job)
+
+    monkeypatch.setattr(render_module, "_draw", counted)
+    return started
+
+
+@pytest.mark.parametrize("before", ["nothing", "an earlier page"])
+def test_ctrl_c_while_calibrate_draws_its_report_in_its_own_process(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                    capsys: pytest.CaptureFixture[str],
+                                                                    before: str) -> None:
+    out = tmp_path / "out"
+    page = out / "report.html"
+    if before == "an earlier page":
+        out.mkdir()
+        page.write_text("an earlier run's page")
+    # no child draws a calibrate report: one would fail the drawing in other words
+    monkeypatch.setattr(runs_module, "draw_command", lambda _dir: [sys.executable, "-c", "raise SystemExit(9)"])
+    started = _interrupt_at_picture(monkeypatch, 3)
+    code = main(["calibrate", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == EXIT_INTERRUPTED and len(started) == 3, err
+    expected = (f"cellcal: interrupted while drawing the report: {page} was not written"
+                + (" (the one there is an earlier run's)" if before == "an earlier page" else "")
+                + f"; 'cellcal report {out} --out {page}' draws it from {out / 'report-data.json'}")
+    assert ("\n" + err).endswith(f"\n{expected}\n"), err
+    result = json.loads((out / "result.json").read_text())
+    assert result["schema"] == RESULT_SCHEMA and load_report_data(out)["calibrate"]["result"] == result
+    left = sorted(p.name for p in out.iterdir())
+    # nothing half-written, and no picture of this run: they are written once all are drawn
+    assert not [n for n in left if n.endswith((".tmp", ".png")) or n == LOCK_NAME], left
+    if before == "nothing":
+        assert "report.html" not in left
+        monkeypatch.undo()
+        _draws_the_page(expected, page)
+    else:
+        assert page.read_text() == "an earlier run's page"
+
+
+def test_a_drawing_that_fails_costs_the_calibrate_run_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    def broken(_job: object) -> bytes:
+        raise RuntimeError("no such glyph")
+
+    monkeypatch.setattr(render_module, "_draw", broken)
+    out = tmp_path / "out"
+    assert main(["calibrate", "--quiet", "--out", str(out)]) == EXIT_OK
+    err = capsys.readouterr().err
+    assert err == "cellcal: report not drawn: RuntimeError: no such glyph\n"
+    assert json.loads((out / "result.json").read_text())["poses"]
+    assert sorted(p.name for p in out.iterdir()) == ["report-data.json", "report.txt", "result.json"]
 
 
 def test_ctrl_c_before_the_report_data_is_written_says_there_is_no_report(tmp_path: Path,
