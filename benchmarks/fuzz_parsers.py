@@ -29,15 +29,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests" / "support"))
 
-from fuzz_targets import (
-    Target,
-    config_target,
-    liveview_target,
-    pcic_target,
-    rtde_target,
-    xarm_target,
-    xmlrpc_target,
-)
+from fuzz_base import Target
+from fuzz_liveview import liveview_target
+from fuzz_rtde import rtde_target
+from fuzz_targets import config_target, pcic_target, xarm_target, xmlrpc_target
 
 FACTORIES = {"pcic": pcic_target, "xarm": xarm_target, "xmlrpc": xmlrpc_target, "config": config_target,
              "rtde": rtde_target, "liveview": liveview_target}

@@ -24,26 +24,27 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from fuzz_targets import (
-    CONFIG_DIR,
-    LIVEVIEW_TOKENS,
-    ODD_VALUES,
+from fuzz_base import Target
+from fuzz_liveview import LIVEVIEW_TOKENS, liveview_target
+from fuzz_rtde import (
     RTDE_ERRORS,
     RTDE_FREQUENCIES,
     RTDE_NAME_TOKENS,
     RTDE_TYPES,
-    Target,
-    check_decoded,
-    config_target,
-    dump_toml,
-    liveview_target,
-    mutate_document,
-    o3r_tree,
-    pcic_target,
     probe_rtde_replies,
     rtde_frames,
     rtde_target,
     split_rtde,
+)
+from fuzz_targets import (
+    CONFIG_DIR,
+    ODD_VALUES,
+    check_decoded,
+    config_target,
+    dump_toml,
+    mutate_document,
+    o3r_tree,
+    pcic_target,
     xarm_target,
     xmlrpc_reply,
     xmlrpc_target,
