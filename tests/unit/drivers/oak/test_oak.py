@@ -1,18 +1,21 @@
-"""OAK backend over depthai v3, mocked at the library boundary.
+"""OAK backend over depthai v3, mocked at the library boundary: the fake device, and the default pipeline.
 
 Real depthai objects are used where they work without hardware: the host-side
 ``dai.MessageQueue`` the backend reads (with its real timeout and close semantics),
 ``dai.ImgFrame`` depth messages, ``dai.CalibrationHandler`` (its own intrinsics
 scaling) and ``dai.DeviceInfo``. The device, pipeline and nodes are strict autospecs
 of the real classes (signatures parsed from the pybind11 docstrings).
+
+The fake (``FakeOak``, ``patched_oak``, the message builders, ``connected``) lives here; the other OAK
+tests import it: test_oak_sources.py (mono socket, ToF, depth only), test_oak_failures.py (timeouts,
+frames out of step, lost device), test_oak_discovery.py (discovery and config), test_oak_model.py, and
+the conformance kit's run in tests/integration/devices/test_device_contract.py. The tests here pin the
+default pipeline: stereo depth aligned to the colour camera, its intrinsics, its frames in metres, RVC4.
 """
 
 from __future__ import annotations
 
 import datetime
-import sys
-import threading
-import time
 from typing import Any
 from unittest import mock
 
@@ -22,21 +25,9 @@ import pytest
 dai = pytest.importorskip("depthai")
 from _vendor_autospec import strict_autospec  # noqa: E402
 
-from cellcal.devices.base import BackendContext  # noqa: E402
-from cellcal.devices.errors import (  # noqa: E402
-    ConfigError,
-    DeviceConnectionError,
-    DeviceTimeoutError,
-    FrameSyncError,
-    MissingDependencyError,
-    ProtocolError,
-)
 from cellcal.devices.geometry.camera_model import project  # noqa: E402
-from cellcal.devices.registry import default_registry  # noqa: E402
 from cellcal.devices.types import Intrinsics  # noqa: E402
-from cellcal.drivers.oak import usb_scan  # noqa: E402
 from cellcal.drivers.oak.camera import OakCamera  # noqa: E402
-from cellcal.drivers.oak.grey import grey_image  # noqa: E402
 
 REAL_DEVICE = dai.Device
 REAL_PIPELINE = dai.Pipeline
@@ -282,12 +273,17 @@ class FakeOak:
         self.source_linked_to(self.sync_queue.node.inputs["image"]).send(msg)
 
 
-@pytest.fixture
-def oak(mocker: Any) -> FakeOak:
+def patched_oak(mocker: Any) -> FakeOak:
+    """A fresh :class:`FakeOak` that ``dai.Device`` and ``dai.Pipeline`` open for the test's duration."""
     fake = FakeOak()
     mocker.patch.object(dai, "Device", side_effect=fake.open)
     mocker.patch.object(dai, "Pipeline", side_effect=fake.make_pipeline)
     return fake
+
+
+@pytest.fixture
+def oak(mocker: Any) -> FakeOak:
+    return patched_oak(mocker)
 
 
 def connected(**config: Any) -> Any:
@@ -303,6 +299,7 @@ def camera(oak: FakeOak) -> Any:
     cam.close()
 
 
+# ---------------------------------------------------------------- the default pipeline: depth aligned to colour
 def test_connect_selects_device_and_reads_its_intrinsics(camera: OakCamera, oak: FakeOak) -> None:
     (args,) = oak.opened_with
     assert isinstance(args[0], dai.DeviceInfo) and args[0].deviceId == DEVICE_ID
@@ -373,267 +370,3 @@ def test_rvc4_pairs_the_image_align_output_with_the_colour_image(oak: FakeOak) -
         oak.send_image(image_message("NV12", luma, seq=900))
         frame = cam.capture(timeout=1.0)
     np.testing.assert_array_equal(frame.amplitude, luma.astype(np.float32))
-
-
-def test_empty_depth_queue_times_out(camera: OakCamera) -> None:
-    with pytest.raises(DeviceTimeoutError, match=r"no depth \+ image pair within 0\.05 s"):
-        camera.capture(timeout=0.05)
-
-
-def test_depth_without_its_image_times_out_bounded(camera: OakCamera, oak: FakeOak) -> None:
-    oak.send_depth(depth_message(np.full((H, W), 900, np.uint16), seq=3))
-    t0 = time.monotonic()
-    with pytest.raises(DeviceTimeoutError, match=r"no depth \+ image pair within 0\.2 s"):
-        camera.capture(timeout=0.2)
-    assert 0.15 < time.monotonic() - t0 < 3.0  # its 0.2 s (with room for a busy machine)
-
-
-def test_colour_image_captured_too_far_apart_is_refused(camera: OakCamera, oak: FakeOak) -> None:
-    depth = depth_message(np.full((H, W), 900, np.uint16), seq=3)
-    image = image_message("NV12", np.zeros((H, W), np.uint8), seq=3)
-    image.setTimestamp(depth.getTimestamp() + datetime.timedelta(seconds=0.06))   # threshold: 33.3 ms
-    group = dai.MessageGroup()                          # a group the device's Sync should never have sent
-    group["depth"], group["image"] = depth, image
-    oak.queue.send(group)
-    with pytest.raises(FrameSyncError, match=r"60\.0 ms apart \(more than 33\.3 ms"):
-        camera.capture(timeout=0.5)
-
-
-def test_old_queued_frame_is_not_returned(camera: OakCamera, oak: FakeOak) -> None:
-    old = depth_message(np.full((H, W), 1000, np.uint16), seq=1)
-    old_image = image_message("NV12", np.zeros((H, W), np.uint8), seq=1)
-    for m in (old, old_image):
-        m.setTimestamp(dai.Clock.now() - datetime.timedelta(seconds=10))
-    oak.send_depth(old)
-    oak.send_image(old_image)
-    with pytest.raises(DeviceTimeoutError):
-        camera.capture(timeout=0.05)
-
-
-def test_device_that_disappears(camera: OakCamera, oak: FakeOak) -> None:
-    oak.queue.close()                                   # depthai closes the queues on device loss
-    with pytest.raises(DeviceConnectionError, match="disconnected"):
-        camera.capture(timeout=0.5)
-    oak.device.isClosed.return_value = True
-    with pytest.raises(DeviceConnectionError, match="disconnected"):
-        camera.capture(timeout=0.5)
-
-
-def test_wrong_frame_size_is_a_protocol_error(camera: OakCamera, oak: FakeOak) -> None:
-    oak.send_depth(depth_message(np.ones((H + 2, W), np.uint16), seq=2))
-    oak.send_image(image_message("NV12", np.zeros((H, W), np.uint8), seq=2))
-    with pytest.raises(ProtocolError, match="expected uint16"):
-        camera.capture(timeout=0.5)
-    oak.send_depth(depth_message(np.ones((H, W), np.uint16), seq=3))
-    oak.send_image(image_message("NV12", np.zeros((H, W - 2), np.uint8), seq=3))
-    with pytest.raises(ProtocolError, match=rf"image frame is {W - 2} x {H}, expected {W} x {H}"):
-        camera.capture(timeout=0.5)
-    oak.send_depth(depth_message(np.ones((H, W), np.uint16), seq=4))
-    bgr = image_message("GRAY8", np.zeros((H, W), np.uint8), seq=4)
-    bgr.setType(dai.ImgFrame.Type.BGR888i)
-    oak.send_image(bgr)
-    with pytest.raises(ProtocolError, match="BGR888i carries no grey image"):
-        camera.capture(timeout=0.5)
-
-
-@pytest.mark.parametrize(("kind", "dtype"), [("RAW16", np.uint16), ("GRAYF16", np.float16), ("GRAY8", np.uint8)])
-def test_grey_image_reads_each_type_past_row_padding(kind: str, dtype: Any) -> None:
-    pixels = (np.arange(H * W).reshape(H, W) % 251 * 97).astype(dtype)
-    msg = image_message(kind, pixels, seq=1, stride=W * pixels.itemsize + 24)
-    grey = grey_image(msg, (H, W))
-    assert grey.dtype == np.float32
-    np.testing.assert_array_equal(grey, pixels.astype(np.float32))
-    short = image_message(kind, pixels, seq=1)
-    short.setData(np.zeros(W * pixels.itemsize * H - 1, np.uint8))
-    with pytest.raises(ProtocolError, match=r"too short"):
-        grey_image(short, (H, W))
-
-
-# ---------------------------------------------------------------- mono socket: rectified image
-@pytest.mark.parametrize(("socket", "rectified", "align"), [("CAM_B", "rectifiedLeft", "RECTIFIED_LEFT"),
-                                                            ("CAM_C", "rectifiedRight", "RECTIFIED_RIGHT")])
-def test_mono_socket_gives_its_rectified_image_resized(oak: FakeOak, socket: str, rectified: str,
-                                                       align: str) -> None:
-    with connected(align_socket=socket) as cam:
-        (stereo,) = oak.nodes_of(dai.node.StereoDepth)
-        (manip,) = oak.nodes_of(dai.node.ImageManip)
-        (sync,) = oak.nodes_of(dai.node.Sync)
-        stereo.setDepthAlign.assert_called_once_with(getattr(dai.StereoDepthConfig.AlgorithmControl.DepthAlign,
-                                                             align))
-        stereo.setOutputSize.assert_called_once_with(W, H)
-        # the matching rectified view, resized on the device as the depth is, then paired with it
-        getattr(stereo, rectified).link.assert_called_once_with(manip.inputImage)
-        other = "rectifiedRight" if rectified == "rectifiedLeft" else "rectifiedLeft"
-        getattr(stereo, other).link.assert_not_called()
-        manip.initialConfig.setOutputSize.assert_called_once_with(W, H, dai.ImageManipConfig.ResizeMode.CENTER_CROP)
-        manip.setMaxOutputFrameSize.assert_called_once_with(W * H)
-        manip.out.link.assert_called_once_with(sync.inputs["image"])
-        stereo.depth.link.assert_called_once_with(sync.inputs["depth"])
-        assert len(oak.nodes_of(dai.node.Camera)) == 2          # no colour camera
-        # rectified view: the stereo right camera's matrix at the output size, no distortion
-        intr = cam.intrinsics
-        assert intr.fx == pytest.approx(790.0 * W / 1280, rel=1e-6) and intr.fy == pytest.approx(791.0 * W / 1280,
-                                                                                                  rel=1e-6)
-        assert not intr.has_distortion
-        grey = np.arange(H * W, dtype=np.uint32).reshape(H, W).astype(np.uint8)
-        oak.send_depth(depth_message(np.full((H, W), 750, np.uint16), seq=12))
-        oak.send_image(image_message("RAW8", grey, seq=12))
-        frame = cam.capture(timeout=1.0)
-    assert frame.sequence == 12 and frame.amplitude.dtype == np.float32
-    np.testing.assert_array_equal(frame.amplitude, grey.astype(np.float32))
-    np.testing.assert_allclose(frame.xyz[..., 2], 0.75, atol=1e-6)
-
-
-def test_sequence_mismatch_is_a_frame_sync_error(oak: FakeOak) -> None:
-    with connected(align_socket="CAM_B") as cam:
-        depth = depth_message(np.full((H, W), 750, np.uint16), seq=12)
-        image = image_message("GRAY8", np.zeros((H, W), np.uint8), seq=13)
-        image.setTimestamp(depth.getTimestamp())           # same time, yet not the same frame
-        oak.send_depth(depth)
-        oak.send_image(image)
-        with pytest.raises(FrameSyncError, match=r"depth frame 12 came with image frame 13"):
-            cam.capture(timeout=0.5)
-
-
-# ---------------------------------------------------------------- ToF
-def test_tof_board_pairs_depth_with_the_amplitude_output_undistorted(oak: FakeOak) -> None:
-    cam = OakCamera.from_config({"depth_source": "tof", "align_socket": "CAM_A", "width": W, "height": H,
-                                 "distortion": "none"})
-    with cam:
-        (tof,) = oak.nodes_of(dai.node.ToF)
-        (sync,) = oak.nodes_of(dai.node.Sync)
-        tof.build.assert_called_once_with(dai.CameraBoardSocket.CAM_A, fps=15.0)
-        tof.setOutputUndistortion.assert_called_once_with(True)
-        tof.depth.link.assert_called_once_with(sync.inputs["depth"])
-        tof.amplitude.link.assert_called_once_with(sync.inputs["image"])
-        assert not cam.intrinsics.has_distortion
-        amplitude = np.linspace(0, 65535, H * W).astype(np.uint16).reshape(H, W)   # raw amplitude counts
-        oak.send_depth(depth_message(np.full((H, W), 1500, np.uint16), seq=5))
-        oak.send_image(image_message("RAW16", amplitude, seq=5))
-        frame = cam.capture(timeout=1.0)
-    assert oak.opened_with == [()]                      # no id: first device
-    assert frame.amplitude.dtype == np.float32 and frame.amplitude.max() == 65535.0
-    np.testing.assert_array_equal(frame.amplitude, amplitude.astype(np.float32))
-
-
-# ---------------------------------------------------------------- amplitude = "none"
-@pytest.mark.parametrize("config", [{}, {"align_socket": "CAM_B"}, {"depth_source": "tof"}])
-def test_amplitude_none_streams_depth_only(oak: FakeOak, config: dict[str, str]) -> None:
-    with connected(amplitude="none", **config) as cam:
-        assert not oak.nodes_of(dai.node.Sync) and not oak.nodes_of(dai.node.ImageManip)
-        for node in oak.nodes_of(dai.node.StereoDepth):
-            node.rectifiedLeft.link.assert_not_called()
-            node.rectifiedRight.link.assert_not_called()
-            node.depth.createOutputQueue.assert_called_once_with(maxSize=4, blocking=False)
-        for node in oak.nodes_of(dai.node.ToF):
-            node.amplitude.link.assert_not_called()
-            node.depth.createOutputQueue.assert_called_once_with(maxSize=4, blocking=False)
-        cameras = oak.nodes_of(dai.node.Camera)
-        if len(cameras) == 3:                               # colour socket: linked for the alignment only
-            cameras[-1].requestOutput.return_value.link.assert_called_once_with(
-                oak.nodes_of(dai.node.StereoDepth)[0].inputAlignTo)
-        oak.send_depth(depth_message(np.full((H, W), 1000, np.uint16), seq=9))
-        frame = cam.capture(timeout=1.0)
-        assert frame.sequence == 9
-        np.testing.assert_array_equal(frame.amplitude, np.zeros((H, W), np.float32))
-        with pytest.raises(DeviceTimeoutError, match=r"no depth frame within 0\.05 s"):
-            cam.capture(timeout=0.05)
-
-
-def test_connect_timeout_bounded_and_late_device_closed(oak: FakeOak, mocker: Any) -> None:
-    release = threading.Event()
-
-    def slow_open(*args: Any) -> Any:
-        release.wait(5.0)
-        return oak.device
-
-    mocker.patch.object(dai, "Device", side_effect=slow_open)
-    cam = OakCamera.from_config({"device_id": DEVICE_ID})
-    cam._caller.join = lambda timeout: None
-    with pytest.raises(DeviceTimeoutError, match="did not finish within"):
-        cam.connect(timeout=0.2)
-    release.set()
-    for t in threading.enumerate():
-        if t.name.startswith("oak "):
-            t.join(5.0)
-    oak.device.close.assert_called_once_with()
-
-
-def test_missing_extra_names_it(mocker: Any) -> None:
-    mocker.patch.dict(sys.modules, {"depthai": None})
-    cam = OakCamera.from_config({})
-    with pytest.raises(MissingDependencyError, match=r"cellcal\[oak\]"):
-        cam.connect(timeout=1.0)
-
-
-# ---------------------------------------------------------------- discovery
-def test_discover_lists_depthai_devices(mocker: Any) -> None:
-    info = dai.DeviceInfo("1.3", DEVICE_ID, dai.XLinkDeviceState.X_LINK_UNBOOTED,
-                          dai.XLinkProtocol.X_LINK_USB_VSC, dai.XLinkPlatform.X_LINK_MYRIAD_X,
-                          dai.XLinkError_t.X_LINK_SUCCESS)
-    mocker.patch.object(dai.Device, "getAllAvailableDevices", return_value=[info])
-    (dev,) = OakCamera.discover(timeout=1.0)
-    assert dev.serial == DEVICE_ID and dev.model == "X_LINK_MYRIAD_X"
-    assert dev.extra["state"] == "X_LINK_UNBOOTED" and dev.extra["source"] == "depthai"
-
-
-def _usb_device(product_id: int, bus: int, ports: tuple[int, ...]) -> Any:
-    import usb.core
-
-    d = mock_usb = strict_autospec(usb.core.Device)
-    mock_usb.idVendor, mock_usb.idProduct, mock_usb.bus, mock_usb.address = 0x03E7, product_id, bus, 7
-    mock_usb.port_numbers = ports
-    return d
-
-
-def test_discover_falls_back_to_usb_with_boot_states(mocker: Any) -> None:
-    import usb.core
-
-    mocker.patch.object(dai.Device, "getAllAvailableDevices", return_value=[])
-    find = mocker.patch.object(usb.core, "find", return_value=iter([
-        _usb_device(0x2485, 1, (3,)), _usb_device(0xF63B, 2, (1, 4)), _usb_device(0xF63C, 2, (2,)),
-        _usb_device(0xF63D, 3, ()), _usb_device(0x1234, 3, ())]))
-    devices = OakCamera.discover(timeout=1.0)
-    find.assert_called_once_with(find_all=True, idVendor=0x03E7)
-    assert [d.extra["state"] for d in devices] == ["unbooted", "booted", "bootloader", "flash-booted", "unknown"]
-    assert devices[1].serial == "usb 2-1.4" and devices[1].model == "USB 03e7:f63b"
-
-
-def test_discover_without_any_backend_says_so(mocker: Any) -> None:
-    import usb.core
-
-    mocker.patch.dict(sys.modules, {"depthai": None})
-    mocker.patch.object(usb.core, "find", side_effect=usb.core.NoBackendError("No backend available"))
-    with pytest.raises(MissingDependencyError, match=r"libusb-1\.0"):
-        OakCamera.discover(timeout=1.0)
-    with pytest.raises(usb_scan.UsbBackendMissingError, match=r"apt-get install libusb-1\.0-0"):
-        usb_scan.find_usb_devices()
-
-
-def test_discover_depthai_absent_usb_works(mocker: Any) -> None:
-    import usb.core
-
-    mocker.patch.dict(sys.modules, {"depthai": None})
-    mocker.patch.object(usb.core, "find", return_value=iter([_usb_device(0x2485, 1, (2,))]))
-    (dev,) = OakCamera.discover(timeout=1.0)
-    assert dev.extra == {"state": "unbooted", "bus": 1, "address": 7, "source": "pyusb"}
-
-
-# ---------------------------------------------------------------- config
-def test_config_validation() -> None:
-    with pytest.raises(ConfigError, match="align_socket"):
-        OakCamera.from_config({"align_socket": "CAM_Z"})
-    with pytest.raises(ConfigError, match="CAM_D"):
-        OakCamera.from_config({"align_socket": "CAM_D"})       # stereo cannot align there
-    with pytest.raises(ConfigError, match="width"):
-        OakCamera.from_config({"width": 0})
-    with pytest.raises(ConfigError, match="amplitude"):
-        OakCamera.from_config({"amplitude": "ir"})
-    assert OakCamera.from_config({}).config.amplitude == "image"
-
-
-def test_registry_builds_unconnected_without_vendor_import(mocker: Any) -> None:
-    mocker.patch.dict(sys.modules, {"depthai": None, "usb": None, "usb.core": None})
-    cam = default_registry().create("camera", {"backend": "oak", "device_id": DEVICE_ID},
-                                    BackendContext(section="camera"))
-    assert isinstance(cam, OakCamera) and not cam.connected
