@@ -5,16 +5,22 @@ own process, 224 x 172 frames with chunks 100/101/300/420:
 
 * ``emulator`` -- the emulator in RUN at an unreachable frame rate (``--frames
   per_pose``: one render per arm pose, fresh noise per frame, one reused encode
-  buffer), read by a bare ``recv_into`` loop: frames/s served. Target (issue #18):
-  >= 1000 frames/s.
+  buffer), as a PCIC client on loopback receives it: a bare client (connect, ``p1``,
+  then ``recv_into`` one buffer, no decoding) counts the bytes of whole frames it got
+  in ``--seconds``. The loopback floor is measured in the same run, interleaved with
+  the emulator (``--repeats`` each): a sender process doing nothing but ``sendall`` of
+  one message of the same size to the same client. Printed: the medians, the
+  emulator's share of the floor, the target (issue #38: >= 8000 frames/s) and PASS or
+  FAIL.
 * ``peer`` -- at 30 and 100 Hz, the cellcal ``o3r`` driver (free run, ``capture``)
   and ifm3dpy's ``FrameGrabber`` (distance, XYZ, confidence, amplitude buffers copied
   to numpy, as the driver hands them out) each consume the stream in a process of
   their own: CPU seconds per frame of that process, and the latency from the
   timestamp the emulator stamps into each frame (``--clock unix``: the sender's
   ``time.time()`` when it encoded the frame) to the frame in the consumer's hands.
-  Target (issue #18): driver <= 0.5x ifm3dpy in CPU and latency. A bare reader (whole
-  messages into one buffer, no decoding) shows the transport floor of the latency.
+  Target (issue #18): driver <= 0.5x ifm3dpy in CPU and latency, each printed with PASS
+  or FAIL. A bare reader (whole messages into one buffer, no decoding) shows the
+  transport floor of the latency.
 
     python benchmarks/pcic_ingest.py [--part emulator|peer|all] [--seconds 3] [--repeats 3]
 """
@@ -33,6 +39,8 @@ from collections.abc import Iterator
 
 #: Frames each consumer takes per rate (after a warm-up of 10).
 WARMUP = 10
+#: The driver's CPU and latency per frame against ifm3dpy's (issue #18).
+PEER_TARGET_RATIO = 0.5
 
 
 @contextlib.contextmanager
@@ -54,25 +62,82 @@ def emulator(rate_hz: float) -> Iterator[tuple[int, int]]:
 
 
 # ---------------------------------------------------------------------- part 1: the emulator's rate
-def serve_rate(seconds: float) -> tuple[float, int]:
-    """Frames/s the emulator delivers to a bare reader, and the message size in bytes."""
-    with emulator(100000.0) as (_, pcic), socket.create_connection(("127.0.0.1", pcic), timeout=5.0) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+#: Frames/s the emulator must serve to a bare client (issue #38).
+EMULATOR_TARGET_FPS = 8000.0
+#: A sender of nothing but ``sendall`` of one message, to ``argv[1]``'s port, ``argv[2]`` bytes long.
+_FLOOR_SENDER = """
+import os, socket, sys
+s = socket.create_connection(("127.0.0.1", int(sys.argv[1])))
+s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+msg = memoryview(bytearray(os.urandom(int(sys.argv[2]))))  # real bytes: a zeroed buffer maps one page
+try:
+    while True:
+        s.sendall(msg)
+except OSError:
+    pass
+"""
+
+
+def _count(s: socket.socket, seconds: float, size: int) -> float:
+    """Whole ``size``-byte messages per second a bare client reads from ``s`` (after a 0.5 s warm-up)."""
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    buf = memoryview(bytearray(4 << 20))
+    t_end = time.perf_counter() + 0.5
+    while time.perf_counter() < t_end:
+        s.recv_into(buf)
+    total = 0
+    t0 = time.perf_counter()
+    while (now := time.perf_counter()) - t0 < seconds:
+        total += s.recv_into(buf)
+    return (total // size) / (now - t0)
+
+
+def _emulator_rate(pcic: int, seconds: float) -> tuple[float, int]:
+    """Frames/s the emulator serves to a fresh bare client, and the message size in bytes."""
+    with socket.create_connection(("127.0.0.1", pcic), timeout=5.0) as s:
         s.sendall(b"1002L000000008\r\n1002p1\r\n")
-        buf = memoryview(bytearray(4 << 20))
         reply = len(b"1002L000000007\r\n1002*\r\n")
         head = b""
         while len(head) < reply + 16:  # the reply, then the first frame's header
             head += s.recv(reply + 16 - len(head))
         size = 16 + int(head[reply + 5:reply + 14])
-        total = 0
-        t_end = time.perf_counter() + 0.5  # warm-up
-        while time.perf_counter() < t_end:
-            s.recv_into(buf)
-        t0 = time.perf_counter()
-        while (now := time.perf_counter()) - t0 < seconds:
-            total += s.recv_into(buf)
-        return total / size / (now - t0), size
+        return _count(s, seconds, size), size
+
+
+def _floor_rate(size: int, seconds: float) -> float:
+    """Frames/s of ``size`` bytes a bare ``sendall`` loop in its own process gets to the same client."""
+    with socket.create_server(("127.0.0.1", 0)) as lst:
+        proc = subprocess.Popen([sys.executable, "-c", _FLOOR_SENDER, str(lst.getsockname()[1]), str(size)])
+        try:
+            lst.settimeout(10.0)
+            conn, _ = lst.accept()
+            with conn:
+                return _count(conn, seconds, size)
+        finally:
+            proc.terminate()
+            proc.wait(timeout=10)
+
+
+def serve_rate(seconds: float, repeats: int) -> None:
+    """Print the emulator's frames/s to a bare client against the loopback floor, interleaved, with the target."""
+    emu_rates, floor_rates = [], []
+    with emulator(100000.0) as (_, pcic):
+        size = _emulator_rate(pcic, 0.2)[1]
+        for _ in range(repeats):
+            floor_rates.append(_floor_rate(size, seconds))
+            emu_rates.append(_emulator_rate(pcic, seconds)[0])
+    emu, floor = statistics.median(emu_rates), statistics.median(floor_rates)
+    print(f"emulator: 224x172 frames of {size} bytes to a bare client over loopback, median of {repeats} "
+          f"interleaved runs of {seconds:g} s")
+    print(f"  loopback floor (a process doing only sendall): {floor:7.0f} frames/s  "
+          f"(runs: {', '.join(f'{r:.0f}' for r in floor_rates)})")
+    print(f"  emulator (--frames per_pose):                  {emu:7.0f} frames/s  "
+          f"(runs: {', '.join(f'{r:.0f}' for r in emu_rates)}); {emu * size / 1e6:.0f} MB/s, "
+          f"{emu / floor:.2f}x the floor")
+    verdict = "PASS" if emu >= EMULATOR_TARGET_FPS else "FAIL"
+    print(f"  target >= {EMULATOR_TARGET_FPS:.0f} frames/s: {emu:.0f} -> {verdict}"
+          + ("" if verdict == "PASS" or floor >= EMULATOR_TARGET_FPS else
+             " (the loopback floor itself is below the target on this machine now)"))
 
 
 # ---------------------------------------------------------------------- part 2: driver vs ifm3dpy
@@ -203,21 +268,22 @@ def peer(seconds: float, repeats: int) -> None:
         for name, cpu, lat in rows:
             print(f"{rate:5.0f}Hz {name:>8} {cpu * 1e3:8.2f}ms {statistics.median(lat) * 1e3:9.2f}ms "
                   f"{_p95(lat) * 1e3:7.2f}ms")
-        print(f"        ratio driver/ifm3dpy: CPU {d_cpu / i_cpu:.2f}x, latency median "
-              f"{statistics.median(d_lat) / statistics.median(i_lat):.2f}x, p95 {_p95(d_lat) / _p95(i_lat):.2f}x "
-              f"(target <= 0.5x); the bare reader's latency is the transport floor both pay")
+        ratios = (d_cpu / i_cpu, statistics.median(d_lat) / statistics.median(i_lat), _p95(d_lat) / _p95(i_lat))
+        verdicts = ["PASS" if r <= PEER_TARGET_RATIO else "FAIL" for r in ratios]
+        print(f"        ratio driver/ifm3dpy (target <= {PEER_TARGET_RATIO:g}x): CPU {ratios[0]:.2f}x {verdicts[0]}, "
+              f"latency median {ratios[1]:.2f}x {verdicts[1]}, p95 {ratios[2]:.2f}x {verdicts[2]}; the bare "
+              f"reader's latency is the transport floor both pay")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--part", choices=("emulator", "peer", "all"), default="all")
     ap.add_argument("--seconds", type=float, default=3.0, help="measuring time per run, s")
-    ap.add_argument("--repeats", type=int, default=3, help="runs per client and rate (peer part)")
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="runs of the emulator and of the loopback floor, interleaved; runs per client and rate (peer)")
     args = ap.parse_args()
     if args.part in ("emulator", "all"):
-        rate, size = serve_rate(args.seconds)
-        print(f"emulator: {rate:.0f} frames/s of 224x172 ({size} bytes each, {rate * size / 1e6:.0f} MB/s) "
-              f"to a bare reader; ratio to the 1000 frames/s target: {rate / 1000:.2f}x")
+        serve_rate(args.seconds, args.repeats)
     if args.part in ("peer", "all"):
         peer(args.seconds, args.repeats)
 

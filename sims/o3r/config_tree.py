@@ -146,6 +146,9 @@ def _split(pointer: str) -> list[str]:
 class ConfigTree:
     """Thread-safe tree with change callbacks.
 
+    Attributes:
+        generation: Counts the sets applied; a reader may keep values it read while it is unchanged.
+
     Args:
         tree: Initial content.
         on_change: Called (outside the lock) with the set of changed pointers after a set.
@@ -158,6 +161,7 @@ class ConfigTree:
         self._lock = threading.Lock()
         self._on_change = on_change
         self.rules = tuple(rules)
+        self.generation = 0
 
     def resolve(self, pointer: str) -> Any:
         """Value at a pointer (a deep copy)."""
@@ -207,6 +211,7 @@ class ConfigTree:
             self._merge(staged, patch, "", changed)
             self._check_conf_only(staged, changed)
             self._tree = staged
+            self.generation += 1
         if self._on_change and changed:
             self._on_change(changed)
         return changed

@@ -31,7 +31,7 @@ from .config_tree import FIRMWARE, RULES, ConfigTree, ConfigTreeError, Rule, def
 from .encoder import FrameEncoder
 from .frames import FrameSource, PerFrame, PerPose
 from .pcic_server import Conn, PcicPort
-from .wire import DISTANCE_RESOLUTION_M, message, models_from_intrinsics
+from .wire import DEFAULT_CHUNKS, DISTANCE_RESOLUTION_M, message, models_from_intrinsics
 
 RPC_PATH = "/api/rpc/v1/com.ifm.efector/"
 FAULT_KINDS = ("drop", "stall", "truncate", "corrupt", "async_error")
@@ -154,6 +154,7 @@ class O3REmulator:
         self._frame_count = 0
         self._rpc: _RpcServer | None = None
         self._wake = threading.Event()
+        self._acquisition_read: tuple[int, float, str] | None = None  # (tree generation, frame rate Hz, state)
         self._busy_until = 0.0
         self._boot_mono = time.monotonic()
         self.frames_sent = 0
@@ -362,16 +363,29 @@ class O3REmulator:
     def _on_trigger(self, conn: Conn) -> None:
         self._send_frame([conn])
 
+    def _acquisition(self) -> tuple[float, str]:
+        """The 3D port's frame rate (Hz) and state, read from the tree again only after it changed."""
+        assert self.tree is not None
+        generation = self.tree.generation  # first: a set landing during the reads is read again next time
+        read = self._acquisition_read
+        if read is None or read[0] != generation:
+            try:
+                read = (generation, float(self._port("acquisition/framerate")), self.state)
+            except ConfigTreeError:
+                read = (generation, 1.0, "CONF")
+            self._acquisition_read = read
+        return read[1], read[2]
+
     def _run_loop(self) -> None:
         next_t = time.monotonic()
         port = self.ports[self.port_name]
+        targets: list[Conn] = []
+        seen = -1
         while not self._stop.is_set():
-            try:
-                rate = float(self._port("acquisition/framerate"))
-                state = self.state
-            except ConfigTreeError:
-                rate, state = 1.0, "CONF"
-            targets = port.connections(mask_bit=1)
+            rate, state = self._acquisition()
+            if seen != port.generation or not all(c.alive for c in targets):
+                seen = port.generation  # first: a client arriving during the look is seen next time
+                targets = port.connections(mask_bit=1)
             now = time.monotonic()
             if state != "RUN" or not targets or now < self._busy_until:
                 self._wake.wait(0.05)
@@ -394,10 +408,13 @@ class O3REmulator:
 
     def _send_frame(self, targets: list[Conn]) -> None:
         with self._send_lock:  # one reused encode buffer per chunk selection
-            counts, source_s = self._frames.next()  # first: a fault injected while rendering applies here
+            # first: a fault injected while rendering applies here
+            counts, source_s = self._frames.next(targets[0].chunks if targets else DEFAULT_CHUNKS)
             self._frame_count += 1
-            with self._faults_lock:
-                fault = self._faults.pop(0) if self._faults else None
+            fault = None
+            if self._faults:  # read without the lock: an empty list stays empty until inject_fault
+                with self._faults_lock:
+                    fault = self._faults.pop(0) if self._faults else None
             if fault is not None and fault.kind == "async_error":
                 code = int(fault.params.get("code", 104000005))
                 text = str(fault.params.get("message", "emulated async error"))

@@ -3,11 +3,14 @@
 The chunk headers, the chunk metadata and the TOF_INFO are laid out once per (chunk
 selection, image size); per frame only the pixel data (through numpy views of the
 buffer), the frame count, the timestamps and the TOF_INFO's per-frame fields are
-written. :meth:`FrameEncoder.payload` keeps the old one-shot API (a fresh ``bytes``).
+written; an image handed in read-only is copied only when it is another array than the
+last one copied into that buffer. :meth:`FrameEncoder.payload` keeps the old one-shot API
+(a fresh ``bytes``).
 """
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -32,9 +35,8 @@ from .wire import (
     tof_info,
 )
 
+_cycle_ranges_m = functools.cache(cycle_ranges_m)  # per frame: parse each mode name once
 _U32 = struct.Struct("<I")
-_SEC_NSEC = struct.Struct("<2I")
-_EXPOSURE_TS = struct.Struct("<3Q")
 _BLOCK = struct.Struct("<I2f")
 _EXTRINSIC = struct.Struct("<6f")
 #: Offsets inside TOF_INFO data (protocols.md A8; ifm3d's TOFInfoV4).
@@ -58,8 +60,15 @@ class _Layout:
 
     buffer: bytearray
     views: dict[int, NDArray[np.generic]]
-    headers: list[tuple[int, int]]        # (offset of chunk header, header version)
     tof_data: int | None                  # offset of TOF_INFO data, if selected
+    copied: dict[int, NDArray[np.generic]] = field(default_factory=dict)  # read-only image last copied, per chunk
+    # the per-frame fields, written at once: a struct of (frame count per header, microseconds per v1 header,
+    # seconds + nanoseconds per v2/v3 header, TOF_INFO v2+ exposure timestamps) and where its bytes go
+    stamp_struct: struct.Struct = _U32
+    stamp_bytes: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, np.intp))
+    octets: NDArray[np.uint8] = field(default_factory=lambda: np.zeros(0, np.uint8))  # the buffer as bytes
+    stamp_counts: tuple[int, int, int, int] = (0, 0, 0, 0)  # how many of each of the four
+    tof_written: tuple[object, ...] = ()  # (extrinsic, block, range) last written into the TOF_INFO
 
 
 @dataclass
@@ -119,6 +128,11 @@ class FrameEncoder:
 
     def layout(self, chunks: Iterable[int], width: int, height: int) -> _Layout:
         """The reused buffer for a chunk selection and image size (built on first use)."""
+        if isinstance(chunks, tuple):  # a connection's selection: found as asked, without sorting it again
+            found = self._layouts.get((chunks, width, height))
+            if found is not None:
+                return found
+        chunks = tuple(chunks)
         wanted = tuple(c for c in DEFAULT_CHUNKS if c in set(chunks))
         key = (wanted, width, height)
         found = self._layouts.get(key)
@@ -139,11 +153,16 @@ class FrameEncoder:
         parts.append(b"stop")
         content = b"".join(parts)
         buf = bytearray(b"0000L%09d\r\n0000" % (len(content) + 6) + content + b"\r\n")
-        layout = _Layout(buf, {}, [], None)
+        layout = _Layout(buf, {}, None)
+        counts_at: list[int] = []
+        usec_at: list[int] = []
+        sec_nsec_at: list[int] = []
         pos = _FIRST
         for ctype in wanted:
             csize, hsize, version = struct.unpack_from("<3I", buf, pos + 4)
-            layout.headers.append((pos, version))
+            counts_at.append(pos + 0x20)
+            # v1 has only the microsecond field; later headers leave it 0, as a VPU does
+            (usec_at if version == 1 else sec_nsec_at).append(pos + (0x1C if version == 1 else 0x28))
             if ctype == 420:
                 layout.tof_data = pos + hsize
             else:
@@ -151,7 +170,16 @@ class FrameEncoder:
                 layout.views[ctype] = np.frombuffer(buf, dtype=dtype, count=width * height,
                                                     offset=pos + hsize).reshape(height, width)
             pos += csize
-        self._layouts[key] = layout
+        has_exposure = layout.tof_data is not None and self.tof_info_version >= 2
+        exposure = [layout.tof_data + _TI_EXPOSURE_TS] if layout.tof_data is not None and has_exposure else []
+        layout.stamp_struct = struct.Struct("<" + "I" * (len(counts_at) + len(usec_at)) + "2I" * len(sec_nsec_at)
+                                            + "3Q" * len(exposure))
+        layout.stamp_bytes = np.array([at + i for ats, size in ((counts_at, 4), (usec_at, 4), (sec_nsec_at, 8),
+                                                                (exposure, 24)) for at in ats for i in range(size)],
+                                      np.intp)
+        layout.stamp_counts = (len(counts_at), len(usec_at), len(sec_nsec_at), len(exposure))
+        layout.octets = np.frombuffer(buf, np.uint8)
+        self._layouts[key] = self._layouts[(chunks, width, height)] = layout
         return layout
 
     def _tof_info(self, block: int) -> bytes:
@@ -166,23 +194,25 @@ class FrameEncoder:
     def stamp(self, layout: _Layout, frame_count: int, timestamp_ns: int) -> None:
         """Write the frame count, timestamps and TOF_INFO per-frame fields into a layout's buffer."""
         buf = layout.buffer
-        sec, nsec = divmod(max(0, timestamp_ns), 1_000_000_000)
-        for pos, version in layout.headers:
-            _U32.pack_into(buf, pos + 0x20, frame_count & 0xFFFFFFFF)
-            if version == 1:  # v1 has only the microsecond field; later headers leave it 0, as a VPU does
-                _U32.pack_into(buf, pos + 0x1C, (timestamp_ns // 1000) & 0xFFFFFFFF)
-            else:
-                _SEC_NSEC.pack_into(buf, pos + 0x28, sec & 0xFFFFFFFF, nsec)
+        n_count, n_usec, n_sec_nsec, n_exposure = layout.stamp_counts
+        ts = max(0, timestamp_ns)
+        sec, nsec = divmod(ts, 1_000_000_000)
+        values = ((frame_count & 0xFFFFFFFF,) * n_count + ((timestamp_ns // 1000) & 0xFFFFFFFF,) * n_usec
+                  + (sec & 0xFFFFFFFF, nsec) * n_sec_nsec + (ts, ts, ts) * n_exposure)
+        # one pack, one scattered write (a third of the time of a write per field)
+        layout.octets[layout.stamp_bytes] = np.frombuffer(layout.stamp_struct.pack(*values), np.uint8)
         if layout.tof_data is None:
             return
         at = layout.tof_data
+        ranges = _cycle_ranges_m(self.mode)
+        block = (frame_count - 1) % len(ranges)  # a cycling mode steps through its blocks frame by frame
+        written = (self.extrinsic_optic_to_user, block, ranges[block])
+        if written == layout.tof_written:
+            return  # what changes only with the mode or the extrinsic is there already
         _EXTRINSIC.pack_into(buf, at + _TI_EXTRINSIC, *self.extrinsic_optic_to_user)
-        if self.tof_info_version >= 2:
-            _EXPOSURE_TS.pack_into(buf, at + _TI_EXPOSURE_TS, *(max(0, timestamp_ns),) * 3)
         if self.tof_info_version >= 4:
-            ranges = cycle_ranges_m(self.mode)
-            block = (frame_count - 1) % len(ranges)  # a cycling mode steps through its blocks frame by frame
             _BLOCK.pack_into(buf, at + _TI_BLOCK, block, 0.0, ranges[block] * 1.035)
+        layout.tof_written = written
 
     def encode(self, counts: FrameCounts, frame_count: int, timestamp_ns: int,
                chunks: Iterable[int] = DEFAULT_CHUNKS) -> memoryview:
@@ -191,6 +221,14 @@ class FrameEncoder:
         layout = self.layout(chunks, w, h)
         for ctype, view in layout.views.items():
             src = counts.distance if ctype == 100 else counts.amplitude if ctype == 101 else counts.confidence
+            if src is view:
+                continue  # written in place (PerPose)
+            if src.flags.writeable:
+                layout.copied.pop(ctype, None)
+            elif layout.copied.get(ctype) is src:
+                continue  # a read-only image already in the buffer
+            else:
+                layout.copied[ctype] = src  # held: its identity is not reused while it is compared
             np.copyto(view, src, casting="unsafe")  # 8-bit confidence keeps the low byte
         self.stamp(layout, frame_count, timestamp_ns)
         return memoryview(layout.buffer)

@@ -4,14 +4,19 @@
   stream and clock advance exactly as if it were captured directly: deterministic).
 * :class:`PerPose` captures the (noise-free) source once per camera pose and adds fresh
   Gaussian range noise to the distance counts of every frame, with the data-sheet sigma
-  of each pixel's distance: a random window of a precomputed bank of standard normal
-  draws, scaled per pixel, written straight into the reused wire image. This is what
-  lets the emulator serve load rates (ADR 0024).
+  of each pixel's distance. A frame's noise is the sum of two halves (:class:`NoiseHalves`),
+  each of variance sigma^2 / 2, taken from two banks of 64 per-pose noisy images drawn
+  from a bank of standard normal draws; the 4096 pairs are visited in a shuffled order,
+  so no two frames within 4096 are equal and each frame costs one uint16 addition.
+  The pose is checked by the identity of what the world composes it from; the
+  amplitude and confidence images are handed out read-only (the encoder copies them
+  once per pose). This is what lets the emulator serve load rates (ADR 0024, ADR 0052).
 """
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+import random
+from typing import Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,9 +25,14 @@ from cellcal.devices.types import Frame, Intrinsics
 
 from ..tof import datasheet_sigma_m
 from .encoder import FrameCounts, FrameEncoder
+from .wire import DEFAULT_CHUNKS
 
-#: Standard normal draws kept for the per-frame noise (8 MiB of float32).
+#: Standard normal draws kept for the per-frame noise (8 MiB of float32), clipped to +-NOISE_CLIP.
 NOISE_BANK = 1 << 21
+#: Largest draw of the bank, in sigmas of a half.
+NOISE_CLIP = 6.0
+#: Noisy images per half-bank: 64 x 64 = 4096 distinct frames per pose (2 x 64 x 77 KB at 224 x 172).
+NOISE_HALVES = 64
 
 
 class FrameSource(Protocol):
@@ -49,15 +59,82 @@ class PerFrame:
         self.timeout_s = timeout_s
         self.captures = 0
 
-    def next(self) -> tuple[FrameCounts, float]:
-        """The next frame's wire images and its source timestamp (epoch s)."""
+    def next(self, chunks: tuple[int, ...] = DEFAULT_CHUNKS) -> tuple[FrameCounts, float]:
+        """The next frame's wire images and its source timestamp (epoch s); ``chunks`` is not used."""
         frame = self.source.capture(self.timeout_s)
         self.captures += 1
         return self.encoder.counts(frame), float(frame.timestamp)
 
 
+class NoiseHalves:
+    """Per-frame distance counts ``A[i] + B[j]``: two banks of half-noise images, filled on first use.
+
+    ``A[i]`` is ``round(base + sigma / sqrt(2) * z)`` and ``B[j]`` is ``round(sigma / sqrt(2) * z')``
+    (int16 held as uint16: the uint16 sum wraps to the right count), each ``z`` a window
+    of standard normal draws at a start drawn per pose; ``sigma`` is capped so that the
+    sum stays in 0..65535. The pairs ``(i, j)`` come in a shuffled order of all
+    ``halves**2``, reshuffled when used up (never repeating the last pair first).
+
+    Args:
+        bank: Standard normal draws, clipped to +-:data:`NOISE_CLIP`.
+        draws: Source of the window starts and the pair order.
+        halves: Images per bank.
+    """
+
+    def __init__(self, bank: NDArray[np.float32], draws: random.Random, halves: int = NOISE_HALVES) -> None:
+        self.bank = bank
+        self.draws = draws
+        self.halves = halves
+        self._order: list[int] = []
+        self._last = -1
+        self._base = np.zeros(0, np.float32)
+        self._sigma = np.zeros(0, np.float32)
+        self._images = np.zeros((2 * halves, 0), np.uint16)
+        self._filled = [False] * (2 * halves)
+        self._starts: list[int] = []
+
+    def reset(self, base: NDArray[np.uint16], sigma: NDArray[np.float32]) -> None:
+        """A new pose: noise-free counts ``base`` and per-pixel sigma (counts, 0 where no measurement)."""
+        n = base.size
+        self._base = base.reshape(-1).astype(np.float32)
+        # each half: sigma / sqrt(2), capped so that two halves of NOISE_CLIP draws, each rounded, stay in 0..65535
+        room = np.maximum(np.minimum(self._base, 65535.0 - self._base) - 1.0, 0.0) / (2.0 * NOISE_CLIP)
+        self._sigma = np.minimum(sigma.reshape(-1) / np.float32(np.sqrt(2.0)), room).astype(np.float32)
+        if self._images.shape[1] != n:
+            self._images = np.empty((2 * self.halves, n), np.uint16)
+        self._filled = [False] * (2 * self.halves)
+        self._starts = [self.draws.randrange(self.bank.size - n + 1) for _ in range(2 * self.halves)]
+
+    def _image(self, k: int) -> NDArray[np.uint16]:
+        """Half-image ``k`` (0..halves-1: A, with the base; the rest: B, noise only), drawn on first use."""
+        image: NDArray[np.uint16] = self._images[k]
+        if not self._filled[k]:
+            n = image.size
+            noise = self.bank[self._starts[k]:self._starts[k] + n] * self._sigma
+            if k < self.halves:
+                noise += self._base
+            np.rint(noise, out=noise)
+            np.copyto(image, noise.astype(np.int16 if k >= self.halves else np.uint16).view(np.uint16))
+            self._filled[k] = True
+        return image
+
+    def _pair(self) -> int:
+        if not self._order:
+            self._order = list(range(self.halves * self.halves))
+            self.draws.shuffle(self._order)
+            if self._order[-1] == self._last:  # popped from the end: never the pair just used
+                self._order[0], self._order[-1] = self._order[-1], self._order[0]
+        self._last = self._order.pop()
+        return self._last
+
+    def add_into(self, out: NDArray[np.uint16]) -> None:
+        """Write the next frame's distance counts into ``out`` (the base's shape)."""
+        i, j = divmod(self._pair(), self.halves)
+        np.add(self._image(i), self._image(self.halves + j), out=out.reshape(-1))
+
+
 class PerPose:
-    """One ``source.capture`` per camera pose, fresh range noise per frame.
+    """One ``source.capture`` per camera pose, fresh range noise per frame (:class:`NoiseHalves`).
 
     The pose is read from ``source.world.camera_pose()`` when the source has a world (a
     ``SimCamera``); a source without one is treated as static.
@@ -77,13 +154,12 @@ class PerPose:
         self.timeout_s = timeout_s
         self.noise_scale = noise_scale
         self.captures = 0
-        self._rng = np.random.default_rng(seed)
-        self._bank = self._rng.standard_normal(NOISE_BANK, dtype=np.float32)
+        bank = np.random.default_rng(seed).standard_normal(NOISE_BANK, dtype=np.float32)
+        self._noise = NoiseHalves(np.clip(bank, -NOISE_CLIP, NOISE_CLIP, out=bank), random.Random(seed))
+        self._inputs: tuple[object, ...] | None = None
         self._key: bytes | None = None
-        self._base: NDArray[np.float32] | None = None
-        self._sigma: NDArray[np.float32] | None = None
         self._out: FrameCounts | None = None
-        self._scratch: NDArray[np.float32] | None = None
+        self._wired: FrameCounts | None = None  # _out with the distance in the encoder's buffer
         self._timestamp = 0.0
 
     def _pose_key(self) -> bytes:
@@ -92,36 +168,66 @@ class PerPose:
             return b"static"
         return bytes(np.asarray(world.camera_pose().as_matrix(), dtype=np.float64).tobytes())
 
+    def _pose_inputs(self) -> tuple[object, ...] | None:
+        """The objects a ``SimWorld`` composes the camera pose from (flange pose, fixed camera pose, mount).
+
+        Poses are immutable and the arm hands out the same flange pose while it stands,
+        so while every one of them is the same object the camera has not moved (they are
+        held here, so no identity is reused). None for a source whose world is not made so.
+        """
+        world: Any = getattr(self.source, "world", None)
+        arm = getattr(world, "arm", None)
+        if arm is None or not hasattr(world, "apply_events") or not hasattr(world, "mount"):
+            return None
+        world.apply_events()  # as camera_pose() does: a mount event's time may have come
+        return (arm.flange_pose(), getattr(world, "camera_flange", None), world.mount)
+
+    def _moved(self) -> bool:
+        """Whether the camera pose differs from the rendered one (by identity alone while it stands)."""
+        inputs, seen = self._pose_inputs(), self._inputs
+        if (self._out is not None and inputs is not None and seen is not None
+                and inputs[0] is seen[0] and inputs[1] is seen[1] and inputs[2] is seen[2]):
+            return False
+        self._inputs = inputs
+        key = self._pose_key()
+        if key == self._key and self._out is not None:
+            return False
+        self._key = key
+        return True
+
     def _render(self) -> None:
         """Capture the pose's frame and precompute its counts and per-pixel noise sigma (in counts)."""
         frame = self.source.capture(self.timeout_s)
         self.captures += 1
         counts = self.encoder.counts(frame)
         res = float(np.float32(self.encoder.distance_resolution_m))
-        base = counts.distance.astype(np.float32)
         # data-sheet sigma of each pixel's distance, in counts; none where there is no measurement
-        sigma = (datasheet_sigma_m(base * res, 1.0, self.noise_scale) / res).astype(np.float32)
-        # keep every draw inside 0..65535 (6 sigma), and invalid pixels at 0
-        sigma = np.minimum(sigma, np.minimum(base, 65535.0 - base) / 6.0).astype(np.float32)
+        sigma = (datasheet_sigma_m(counts.distance * res, 1.0, self.noise_scale) / res).astype(np.float32)
         sigma[counts.distance == 0] = 0.0
-        self._base, self._sigma = base.ravel(), sigma.ravel()
-        self._out = FrameCounts(counts.distance.copy(), counts.amplitude, counts.confidence)
-        self._scratch = np.empty(base.size, np.float32)
+        self._noise.reset(counts.distance, sigma)
+        amplitude, confidence = counts.amplitude.copy(), counts.confidence.copy()
+        amplitude.flags.writeable = confidence.flags.writeable = False  # fixed for the pose: copied once
+        self._out = FrameCounts(counts.distance.copy(), amplitude, confidence)
         self._timestamp = float(frame.timestamp)
 
-    def next(self) -> tuple[FrameCounts, float]:
-        """The next frame's wire images (reused arrays, valid until the next call) and the pose's timestamp."""
-        key = self._pose_key()
-        if key != self._key or self._out is None:
+    def next(self, chunks: tuple[int, ...] = DEFAULT_CHUNKS) -> tuple[FrameCounts, float]:
+        """The next frame's wire images (reused arrays, valid until the next call) and the pose's timestamp.
+
+        Args:
+            chunks: The chunk selection encoded first: when it carries the distance, the
+                distance is written straight into that message buffer (the encoder then
+                finds it there and does not copy it).
+        """
+        if self._moved():
             self._render()
-            self._key = key
-        assert self._base is not None and self._sigma is not None and self._out is not None
-        assert self._scratch is not None
-        n = self._base.size
-        # fresh noise: a random window of the bank, scaled per pixel, added to the noise-free counts
-        start = int(self._rng.integers(0, NOISE_BANK - n))
-        np.multiply(self._bank[start:start + n], self._sigma, out=self._scratch)
-        self._scratch += self._base
-        np.rint(self._scratch, out=self._scratch)
-        np.copyto(self._out.distance.reshape(-1), self._scratch, casting="unsafe")
-        return self._out, self._timestamp
+        out = self._out
+        assert out is not None
+        h, w = out.distance.shape
+        view = self.encoder.layout(chunks, w, h).views.get(100)
+        if view is None:
+            self._noise.add_into(out.distance)
+            return out, self._timestamp
+        if self._wired is None or self._wired.distance is not view or self._wired.amplitude is not out.amplitude:
+            self._wired = FrameCounts(cast("NDArray[np.uint16]", view), out.amplitude, out.confidence)
+        self._noise.add_into(self._wired.distance)
+        return self._wired, self._timestamp

@@ -66,6 +66,7 @@ class PcicPort:
         self.on_trigger = on_trigger
         self.on_mask = on_mask
         self.commands: list[str] = []
+        self.generation = 0  # counts accepted clients and output mask changes (see connections)
         self._stop = threading.Event()
         self._conns: list[Conn] = []
         self._lock = threading.Lock()
@@ -87,7 +88,10 @@ class PcicPort:
         return self
 
     def connections(self, *, mask_bit: int | None = None) -> list[Conn]:
-        """Live connections (with ``mask_bit`` set in their output mask, if given)."""
+        """Live connections (with ``mask_bit`` set in their output mask, if given).
+
+        The answer stays right while :attr:`generation` is unchanged and each connection is alive.
+        """
         with self._lock:
             return [c for c in self._conns if c.alive and (mask_bit is None or c.mask & mask_bit)]
 
@@ -129,6 +133,7 @@ class PcicPort:
             with self._lock:
                 self._conns = [c for c in self._conns if c.alive or (c.thread and c.thread.is_alive())]
                 self._conns.append(conn)
+                self.generation += 1
             conn.thread.start()
 
     def _conn_loop(self, conn: Conn) -> None:
@@ -176,6 +181,8 @@ class PcicPort:
             except ValueError:
                 conn.send(message(ticket, b"?"))
                 return
+            with self._lock:
+                self.generation += 1
             conn.send(message(ticket, b"*"))
             if self.on_mask is not None:
                 self.on_mask()
