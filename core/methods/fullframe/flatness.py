@@ -15,24 +15,20 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-import threading
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.methods.fullframe.passes import basis
-from cellcal.core.methods.fullframe.points import KEEP_POINTS, Points, gather, pixels_of
+from cellcal.core.methods.fullframe.points import KEEP_POINTS, Points, gather, kept_array, pixels_of
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.core.methods.fullframe.space import Model, SpaceFit
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
-
-_KEPT = threading.local()   # point-sized arrays kept between this thread's fits (no fresh pages)
 
 #: Inliers (strided) the flatness grid uses at most.
 MAX_FLAT_POINTS = 1 << 16
@@ -83,10 +79,10 @@ class PlaneFrame:
         float64 copy of ``p`` live in this thread's kept memory (valid until its next fit).
         """
         n = p.shape[1]
-        p64 = _kept("p64", 3 * n, np.float64).reshape(3, n) if kept else np.empty((3, n))
+        p64 = kept_array("p64", 3 * n, np.float64).reshape(3, n) if kept else np.empty((3, n))
         np.copyto(p64, p)
         out = np.matmul(np.stack([self.e1, self.e2, self.n]), p64,
-                        out=_kept("uvw", 3 * n, np.float64).reshape(3, n) if kept else None)
+                        out=kept_array("uvw", 3 * n, np.float64).reshape(3, n) if kept else None)
         w = np.add(out[2], self.offset, out=p64[0])       # orthogonal residual of the measured point
         if along_ray:
             ratio = np.divide(-self.offset, out[2], out=p64[1])
@@ -117,9 +113,9 @@ def _moments(uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp], n_cells: i
 
     add(1, wt)
     kept = wt.size <= KEEP_POINTS                           # kept memory: no fresh pages at every fit
-    buf = _kept("mom_buf", wt.size, np.float64) if kept else np.empty_like(wt)
-    wu = np.multiply(wt, u, out=_kept("mom_wu", wt.size, np.float64) if kept else None)
-    wv = np.multiply(wt, v, out=_kept("mom_wv", wt.size, np.float64) if kept else None)
+    buf = kept_array("mom_buf", wt.size, np.float64) if kept else np.empty_like(wt)
+    wu = np.multiply(wt, u, out=kept_array("mom_wu", wt.size, np.float64) if kept else None)
+    wv = np.multiply(wt, v, out=kept_array("mom_wv", wt.size, np.float64) if kept else None)
     add(2, wu)
     add(3, wv)
     for k, (base, x) in enumerate(((wu, u), (wu, v), (wv, v), (wt, w), (wu, w), (wv, w)), start=4):
@@ -319,8 +315,8 @@ def fit_flatness(fit: SpaceFit, points: Points, model: Model, cfg: FullFrameSett
     cell = grid_cells(pixels_of(sel, points.masks), (h, w), grid)
     kept = sel.size <= KEEP_POINTS                          # fresh point-sized blocks cost a page fault per 4 kB
     p_in = gather(points.p, sel,
-                  _kept("p_in", 3 * sel.size, np.float32).reshape(3, -1, order="F") if kept else None)
-    wt = _kept("wt", sel.size, np.float64) if kept else np.empty(sel.size)
+                  kept_array("p_in", 3 * sel.size, np.float32).reshape(3, -1, order="F") if kept else None)
+    wt = kept_array("wt", sel.size, np.float64) if kept else np.empty(sel.size)
     np.copyto(wt, _noise_orth(p_in, points.dm[sel], frame, model))
     del sel                                                 # point-sized arrays go as soon as they are used
     np.square(wt, out=wt)
@@ -384,11 +380,3 @@ def _noise_orth(p: F32, dm: F32, frame: PlaneFrame, model: Model) -> F32:
     t *= cos
     return t
 
-
-def _kept(name: str, size: int, dtype: type[np.generic]) -> NDArray[Any]:
-    """A point-sized array this module keeps per thread between fits (see ``points.kept_array``)."""
-    buf: NDArray[Any] | None = getattr(_KEPT, name, None)
-    if buf is None or buf.size < size or buf.dtype != dtype:
-        buf = np.empty(size, dtype=dtype)
-        setattr(_KEPT, name, buf)
-    return buf[:size]

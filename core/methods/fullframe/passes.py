@@ -9,17 +9,16 @@ and the radial bias. Method and rationale: docs/adr/0007-full-frame-fit.md ("Mod
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
-from cellcal.core.methods.fullframe.points import KEEP_POINTS
+from cellcal.core.methods.fullframe.points import KEEP_POINTS, kept_array
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import Model, SpaceFit
 from cellcal.devices.errors import CalibrationError
@@ -27,8 +26,6 @@ from cellcal.devices.errors import CalibrationError
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
-
-_KEPT = threading.local()   # point-sized arrays kept between this thread's fits (no fresh pages)
 
 __all__ = ["Cutoff", "FinalPass", "KeepMask", "Model", "NothingLeftError", "Pass", "Scratch", "basis", "final_pass",
            "fit_from_start", "gn_pass", "step_plane", "truncation"]
@@ -158,8 +155,8 @@ class Scratch:
         if n > KEEP_POINTS:
             return cls(n)
         out = cls.__new__(cls)
-        out.f = _kept("scratch", cls.ROWS * n, np.float32).reshape(cls.ROWS, n)   # C-contiguous rows
-        out.mask = _kept("scratch_mask", n, np.bool_)
+        out.f = kept_array("scratch", cls.ROWS * n, np.float32).reshape(cls.ROWS, n)   # C-contiguous rows
+        out.mask = kept_array("scratch_mask", n, np.bool_)
         return out
 
 
@@ -471,11 +468,3 @@ def _final(p: F32, dm: F32, model: Model, n: NDArray[np.float64], offset: float,
     return SpaceFit(Plane(n_fin, offset_fin), cov, e1, e2, fin.inliers, rms, s, unit,
                     (-float(step4[3]), beta_sigma, step4[:3] - fin.step), fin.z)
 
-
-def _kept(name: str, size: int, dtype: type[np.generic]) -> NDArray[Any]:
-    """A point-sized array this module keeps per thread between fits (see ``points.kept_array``)."""
-    buf: NDArray[Any] | None = getattr(_KEPT, name, None)
-    if buf is None or buf.size < size or buf.dtype != dtype:
-        buf = np.empty(size, dtype=dtype)
-        setattr(_KEPT, name, buf)
-    return buf[:size]

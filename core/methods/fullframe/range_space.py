@@ -12,9 +12,8 @@ docs/adr/0028-honest-full-frame-fit.md, docs/adr/0050-measurement-spaces.md.
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -22,7 +21,7 @@ from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.passes import NothingLeftError, fit_from_start
-from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Points, Sample, fixed_subsample
+from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Points, Sample, fixed_subsample, kept_array
 from cellcal.core.methods.fullframe.settings import DEFAULT_NOISE_EXPONENT, MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import EdgeReport, Floors, Model, SpaceFit
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
@@ -33,8 +32,6 @@ from cellcal.devices.types import Intrinsics
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 F32 = NDArray[np.float32]
-
-_KEPT = threading.local()   # point-sized arrays kept between this thread's fits (no fresh pages)
 
 __all__ = ["EdgeClean", "RangeSpace", "robust_start"]
 
@@ -173,7 +170,7 @@ def robust_start(p: F32, dm: F32, model: Model, settings: FullFrameSettings,
     m = idx.size
     h = min(max(int(settings.hypothesis_quantile * m), 3), m)
     res = np.matmul(nrm.astype(np.float32), sub.T.astype(np.float32),   # kept: no fresh pages at every fit
-                    out=_kept("start_res", nrm.shape[0] * m, np.float32).reshape(nrm.shape[0], m))
+                    out=kept_array("start_res", nrm.shape[0] * m, np.float32).reshape(nrm.shape[0], m))
     res += off.astype(np.float32)[:, None]
     np.abs(res, out=res)
     res *= inv_norm.astype(np.float32)[None, :]           # (hypotheses, points), rows contiguous
@@ -276,9 +273,9 @@ def _ring_sums(ring: NDArray[np.uint8], inliers: BoolArray, z: F32, n_bins: int
     counts = np.zeros(n_bins)
     for s in range(0, ring.size, CHUNK):
         k = min(CHUNK, ring.size - s)                            # kept blocks: no fresh pages at every fit
-        bins = _kept("ring_bins", k, np.intp)
+        bins = kept_array("ring_bins", k, np.intp)
         bins[...] = np.multiply(ring[s:s + CHUNK], inliers[s:s + CHUNK], dtype=np.uint8)   # 2x a mixed-type ufunc
-        weights = _kept("ring_z", k, np.float64)             # bincount's float64 copy of the weights
+        weights = kept_array("ring_z", k, np.float64)             # bincount's float64 copy of the weights
         np.copyto(weights, z[s:s + CHUNK])
         sums += np.bincount(bins, weights=weights, minlength=n_bins)
         counts += np.bincount(bins, minlength=n_bins)
@@ -392,11 +389,3 @@ def _check_margin(edge: EdgeClean, points: Points, min_valid: float) -> None:
     if left < MIN_POINTS:
         raise _nothing_left(points.n, left, points, min_valid, edge.floor_px)
 
-
-def _kept(name: str, size: int, dtype: type[np.generic]) -> NDArray[Any]:
-    """A point-sized array this module keeps per thread between fits (see ``points.kept_array``)."""
-    buf: NDArray[Any] | None = getattr(_KEPT, name, None)
-    if buf is None or buf.size < size or buf.dtype != dtype:
-        buf = np.empty(size, dtype=dtype)
-        setattr(_KEPT, name, buf)
-    return buf[:size]
