@@ -3,8 +3,8 @@ an exit, a closed pipe, an unreadable reply, garbage after its death) is a crash
 that stops the arm once; deadlines bound and name their calls; objects dropped, or coming back after their call
 gave up, are freed in the worker without an error here.
 
-The helpers are those of test_isolation_host_pinned.py; its three fixtures are repeated here (pytest takes
-fixtures from the test's own module or a conftest.py, not from an import).
+The helpers are those of test_isolation_host_pinned.py; the fixtures (``host``, ``stops``, ``guarded``) are in
+this folder's conftest.py.
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator
 
 import pytest
 from test_isolation_host_pinned import GONE, _closed, _new, _probe, _soon, _state
@@ -22,28 +21,6 @@ from test_isolation_host_pinned import GONE, _closed, _new, _probe, _soon, _stat
 from cellcal.devices.errors import DeviceConnectionError, DeviceTimeoutError, NativeCrashError
 from cellcal.devices.isolation import NativeHost
 from cellcal.devices.isolation import protocol as p
-
-
-@pytest.fixture
-def host() -> Iterator[NativeHost]:
-    h = _new()
-    h.start(10.0)
-    yield h
-    h.close(2.0)
-
-
-@pytest.fixture
-def stops() -> list[str]:
-    return []
-
-
-@pytest.fixture
-def guarded(stops: list[str]) -> Iterator[NativeHost]:
-    """A host whose on_crash hook records its calls."""
-    h = _new(on_crash=lambda: stops.append("stop") or "the arm was told to stop")
-    h.start(10.0)
-    yield h
-    h.close(2.0)
 
 
 # ---------------------------------------------------------------- host: an unreadable reply, garbage from the dead

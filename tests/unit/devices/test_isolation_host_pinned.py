@@ -3,8 +3,8 @@ leaves no process, thread or descriptor; a start that fails, hangs or exits is r
 and values (requests and replies at their exact size bound, the texts a user reads), and the library's own output
 logged a bounded line at a time.
 
-The helpers and fixtures here (a host for "ur 10.0.0.2" over ur_rtde, the probe module made in the worker, the
-process and descriptor checks) are imported by test_isolation_failures_pinned.py.
+The helpers here (a host for "ur 10.0.0.2" over ur_rtde, the probe module made in the worker, the process and
+descriptor checks) are imported by test_isolation_failures_pinned.py and this folder's conftest.py (the fixtures).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import pickle
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -115,28 +115,6 @@ def _fake_python(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, body: str) -> 
     script.write_text(f"#!/bin/sh\n{body}\n", encoding="ascii")
     script.chmod(0o755)
     monkeypatch.setattr(sys, "executable", str(script))
-
-
-@pytest.fixture
-def host() -> Iterator[NativeHost]:
-    h = _new()
-    h.start(10.0)
-    yield h
-    h.close(2.0)
-
-
-@pytest.fixture
-def stops() -> list[str]:
-    return []
-
-
-@pytest.fixture
-def guarded(stops: list[str]) -> Iterator[NativeHost]:
-    """A host whose on_crash hook records its calls."""
-    h = _new(on_crash=lambda: stops.append("stop") or "the arm was told to stop")
-    h.start(10.0)
-    yield h
-    h.close(2.0)
 
 
 # ---------------------------------------------------------------- host: life cycle
