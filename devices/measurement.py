@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 from .config import check_value, parse_section
 from .errors import ConfigError
 
-__all__ = ["KINDS", "TRIANGULATING_KINDS", "UNKNOWN_MODEL", "MeasurementModel"]
+__all__ = ["DEFAULT_ALLOWANCES", "KINDS", "TRIANGULATING_KINDS", "UNKNOWN_MODEL", "MeasurementModel"]
 
 Kind = Literal["tof", "stereo", "structured_light", "unknown"]
 #: The kinds of measurement a camera can state.
@@ -29,6 +29,15 @@ KINDS: tuple[str, ...] = ("tof", "stereo", "structured_light", "unknown")
 TRIANGULATING_KINDS: tuple[str, ...] = ("stereo", "structured_light")
 #: Sources of a model, for reports: who stated it.
 SOURCES: tuple[str, ...] = ("unstated", "device", "backend", "sim", "config", "recording")
+#: Systematic allowances ``(scale, offset, field)`` per kind, 1-sigma, when a camera states none: the
+#: vendors' stated *accuracy*, not their repeatability (issue #39, ADR 0053). Stereo: Luxonis states a
+#: median depth error below 2 % under 4 m (scale 1 %, offset 0.1 px, field 0.5 px at the corner, about
+#: the column pattern of real OAK frames); ToF: range scale 0.2 %, offset 5 mm, field 2 mm (ifm's O3R
+#: accuracy class, a few mm plus a fraction of a percent).
+DEFAULT_ALLOWANCES: dict[str, tuple[float, float, float]] = {
+    "stereo": (0.01, 0.1, 0.5),
+    "tof": (0.002, 0.005, 0.002),
+}
 
 
 @dataclass(frozen=True)
@@ -56,6 +65,11 @@ class MeasurementModel:
         focal_px: Stereo: focal length of the rectified depth image, pixels.
         subpixel_bits: Stereo: fractional bits of the disparity (0: integer disparity).
         disparity_sigma_px: Stereo: 1-sigma of the disparity before rounding, pixels.
+        scale_allowance: 1-sigma of the uncorrected relative depth-scale error (stereo: of ``f·B``; ToF: of
+            the range), dimensionless; None: the kind's default (:data:`DEFAULT_ALLOWANCES`, vendors' accuracy).
+        offset_allowance: 1-sigma of the uncorrected constant offset, px (stereo) or m (ToF); None: default.
+        field_allowance: 1-sigma of the uncorrected smooth image field at the image corner, px (stereo)
+            or m (ToF); None: default. After ``cellcal depthcal`` the three are what the correction leaves.
         source: Who stated the model (:data:`SOURCES`), for reports.
         settings: Device settings that shaped the model (e.g. the OAK's filters), JSON data.
     """
@@ -69,6 +83,9 @@ class MeasurementModel:
     focal_px: float | None = field(default=None, metadata={"gt": 0.0, "le": 1e5})
     subpixel_bits: int = field(default=0, metadata={"ge": 0, "le": 8})
     disparity_sigma_px: float | None = field(default=None, metadata={"ge": 0.0, "le": 100.0})
+    scale_allowance: float | None = field(default=None, metadata={"ge": 0.0, "le": 0.2})
+    offset_allowance: float | None = field(default=None, metadata={"ge": 0.0, "le": 100.0})
+    field_allowance: float | None = field(default=None, metadata={"ge": 0.0, "le": 100.0})
     source: str = "unstated"
     settings: dict[str, Any] = field(default_factory=dict, compare=False)
 
@@ -106,6 +123,18 @@ class MeasurementModel:
             raise ValueError(f"a {self.kind} camera has no disparity")
         assert self.focal_px is not None and self.baseline_m is not None
         return self.focal_px * self.baseline_m
+
+    @property
+    def allowance(self) -> tuple[float, float, float]:
+        """The systematic allowance ``(scale, offset, field)``: stated values, else the kind's defaults.
+
+        Units: relative; px (stereo) or m (ToF); px or m at the image corner. All 0 for ``unknown``.
+        """
+        default = DEFAULT_ALLOWANCES.get("stereo" if self.triangulating else self.kind, (0.0, 0.0, 0.0))
+        stated = (self.scale_allowance, self.offset_allowance, self.field_allowance)
+        return (stated[0] if stated[0] is not None else default[0],
+                stated[1] if stated[1] is not None else default[1],
+                stated[2] if stated[2] is not None else default[2])
 
     @property
     def disparity_step_px(self) -> float:
