@@ -32,8 +32,9 @@ __all__ = ["FIELD_MAX_ORDER", "SystematicError", "field_basis", "field_terms", "
 FloatArray = NDArray[np.float64]
 #: Highest order of the image field (held-out error picks the order up to this).
 FIELD_MAX_ORDER = 4
-#: Fixed-point passes that invert the ToF wiggle (its slope 2πA/P is far below 1: each pass gains ~100x).
-_WIGGLE_PASSES = 3
+#: Newton steps that invert the ToF wiggle: from an error of about the wiggle's amplitude (mm) the
+#: first leaves ~1e-7 m, the second ~1e-14 m (quadratic convergence; the curvature is A·(2π/P)²).
+_NEWTON_STEPS = 2
 
 
 def field_terms(order: int) -> list[tuple[int, int]]:
@@ -110,6 +111,11 @@ class SystematicError:
                 raise ConfigError("must be finite", key=f"systematic.{name}")
         if self.wiggle_period_m < 0.0:
             raise ConfigError(f"must be >= 0, got {self.wiggle_period_m}", key="systematic.wiggle_period_m")
+        if self.wiggle_period_m > 0.0 and 2.0 * math.pi * math.hypot(self.wiggle_cos_m, self.wiggle_sin_m) \
+                >= 0.5 * self.wiggle_period_m:
+            # the measured range must grow with the true one, or the error cannot be inverted
+            raise ConfigError("wiggle amplitude too large for its period (2π·A/P must stay below 0.5)",
+                              key="systematic.wiggle_cos_m")
         n_field = len(field_terms(int(self.field_order)))
         coeffs = tuple(float(c) for c in self.field_coeffs) or (0.0,) * n_field
         if len(coeffs) != n_field or not all(math.isfinite(c) for c in coeffs):
@@ -186,9 +192,15 @@ class SystematicError:
             return (m - self.disparity_offset_px - self.field_at(u, v)) / (1.0 + self.fb_error)
         base = m - self.offset_m - self.field_at(u, v)
         r = base / (1.0 + self.scale_error)
-        for _ in range(_WIGGLE_PASSES if self.wiggle_period_m > 0.0 else 0):
-            # fixed point of r = (base - wiggle(r)) / (1 + k): a contraction while 2πA/P < 1
-            r = (base - self._wiggle(r)) / (1.0 + self.scale_error)
+        if self.wiggle_period_m <= 0.0:
+            return r
+        w = 2.0 * math.pi / self.wiggle_period_m
+        for _ in range(_NEWTON_STEPS):
+            # Newton on g(r) = (1 + k) r + wiggle(r) - base; g' >= 1 + k - 2πA/P stays near 1
+            phase = w * r
+            g = (1.0 + self.scale_error) * r + self.wiggle_cos_m * np.cos(phase) + self.wiggle_sin_m * np.sin(phase)
+            slope = 1.0 + self.scale_error + w * (self.wiggle_sin_m * np.cos(phase) - self.wiggle_cos_m * np.sin(phase))
+            r = r - (g - base) / slope
         return r
 
     def jacobian(self, true: ArrayLike, u: ArrayLike, v: ArrayLike) -> FloatArray:
