@@ -23,12 +23,14 @@ from cellcal.devices.errors import ConfigError
 from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.pose import Pose
+from cellcal.devices.systematic import SystematicError, normalised_pixels
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
 from .camera_shell import SimCameraShell
 from .charuco import BoardTexture
 from .mixed_pixels import PixelReturns, blend_edges
 from .multipath import SurfacePoints, second_bounce
+from .systematic import SystematicConfig
 from .tof import (
     SIGMA_AT_1M_M,
     SIGMA_DISTANCE_EXPONENT,
@@ -183,6 +185,18 @@ class SimCamera(SimCameraShell):
         self._solid_angle = np.where(self._ray_ok, self._rays_safe[:, 2] ** 3, 0.0) / (self._intr.fx * self._intr.fy)
         self._cos_grazing = math.cos(math.radians(self.config.grazing_limit_deg))
         self._board: BoardTexture | None = None
+        self._systematic_of: SystematicConfig | None = None
+        self._systematic_cache: tuple[SystematicError, NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    def systematic_error(self) -> tuple[SystematicError, NDArray[np.float64], NDArray[np.float64]]:
+        """The world's systematic error for this camera and every pixel's normalised ``u``, ``v``, (H*W,) each."""
+        table = self.world.systematic
+        if self._systematic_cache is None or self._systematic_of is not table:
+            intr = self._intr
+            u, v = normalised_pixels(intr.width, intr.height, intr.cx, intr.cy)
+            self._systematic_cache = (table.tof(intr.width, intr.height), u.ravel(), v.ravel())
+            self._systematic_of = table
+        return self._systematic_cache
 
     # ------------------------------------------------------------------ rendering
     def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
@@ -198,6 +212,10 @@ class SimCamera(SimCameraShell):
           lengthens the range and changes the amplitude (:mod:`cellcal.sims.multipath`);
         * **mixed pixels** (``mixed_pixels``): a pixel near a depth edge returns the phasor
           blend of its (lens-blurred) footprint (:mod:`cellcal.sims.mixed_pixels`);
+        * **systematic error** (``[sim.systematic]``, ADR 0054): the range becomes what the camera
+          measures, ``(1 + range_scale_error)·r + range_offset_m + wiggle(r) + bow(u, v)``
+          (:meth:`~cellcal.devices.systematic.SystematicError.distort`); the frame's
+          ``metadata["sim_systematic"]`` carries that truth (benchmarks only);
         * **drift** (``temperature_drift``): a range offset decaying with warm-up time;
         * **noise**: Gaussian range noise of :func:`~cellcal.sims.tof.amplitude_sigma_m` of
           the return's amplitude with the ``[sim.artefacts]`` per-pixel and shot-noise terms
@@ -239,6 +257,8 @@ class SimCamera(SimCameraShell):
             sequence=int(sequence),
             confidence=conf.reshape(h, w),
             measurement=self._measurement_model(),
+            # the truth, for benchmarks; no estimator reads it
+            metadata={"sim_systematic": self.systematic_error()[0].to_dict()} if self.world.systematic.enabled else {},
         )
 
     def _cast(self, camera_pose: Pose) -> _Cast:
@@ -281,6 +301,10 @@ class SimCamera(SimCameraShell):
             # the second bounce: phase of (direct + indirect) relative to the direct return
             rng = rng + np.angle(1.0 + z) / arte.wavenumber_rad_m
             amp = amp * np.abs(1.0 + z)
+        if self.world.systematic.enabled:
+            # what the camera measures of the (effective) range, before drift and noise
+            err, u, v = self.systematic_error()
+            rng = err.distort(rng, u, v)
         offset = drift_offset_m(arte, self.world.clock.elapsed_s)
         return PixelReturns(rng + offset if offset else rng, amp)
 
@@ -356,7 +380,7 @@ class SimCamera(SimCameraShell):
         """ToF, with the noise law this camera draws from (:func:`~cellcal.sims.tof.stated_tof_model`)."""
         cfg = self.config
         return stated_tof_model(self.world.artefacts, noise=cfg.noise, noise_scale=cfg.noise_scale,
-                                range_step_m=cfg.quantisation_m)
+                                range_step_m=cfg.quantisation_m, systematic=self.world.systematic.enabled)
 
     def describe(self) -> dict[str, Any]:
         """Model parameters for reports."""

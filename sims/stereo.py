@@ -8,6 +8,7 @@ search. Why and where the levels come from: docs/adr/0029-sim-stereo-camera.md.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -20,10 +21,12 @@ from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.pose import Pose
+from cellcal.devices.systematic import SystematicError, normalised_pixels
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 
 from .camera_shell import SimCameraShell
 from .scene import SURFACE_NONE
+from .systematic import SystematicConfig
 from .tof import REFERENCE_REFLECTIVITY
 from .world import SimWorld
 
@@ -137,6 +140,10 @@ class SimStereoCamera(SimCameraShell):
     Per frame (:meth:`render`), for each pixel of the reference (depth-aligned) camera:
 
     * **ray cast**: Z-depth ``Z`` (camera z, m) of the surface hit, from the pinhole ray;
+    * **systematic error** (``[sim.systematic]``, ADR 0054): the true disparity ``f·B/Z`` becomes
+      what the camera measures, ``(1 + fb_error)·d + disparity_offset_px + bow(u, v)``
+      (:meth:`~cellcal.devices.systematic.SystematicError.distort`), before speckle, noise and rounding;
+      the frame's ``metadata["sim_systematic"]`` carries that truth (benchmarks only);
     * **left-right check**: pixels the other camera cannot see (:func:`occluded_in_other_camera`)
       are holes; with ``lr_check = false`` they take the disparity of the nearer surface
       that hides them (what a matcher without the check reports);
@@ -155,7 +162,8 @@ class SimStereoCamera(SimCameraShell):
 
     Every frame draws the same amount from the camera's stream whatever is switched off, so
     seeds and resumed runs stay aligned. The stated model is ``stereo`` with the baseline,
-    ``f``, the subpixel bits and ``disparity_sigma_px`` (0 with ``noise = false``).
+    ``f``, the subpixel bits and ``disparity_sigma_px`` (0 with ``noise = false``), and the
+    vendor-default systematic allowance (zeros with ``[sim.systematic] enabled = false``).
 
     Args:
         config: Backend config; None uses the defaults.
@@ -182,6 +190,25 @@ class SimStereoCamera(SimCameraShell):
         sides = np.arange(1, cfg.speckle_size_px + 1)
         # chance of a pixel seeding a blob: the fraction over the mean blob area
         self._seed_chance = cfg.speckle_fraction / float(np.mean(sides**2))
+        self._systematic_of: SystematicConfig | None = None
+        self._systematic_cache: tuple[SystematicError, SystematicError, FloatArray] | None = None
+
+    def systematic_error(self) -> tuple[SystematicError, SystematicError, FloatArray]:
+        """The world's systematic error for this camera, its field-free part and its field image (H, W), px.
+
+        Built once per ``[sim.systematic]`` table: ``err.distort(d, u, v)`` equals
+        ``head.distort(d, u, v) + field`` (the field is additive), and the field of every pixel is
+        evaluated once instead of per frame.
+        """
+        table = self.world.systematic
+        if self._systematic_cache is None or self._systematic_of is not table:
+            cfg = self.config
+            err = table.stereo(cfg.width, cfg.height)
+            u, v = normalised_pixels(cfg.width, cfg.height, self._intr.cx, self._intr.cy)
+            head = dataclasses.replace(err, field_order=0, field_coeffs=())
+            self._systematic_cache = (err, head, err.field_at(u, v))
+            self._systematic_of = table
+        return self._systematic_cache
 
     # ------------------------------------------------------------------ rendering
     def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
@@ -200,6 +227,11 @@ class SimStereoCamera(SimCameraShell):
         seen = (hit & (cos_inc >= self._cos_grazing)).reshape(h, w)
         hidden = occluded_in_other_camera(d_true, other_on_right=cfg.depth_aligned_to == "left")
         d = d_true.copy()
+        systematic = self.world.systematic
+        if systematic.enabled:
+            # what the camera measures of the true disparity (where something is seen), before noise and rounding
+            err, head, field_px = self.systematic_error()
+            d = np.where(d_true > 0.0, head.distort(d_true, 0.0, 0.0) + field_px, 0.0)
         if not cfg.lr_check:
             d = _fill_from_occluder(d, hidden, other_on_right=cfg.depth_aligned_to == "left")
         d = self._speckle(d, seen, draws)
@@ -223,13 +255,15 @@ class SimStereoCamera(SimCameraShell):
         grey = np.minimum(GREY_AT_REFERENCE * (rho / REFERENCE_REFLECTIVITY) * cos_inc.reshape(h, w), 255.0)
         grey = np.where(hit.reshape(h, w), grey, 0.0)
         conf = np.where(valid, CONF_VALID, CONF_INVALID).astype(np.uint8)
+        metadata: dict[str, Any] = {"disparity_step_px": 1.0 / scale, "depth_aligned_to": cfg.depth_aligned_to}
+        if systematic.enabled:
+            metadata["sim_systematic"] = err.to_dict()  # the truth, for benchmarks; no estimator reads it
         return Frame(
             distance=dist.astype(np.float32), xyz=xyz.astype(np.float32), amplitude=grey.astype(np.float32),
             valid=valid, intrinsics=self._intr,
             timestamp=self.world.clock.now() if timestamp is None else float(timestamp),
             sequence=int(sequence), confidence=conf,
-            metadata={"disparity_step_px": 1.0 / scale, "depth_aligned_to": cfg.depth_aligned_to},
-            measurement=self._measurement_model(),
+            metadata=metadata, measurement=self._measurement_model(),
         )
 
     def _draw(self, n: int) -> dict[str, NDArray[Any]]:
@@ -264,14 +298,18 @@ class SimStereoCamera(SimCameraShell):
 
     # ------------------------------------------------------------------ backend hooks
     def _measurement_model(self) -> MeasurementModel:
-        """Stereo: baseline, ``f``, subpixel bits and disparity sigma (0 with ``noise = false``)."""
+        """Stereo: baseline, ``f``, subpixel bits and disparity sigma (0 with ``noise = false``).
+
+        The systematic allowance is the vendor default (None) with ``[sim.systematic]`` on, zeros with it off.
+        """
         cfg = self.config
         return MeasurementModel(
             kind="stereo", baseline_m=cfg.baseline_m, focal_px=cfg.focal_px, subpixel_bits=cfg.subpixel_bits,
             disparity_sigma_px=cfg.disparity_sigma_px if cfg.noise else 0.0, source="sim",
             settings={"lr_check": cfg.lr_check, "speckle_fraction": cfg.speckle_fraction,
                       "min_disparity_px": cfg.min_disparity_px, "max_disparity_px": cfg.max_disparity_px,
-                      "depth_aligned_to": cfg.depth_aligned_to})
+                      "depth_aligned_to": cfg.depth_aligned_to},
+            **self.world.systematic.stated_allowance)
 
     def _info(self) -> DeviceInfo:
         return DeviceInfo(backend="sim", vendor="cellcal (simulated Luxonis)", model="OAK-D 400P (simulated)",

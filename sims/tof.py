@@ -216,7 +216,7 @@ STATED_COS = (0.5, 1.0)
 
 
 def stated_tof_model(config: ArtefactsConfig, *, noise: bool = True, noise_scale: float = 1.0,
-                     range_step_m: float = 0.0) -> MeasurementModel:
+                     range_step_m: float = 0.0, systematic: bool = True) -> MeasurementModel:
     """The :class:`~cellcal.devices.measurement.MeasurementModel` the simulated ToF camera states.
 
     The model's law is ``sigma_at_1m_m * (d / 1 m)^distance_exponent / sqrt(cos)``.
@@ -238,21 +238,27 @@ def stated_tof_model(config: ArtefactsConfig, *, noise: bool = True, noise_scale
     ``range_step_m`` is the distance quantisation; ``multipath_m`` stays 0 (the sim's
     multipath is a bias of the scene, not a per-pixel allowance; ADR 0014 gives its levels).
 
+    The systematic allowance: with ``[sim.systematic]`` on (``systematic``) the ToF default (None: a sim
+    states what a vendor would, not its own truth); off, zeros (an ideal camera knows it is ideal). ADR 0054.
+
     Args:
         config: The world's ``[sim.artefacts]``.
         noise: The camera's ``noise`` key.
         noise_scale: The camera's ``noise_scale`` key.
         range_step_m: The camera's ``quantisation_m``, metres.
+        systematic: Whether ``[sim.systematic]`` is enabled.
     """
+    value = None if systematic else 0.0
+    allowance: dict[str, Any] = {"scale_allowance": value, "offset_allowance": value, "field_allowance": value}
     settings: dict[str, Any] = {"noise_law": "amplitude" if config.amplitude_noise else "datasheet",
                                 "noise_scale": noise_scale}
     if not noise or noise_scale <= 0.0:
         return MeasurementModel(kind="tof", sigma_at_1m_m=None, range_step_m=range_step_m, source="sim",
-                                settings={**settings, "noise": False})
+                                settings={**settings, "noise": False}, **allowance)
     if not config.amplitude_noise:
         return MeasurementModel(kind="tof", sigma_at_1m_m=SIGMA_AT_1M_M * noise_scale,
                                 distance_exponent=SIGMA_DISTANCE_EXPONENT, range_step_m=range_step_m,
-                                source="sim", settings=settings)
+                                source="sim", settings=settings, **allowance)
     s1, p = _fit_power_law(config.noise_floor, config.shot_noise_at_1m_m, config.pixel_noise_m)
     return MeasurementModel(kind="tof", sigma_at_1m_m=s1 * noise_scale, distance_exponent=p,
                             range_step_m=range_step_m, source="sim",
@@ -260,7 +266,7 @@ def stated_tof_model(config: ArtefactsConfig, *, noise: bool = True, noise_scale
                                       "shot_noise_at_1m_m": config.shot_noise_at_1m_m,
                                       "pixel_noise_m": config.pixel_noise_m,
                                       "fitted_over_range_m": list(STATED_RANGE_M),
-                                      "fitted_over_cos": list(STATED_COS)})
+                                      "fitted_over_cos": list(STATED_COS)}, **allowance)
 
 
 @functools.lru_cache(maxsize=16)

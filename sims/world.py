@@ -25,6 +25,7 @@ from cellcal.devices.scene_view import SceneSnapshot, publish_scene_view
 from .charuco import CharucoConfig
 from .motion import Motion
 from .scene import DEFAULT_REFLECTIVITY, MAX_REFLECTIVITY, Box, Scene
+from .systematic import SystematicConfig
 from .tof import ArtefactsConfig
 from .work import EventConfig, WorkConfig, WorkPlan
 
@@ -74,7 +75,8 @@ class SimConfig:
     """The ``[sim]`` table: the simulated cell's ground truth.
 
     It sets the plane, the boxes, the initial flange pose, the seed, the ToF camera's
-    artefacts (``[sim.artefacts]``, all on by default), whether the camera rides on the
+    artefacts (``[sim.artefacts]``, all on by default), the cameras' systematic depth errors
+    (``[sim.systematic]``, on by default; ADR 0054), whether the camera rides on the
     arm (``camera_on_arm``; false simulates a rig error) and optionally a mount that
     overrides the document's ``[mount]`` table: the calibrator reads ``[mount]`` as its
     *nominal* mount, the sim uses it as the *true* one unless ``[sim.mount]`` says
@@ -90,6 +92,8 @@ class SimConfig:
     boxes: list[BoxConfig] = field(default_factory=list, metadata={"doc": "work objects on the plane"})
     artefacts: ArtefactsConfig = field(default_factory=ArtefactsConfig, metadata={
         "doc": "the ToF camera's artefacts (mixed pixels, multipath, amplitude noise, drift)"})
+    systematic: SystematicConfig = field(default_factory=SystematicConfig, metadata={
+        "doc": "the cameras' systematic depth errors (stereo f·B, offset, bow; ToF offset, scale, wiggle, bow)"})
     mount: MountConfig | None = field(default=None, metadata={
         "doc": "true flange->camera mount; default: the document's [mount] table"})
     charuco: CharucoConfig | None = field(default=None, metadata={
@@ -287,7 +291,7 @@ class SimArmModel:
 
 # ---------------------------------------------------------------------- the world
 class SimWorld:
-    """Scene + true mount + true arm state + clock + seed + the camera's artefacts.
+    """Scene + true mount + true arm state + clock + seed + the camera's artefacts and systematic errors.
 
     The camera renders from :meth:`camera_pose` = true flange pose @ true mount.
 
@@ -298,16 +302,20 @@ class SimWorld:
         clock: Simulated clock shared by every simulated device.
         seed: Root seed; devices derive their own streams with :meth:`rng`.
         artefacts: The simulated ToF camera's artefacts (default: all on).
+        systematic: The simulated cameras' systematic depth errors (default: on, ADR 0054;
+            :meth:`~cellcal.sims.systematic.SystematicConfig.off` for an ideal camera).
     """
 
     def __init__(self, scene: Scene, mount: Pose, flange_pose: Pose | None = None, seed: int = 0,
-                 clock: SimClock | None = None, artefacts: ArtefactsConfig | None = None) -> None:
+                 clock: SimClock | None = None, artefacts: ArtefactsConfig | None = None,
+                 systematic: SystematicConfig | None = None) -> None:
         self.scene = scene
         self.mount = mount
         self.clock = clock or SimClock()
         self.arm = SimArmModel(flange_pose or SimConfig().initial_flange_pose(), self.clock)
         self.seed = int(seed)
         self.artefacts = artefacts or ArtefactsConfig()
+        self.systematic = systematic or SystematicConfig()
         #: A ChArUco board on the plane (``[sim.charuco]``), or None.
         self.charuco: CharucoConfig | None = None
         #: Changes of the truth still to come (``[[sim.events]]``), earliest first.
@@ -320,7 +328,8 @@ class SimWorld:
         """Build from a ``[sim]`` config; ``config.mount`` beats ``mount``, ``config.seed`` beats ``seed``."""
         m = config.mount or mount or MountConfig()
         world = cls(config.scene(), m.pose(), config.initial_flange_pose(),
-                    seed if config.seed is None else config.seed, artefacts=config.artefacts)
+                    seed if config.seed is None else config.seed, artefacts=config.artefacts,
+                    systematic=config.systematic)
         world.charuco = config.charuco
         world.events = sorted(config.events, key=lambda e: e.at_s)
         if not config.camera_on_arm:

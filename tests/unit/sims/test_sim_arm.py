@@ -27,6 +27,7 @@ from cellcal.sims.arm import (
 from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.motion import trapezoid_duration, trapezoid_position
 from cellcal.sims.scene import Scene
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.world import SimWorld
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)
@@ -181,7 +182,8 @@ def test_joint_positions_reproduce_the_flange_and_are_continuous() -> None:
 
 def test_camera_follows_the_arm() -> None:
     world = SimWorld(Scene(), mount=Pose(Rotation.identity(), np.array([0.0, 0.0, 0.03])),
-                     flange_pose=Pose(DOWN, np.array([0.3, 0.0, 0.5])), seed=2)
+                     flange_pose=Pose(DOWN, np.array([0.3, 0.0, 0.5])), seed=2,
+                     systematic=SystematicConfig.off())  # an ideal camera: the exact distance
     arm = SimArm(SimArmConfig(time_scale=0.0), world=world)
     cam = SimCamera(SimCameraConfig(noise=False, quantisation_m=0.0, distortion=False), world=world)
     with arm, cam:

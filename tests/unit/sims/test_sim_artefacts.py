@@ -17,11 +17,13 @@ from cellcal.devices.registry import default_registry
 from cellcal.devices.types import Frame
 from cellcal.sims.camera import CONF_INVALID, CONF_LOW_AMPLITUDE, CONF_SATURATED, SimCamera, SimCameraConfig
 from cellcal.sims.scene import Box, Scene
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.tof import ArtefactsConfig, amplitude_sigma_m, drift_offset_m, relative_amplitude
 from cellcal.sims.world import SimWorld, world_from_context
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)  # camera z along world -z
 OFF = ArtefactsConfig.off()
+IDEAL = SystematicConfig.off()  # the artefacts alone, no systematic depth error (ADR 0054)
 EXACT = {"noise": False, "quantisation_m": 0.0}
 
 
@@ -35,7 +37,7 @@ def pose_at(height_m: float, tilt_deg: float = 0.0, x_m: float = 0.0) -> Pose:
 
 
 def render(pose: Pose, scene: Scene, artefacts: ArtefactsConfig, seed: int = 7, **cfg: object) -> Frame:
-    world = SimWorld(scene, Pose.identity(), flange_pose=pose, seed=seed, artefacts=artefacts)
+    world = SimWorld(scene, Pose.identity(), flange_pose=pose, seed=seed, artefacts=artefacts, systematic=IDEAL)
     return SimCamera(SimCameraConfig(**cfg), world=world).render(pose)  # type: ignore[arg-type]
 
 
@@ -209,7 +211,7 @@ def test_low_amplitude_and_saturated_pixels_are_invalid() -> None:
 def test_temperature_drift_follows_the_simulated_clock() -> None:
     cold = ArtefactsConfig(warm_up_s=0.0, amplitude_noise=False)
     pose = pose_at(0.6)
-    world = SimWorld(Scene(), Pose.identity(), flange_pose=pose, seed=1, artefacts=cold)
+    world = SimWorld(Scene(), Pose.identity(), flange_pose=pose, seed=1, artefacts=cold, systematic=IDEAL)
     cam = SimCamera(SimCameraConfig(**EXACT), world=world)  # type: ignore[arg-type]
     truth = render(pose, Scene(), OFF, **EXACT).distance.astype(np.float64)
     offsets = []

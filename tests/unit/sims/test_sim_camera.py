@@ -17,6 +17,7 @@ from cellcal.devices.geometry.camera_model import pixel_grid_rays, project
 from cellcal.devices.pose import Pose
 from cellcal.sims.camera import CONF_INVALID, CONF_LOW_AMPLITUDE, CONF_OUT_OF_RANGE, SimCamera, SimCameraConfig
 from cellcal.sims.scene import Box, Scene
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.tof import ArtefactsConfig, datasheet_sigma_m, noise_sigma_m
 from cellcal.sims.world import SimWorld, world_from_context
 
@@ -24,9 +25,11 @@ DOWN = Rotation.from_euler("x", 180.0, degrees=True)  # camera z along world -z
 
 
 def make_camera(camera_pose: Pose, scene: Scene | None = None, world_seed: int = 7,
-                artefacts: ArtefactsConfig | None = None, **cfg: object) -> SimCamera:
+                artefacts: ArtefactsConfig | None = None, systematic: SystematicConfig | None = None,
+                **cfg: object) -> SimCamera:
+    # an ideal camera unless a test names its systematic errors (ADR 0054)
     world = SimWorld(scene or Scene(), mount=Pose.identity(), flange_pose=camera_pose, seed=world_seed,
-                     artefacts=artefacts)
+                     artefacts=artefacts, systematic=systematic or SystematicConfig.off())
     return SimCamera(SimCameraConfig(**cfg), world=world)  # type: ignore[arg-type]
 
 
@@ -186,7 +189,7 @@ def test_capture_life_cycle_sequence_and_simulated_timestamps() -> None:
 def test_backends_built_from_one_document_share_the_world() -> None:
     doc = {
         "sim": {"plane_point_m": [0.0, 0.0, 0.05], "boxes": [{"center_xy_m": [0.3, 0.0], "size_m": [0.1, 0.1, 0.1]}],
-                "seed": 5},
+                "seed": 5, "systematic": {"enabled": False}},  # an ideal camera: exact heights
         "mount": {"translation_m": [0.0, 0.0, 0.02], "rpy_deg": [0.0, 0.0, 0.0], "nominal_only": True},
         "camera": {"backend": "sim", "noise": False, "quantisation_m": 0.0},
     }

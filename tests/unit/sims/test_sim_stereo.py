@@ -12,6 +12,7 @@ from cellcal.devices.pose import Pose
 from cellcal.sims.camera import SimCamera
 from cellcal.sims.scene import Box, Scene
 from cellcal.sims.stereo import SimStereoCamera, SimStereoConfig, occluded_in_other_camera
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.world import SimWorld
 
 DOWN = Rotation.from_euler("x", 180.0, degrees=True)  # camera z along world -z
@@ -25,8 +26,11 @@ def looking_down(height_m: float, tilt_deg: float = 0.0) -> Pose:
     return Pose(DOWN * Rotation.from_euler("x", tilt_deg, degrees=True), np.array([0.0, 0.0, height_m]))
 
 
-def camera(pose: Pose, scene: Scene | None = None, seed: int = 5, **cfg: object) -> SimStereoCamera:
-    world = SimWorld(scene or Scene(), Pose.identity(), flange_pose=pose, seed=seed)
+def camera(pose: Pose, scene: Scene | None = None, seed: int = 5, systematic: SystematicConfig | None = None,
+           **cfg: object) -> SimStereoCamera:
+    # an ideal camera unless a test names its systematic errors (ADR 0054)
+    world = SimWorld(scene or Scene(), Pose.identity(), flange_pose=pose, seed=seed,
+                     systematic=systematic or SystematicConfig.off())
     return SimStereoCamera(SimStereoConfig(**{**SMALL, **cfg}), world=world)  # type: ignore[arg-type]
 
 
