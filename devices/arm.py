@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import math
 from abc import abstractmethod
+from collections.abc import Mapping
+from typing import Any, Self
 
 import numpy as np
 from numpy.typing import NDArray
 
+from .arm_model import UNSTATED_ARM_MODEL, ArmModel
 from .arrival import ArrivalTolerance, arrival_problem, format_pose
-from .base import Device
-from .errors import CellcalError, MotionError, NativeCrashError
+from .base import BackendContext, Device
+from .errors import CellcalError, ConfigError, MotionError, NativeCrashError
 from .pose import Pose
 from .types import ArmStatus
 
@@ -38,11 +41,54 @@ class RobotArm(Device):
         verifies_arrival: Whether :meth:`move_linear` checks the arrival itself; false
             only for arms that delegate every move to another arm which checks it (the
             forwarding wrappers) or that never move anything (a replay).
+        model_override: The config's ``[arm.model]`` table over the backend's statement
+            (:meth:`arm_model`), or None (issue #39, ADR 0055).
     """
 
     default_motion_timeout_s: float = 60.0
     verifies_arrival: bool = True
     _arrival_override: ArrivalTolerance | None = None
+    model_override: ArmModel | None = None
+
+    @classmethod
+    def from_config(cls, section: Mapping[str, Any] | None, context: BackendContext | None = None) -> Self:
+        """As :meth:`Device.from_config`; a ``model`` table becomes :attr:`model_override`.
+
+        The table's keys (``repeatability_m``, ``accuracy_m``, ``accuracy_rad``) replace the
+        backend's own figures one by one; the others keep the backend's.
+
+        Raises:
+            ConfigError: On a bad key or value, naming it (``arm.model.accuracy_m``).
+        """
+        context = context or BackendContext()
+        rest = dict(section or {})
+        table = rest.pop("model", None)
+        arm = super().from_config(rest, context)
+        if table is not None:
+            where = f"{context.section or 'arm'}.model"
+            if not isinstance(table, Mapping):
+                raise ConfigError(f"must be a table, got {type(table).__name__}", source=context.source, key=where)
+            arm.model_override = ArmModel.from_dict(table, where=where, source=context.source,
+                                                    base=arm._arm_model())
+        return arm
+
+    # ------------------------------------------------------------------ what its poses are worth
+    def arm_model(self) -> ArmModel:
+        """The arm's stated repeatability and absolute accuracy: ``[arm.model]``, else the backend's figures.
+
+        Needs no connection. Every interval that takes this arm's reported poses as known carries them.
+        """
+        override = self.model_override
+        if override is not None:
+            return override
+        model = self._arm_model()
+        if not isinstance(model, ArmModel):  # a backend bug, reported clearly
+            raise CellcalError(f"{self.backend_name}: _arm_model returned {type(model).__name__}")
+        return model
+
+    def _arm_model(self) -> ArmModel:
+        """The backend's statement of its vendor's figures (override; the default states nothing)."""
+        return UNSTATED_ARM_MODEL
 
     # ------------------------------------------------------------------ arrival
     def default_arrival_tolerance(self) -> ArrivalTolerance:

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .arm import RobotArm
+from .arm_model import ArmModel
 from .arrival import ArrivalTolerance
 from .base import Device
 from .camera import Camera3D
@@ -88,6 +89,9 @@ class ForwardingArm(ForwardingDevice[RobotArm], RobotArm):
 
     def _set_arrival_tolerance(self, value: ArrivalTolerance) -> None:
         self.inner.arrival_tolerance = value  # the wrapper keeps none of its own: it reads the inner's
+
+    def _arm_model(self) -> ArmModel:
+        return self.inner.arm_model()
 
     def _get_pose(self, timeout: float) -> Pose:
         return self.inner.get_pose(timeout)

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.arrival import ArrivalTolerance
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import ConfigError, DeviceTimeoutError, VendorError
@@ -26,14 +27,16 @@ from cellcal.devices.geometry.reach import ReachClass, orientation_violation
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import ArmStatus, DeviceInfo
 
+# the chain lives in .kinematics (the world needs it for the arm's errors); still importable from here
+from .kinematics import FOREARM_M as FOREARM_M
+from .kinematics import SHOULDER_HEIGHT_M as SHOULDER_HEIGHT_M
+from .kinematics import UPPER_ARM_M as UPPER_ARM_M
+from .kinematics import WRIST_TO_FLANGE_M as WRIST_TO_FLANGE_M
+from .kinematics import forward_position as forward_position
+from .kinematics import inverse_kinematics, rms_error
 from .motion import LinearMotion
 from .world import SimWorld, world_from_context
 
-# xArm-5-like geometry, metres.
-SHOULDER_HEIGHT_M = 0.267
-UPPER_ARM_M = 0.2895
-FOREARM_M = 0.3512
-WRIST_TO_FLANGE_M = math.hypot(0.076, 0.097)
 #: xArm 5 TCP limits.
 MAX_SPEED_M_S = 1.0
 MAX_ACCELERATION_M_S2 = 50.0
@@ -61,66 +64,6 @@ ERROR_OUT_OF_REACH = 21
 def error_meaning(code: int) -> str:
     """Human-readable meaning of an xArm-like controller error code."""
     return ERROR_MEANINGS.get(int(code), f"Controller Error {int(code)}")
-
-
-def _wrap_near(angle: float, reference: float) -> float:
-    return angle + 2.0 * math.pi * round((reference - angle) / (2.0 * math.pi))
-
-
-def inverse_kinematics(pose: Pose, previous: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
-    """Joint angles (rad, 5) of the simplified xArm-5-like chain for a flange pose.
-
-    The chain: base yaw J1 about z; shoulder J2 at height 0.267 m, upper arm 0.2895 m,
-    forearm 0.3512 m (J3), wrist pitch J4, and a rigid wrist-to-flange link of 0.1232 m
-    along the tool axis, flange roll J5 about the tool axis. ``J1 = atan2(y, x)``; the
-    tool axis is projected into the arm's vertical plane (the 5-DoF constraint) to give
-    the wrist point and the tool pitch; J2/J3 solve the planar two-link problem (elbow
-    up, the reach clamped to the links' range), J4 makes up the tool pitch, J5 is the
-    residual roll. Angles: J2 from vertical (forward positive), J3 and J4 relative to
-    the previous link.
-
-    Args:
-        pose: Flange pose in the base frame.
-        previous: Previous joint reading; J1 and J5 are unwrapped towards it.
-    """
-    p = pose.translation
-    rmat = pose.rotation_matrix
-    j1 = math.atan2(p[1], p[0]) if math.hypot(p[0], p[1]) > 1e-9 else 0.0
-    e_r = np.array([math.cos(j1), math.sin(j1), 0.0])
-    a = rmat[:, 2]  # tool (approach) axis
-    a_r, a_z = float(a @ e_r), float(a[2])
-    alpha4 = math.atan2(a_r, a_z) if math.hypot(a_r, a_z) > 1e-9 else math.pi  # tool direction from +z
-    r = float(p @ e_r)
-    w_r = r - WRIST_TO_FLANGE_M * math.sin(alpha4)
-    w_z = float(p[2]) - WRIST_TO_FLANGE_M * math.cos(alpha4)
-    dr, dz = w_r, w_z - SHOULDER_HEIGHT_M
-    lo, hi = abs(UPPER_ARM_M - FOREARM_M) + 1e-6, UPPER_ARM_M + FOREARM_M - 1e-6
-    dist = min(max(math.hypot(dr, dz), lo), hi)
-    cos_elbow = (dist**2 - UPPER_ARM_M**2 - FOREARM_M**2) / (2.0 * UPPER_ARM_M * FOREARM_M)
-    j3 = math.acos(max(-1.0, min(1.0, cos_elbow)))  # elbow bend (forearm pitched down relative)
-    beta = math.atan2(dr, dz)  # direction shoulder->wrist from +z
-    gamma = math.atan2(FOREARM_M * math.sin(j3), UPPER_ARM_M + FOREARM_M * math.cos(j3))
-    j2 = beta - gamma
-    j4 = alpha4 - j2 - j3
-    # Rz(j1), then Ry(alpha4) about the fixed y axis: Ry(alpha4) @ Rz(j1) (scipy's extrinsic "zy")
-    r04 = (Pose.from_xyz_rotvec(np.zeros(3), (0.0, alpha4, 0.0))
-           @ Pose.from_xyz_rotvec(np.zeros(3), (0.0, 0.0, j1))).rotation_matrix
-    resid = r04.T @ rmat
-    j5 = math.atan2(resid[1, 0], resid[0, 0])
-    j4 = math.remainder(j4, 2.0 * math.pi)
-    if previous is not None and len(previous) >= 5:
-        j1 = _wrap_near(j1, float(previous[0]))
-        j5 = _wrap_near(j5, float(previous[4]))
-    return np.array([j1, j2, j3, j4, j5], dtype=np.float64)
-
-
-def forward_position(joints: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Flange position (m, base frame) of the simplified chain for joints J1..J4 (rad)."""
-    j1, j2, j3, j4 = (float(v) for v in joints[:4])
-    r = UPPER_ARM_M * math.sin(j2) + FOREARM_M * math.sin(j2 + j3) + WRIST_TO_FLANGE_M * math.sin(j2 + j3 + j4)
-    z = (SHOULDER_HEIGHT_M + UPPER_ARM_M * math.cos(j2) + FOREARM_M * math.cos(j2 + j3)
-         + WRIST_TO_FLANGE_M * math.cos(j2 + j3 + j4))
-    return np.array([r * math.cos(j1), r * math.sin(j1), z])
 
 
 @dataclass
@@ -185,10 +128,13 @@ class SimArm(RobotArm):
     time; the default 0.01 keeps the default run fast). A new target replaces a motion
     under way, starting from where the flange is; :meth:`stop` halts where it is.
 
-    **Read-back**: :meth:`get_pose` returns the true flange pose plus Gaussian noise on
-    each translation axis with ``sigma = repeatability_m / 4`` (xArm 5: ±0.1 mm), so
-    readings stay within ± ``repeatability_m`` of the truth; the orientation is exact.
-    The arm arrives exactly at the commanded target (the truth the camera sees).
+    **Read-back**: :meth:`get_pose` returns the pose the controller believes plus Gaussian
+    noise on each translation axis with ``sigma = repeatability_m / 4`` (xArm 5: ±0.1 mm), so
+    readings stay within ± ``repeatability_m`` of it; the orientation is exact. The arm
+    arrives exactly at the commanded target as the controller sees it. The flange truly
+    stands there too unless the world's kinematic errors are on (``[sim.arm_errors]``, on by
+    default): then it stands off it by the errors of the chain at those joint angles, the
+    same every time (:meth:`physical_flange_pose`; :meth:`arm_model` states their RMS).
     **Joints** (radians, 5 values) come from :func:`inverse_kinematics`; J1 and J5 are
     unwrapped towards the previous reading, so they are continuous along a motion.
 
@@ -241,6 +187,7 @@ class SimArm(RobotArm):
         self.faults = SimArmFaults()
         self._fault_rng = self.world.rng("arm.faults", self.config.seed)
         self._last_read: Pose | None = None
+        self._model: ArmModel | None = None
 
     def default_arrival_tolerance(self) -> ArrivalTolerance:
         """1 mm / 0.1 deg, or twice the read-back repeatability when that is larger."""
@@ -343,8 +290,25 @@ class SimArm(RobotArm):
                 self.world.arm.halt()
 
     def true_flange_pose(self) -> Pose:
-        """The flange pose without read-back noise (ground truth)."""
+        """The flange pose the controller believes, without read-back noise (what the emulators plan with).
+
+        With the arm's kinematic errors on (``[sim.arm_errors]``) the flange truly stands at
+        :meth:`physical_flange_pose`; without them the two are the same.
+        """
         return self.world.arm.flange_pose()
+
+    def physical_flange_pose(self) -> Pose:
+        """Where the flange truly stands (ground truth: the camera hangs there), kinematic errors included."""
+        return self.world.true_flange_pose()
+
+    def _arm_model(self) -> ArmModel:
+        """The read-back repeatability and the RMS error its configured kinematic errors give over the
+        workspace (:func:`~cellcal.sims.kinematics.rms_error`; zeros for the ideal arm)."""
+        model = self._model
+        if model is None:
+            distance, angle = rms_error(self.world.arm_errors)
+            model = self._model = ArmModel(self.config.repeatability_m, distance, angle, "sim")
+        return model
 
     # ------------------------------------------------------------------ backend hooks
     def _connect(self, timeout: float) -> None:

@@ -18,12 +18,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import DeviceTimeoutError, NotConnectedError
 from cellcal.devices.pose import Pose
 from cellcal.devices.registry import default_registry
 from cellcal.devices.types import ArmStatus, DeviceInfo
 from cellcal.sims.arm import SimArmConfig
+from cellcal.sims.kinematics import rms_error
+from cellcal.sims.world import world_from_context
 
 #: Names of the sim arm's config keys, which every emulated arm's section accepts too.
 SIM_ARM_KEYS = tuple(f.name for f in dataclasses.fields(SimArmConfig))
@@ -109,6 +112,11 @@ class EmulatedArm(RobotArm):
 
     def _after_motion(self) -> None:
         """Called after every move and stop, successful or not."""
+
+    def _arm_model(self) -> ArmModel:
+        """The simulated arm's figures: its read-back repeatability and the RMS of the world's kinematic errors."""
+        distance, angle = rms_error(world_from_context(self.context).arm_errors)
+        return ArmModel(float(self.config.repeatability_m), distance, angle, "sim")
 
     def _start_allowance_s(self) -> float:
         """Seconds starting the emulator may take (0: it starts at once)."""

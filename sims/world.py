@@ -23,6 +23,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.scene_view import SceneSnapshot, publish_scene_view
 
 from .charuco import CharucoConfig
+from .kinematics import ArmErrors, ArmErrorsConfig
 from .motion import Motion
 from .scene import DEFAULT_REFLECTIVITY, MAX_REFLECTIVITY, Box, Scene
 from .systematic import SystematicConfig
@@ -111,6 +112,9 @@ class SimConfig:
     camera_on_arm: bool = field(default=True, metadata={
         "doc": "false: the camera stays where the arm's initial pose put it and its view does not follow the "
                "arm (a camera not on the arm that moves: a rig or config error)"})
+    arm_errors: ArmErrorsConfig = field(default_factory=ArmErrorsConfig, metadata={
+        "doc": "the arm's kinematic errors (joint zero offsets, link lengths): the flange stands off the pose the "
+               "arm reports, smoothly with the pose (on by default; enabled = false: the ideal arm)"})
 
     def __post_init__(self) -> None:
         if float(np.linalg.norm(self.plane_normal)) < 1e-9:
@@ -322,6 +326,10 @@ class SimWorld:
         self.events: list[EventConfig] = []
         #: The flange pose the camera stays at when it is not on the arm (``[sim] camera_on_arm = false``), or None.
         self.camera_flange: Pose | None = None
+        #: The arm's kinematic errors (``[sim.arm_errors]``), or None for the ideal arm: :attr:`arm` holds the pose
+        #: the controller believes (and reports, with noise); the flange truly stands at
+        #: :meth:`true_flange_pose`.
+        self.arm_errors: ArmErrors | None = None
 
     @classmethod
     def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
@@ -331,6 +339,7 @@ class SimWorld:
                     seed if config.seed is None else config.seed, artefacts=config.artefacts,
                     systematic=config.systematic)
         world.charuco = config.charuco
+        world.arm_errors = config.arm_errors.errors()
         world.events = sorted(config.events, key=lambda e: e.at_s)
         if not config.camera_on_arm:
             world.camera_flange = config.initial_flange_pose()
@@ -344,9 +353,15 @@ class SimWorld:
         With :attr:`camera_flange` set the camera stays at ``camera_flange @ mount`` while the arm moves.
         """
         self.apply_events()
-        flange = self.arm.flange_pose()  # also brings the simulated clock up to the motion under way
+        flange = self.true_flange_pose()  # also brings the simulated clock up to the motion under way
         fixed = self.camera_flange
         return (flange if fixed is None else fixed) @ self.mount
+
+    def true_flange_pose(self) -> Pose:
+        """Where the flange truly stands now: the arm's believed pose moved by its kinematic errors, if any."""
+        believed = self.arm.flange_pose()
+        errors = self.arm_errors
+        return believed if errors is None else errors.true_pose(believed)
 
     def apply_events(self) -> None:
         """Make every ``[[sim.events]]`` change whose time has come (called before each frame is rendered)."""

@@ -27,6 +27,7 @@ from cellcal.core.handeye.model import (
     PARAMETERS,
     PlaneModel,
     PlaneObservation,
+    arm_accuracy_covariance,
     stack_poses,
     whitening,
 )
@@ -74,6 +75,7 @@ class HandEyeEstimate:
         noise: The chi2 test of the stated noise and the interval scale it implies.
         given_sigma: 1-sigma of the given values fitted with a prior, m or rad.
         absolute_covariance: ``covariance`` with the stated noise as it is (never larger than ``covariance``).
+        arm_accuracy: The arm's stated absolute accuracy the weights and intervals include (None: none).
     """
 
     mount: Pose
@@ -89,6 +91,7 @@ class HandEyeEstimate:
     noise: NoiseCheck
     given_sigma: Mapping[str, float] = field(default_factory=dict)
     absolute_covariance: FloatArray | None = None
+    arm_accuracy: ArmAccuracy | None = None
 
     @property
     def z(self) -> float:
@@ -104,7 +107,8 @@ class HandEyeEstimate:
     def notes(self) -> tuple[str, ...]:
         """What the intervals rest on, in words: the noise test's finding and the given values."""
         note = self.noise.note()
-        return (*([note] if note else []), *given_notes(self.given, self.given_sigma))
+        arm = [] if self.arm_accuracy is None else [self.arm_accuracy.note()]
+        return (*arm, *([note] if note else []), *given_notes(self.given, self.given_sigma))
 
     @property
     def translation_sigma_m(self) -> FloatArray:
@@ -134,7 +138,40 @@ class HandEyeEstimate:
                 "p_value": self.p_value, "given": list(self.given), "given_sigma": dict(self.given_sigma),
                 "parameters": list(PARAMETERS), "covariance": self.covariance.tolist(),
                 "covariance_absolute": absolute.tolist(), "interval_scale": self.interval_scale,
-                "interval_z": self.z, "noise_model": self.noise.to_dict(), "notes": list(self.notes)}
+                "interval_z": self.z, "noise_model": self.noise.to_dict(), "notes": list(self.notes),
+                **({} if self.arm_accuracy is None else {"arm_accuracy": self.arm_accuracy.to_dict()})}
+
+
+@dataclass(frozen=True)
+class ArmAccuracy:
+    """The arm's stated absolute accuracy as the hand-eye fit takes it (issue #39, ADR 0055).
+
+    Each pose's flange is taken to err by a random pose error, isotropic, of RMS length
+    ``position_m`` and ``rotation_rad`` (1-sigma per axis: those over sqrt(3)), propagated into
+    that pose's plane residual (:func:`~cellcal.core.handeye.model.arm_accuracy_covariance`):
+    it weighs the poses and widens the intervals; it is not estimated. Its real error is smooth
+    with the pose; part of it (a turn about the plane's normal, a shift along the plane) the
+    planes cannot see at all, so the intervals are on the safe side of it.
+
+    Attributes:
+        position_m: RMS position error of a reported flange pose, m.
+        rotation_rad: RMS orientation error, rad.
+        source: Who stated it (``backend``, ``config``, ``sim``, ``recording ...``).
+    """
+
+    position_m: float
+    rotation_rad: float
+    source: str = "unstated"
+
+    def note(self) -> str:
+        """One line for the intervals' notes."""
+        return (f"the arm's absolute accuracy ({1000 * self.position_m:.3g} mm, "
+                f"{math.degrees(self.rotation_rad):.3g} deg RMS, stated by {self.source}) is in the weights and the "
+                "intervals as a random error of each pose's flange")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form (SI units)."""
+        return {"position_m": self.position_m, "rotation_rad": self.rotation_rad, "source": self.source}
 
 
 def rpy_with_sigma_deg(mount: Pose, rotation_covariance: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -169,13 +206,18 @@ class _Problem:
     """The whitened residual function of a set of observations over the free parameters."""
 
     def __init__(self, model: PlaneModel, observations: Sequence[PlaneObservation], free: Sequence[int],
-                 arm_translation_sigma_m: float, arm_rotation_sigma_rad: float) -> None:
+                 arm_translation_sigma_m: float, arm_rotation_sigma_rad: float,
+                 accuracy: ArmAccuracy | None = None) -> None:
         self.model = model
         self.observations = observations
         self.free = list(free)
         self.flanges = stack_poses([o.flange for o in observations])  # rotation matrices and translations
         lever = float(np.linalg.norm(model.nominal_mount.translation))
-        w = [whitening(o, arm_translation_sigma_m, arm_rotation_sigma_rad, lever) for o in observations]
+        mount = model.nominal_mount
+        w = [whitening(o, arm_translation_sigma_m, arm_rotation_sigma_rad, lever,
+                       None if accuracy is None else arm_accuracy_covariance(o, mount, accuracy.position_m,
+                                                                             accuracy.rotation_rad))
+             for o in observations]
         self.bases = np.stack([b for b, _ in w])  # (N, 3, 2) tangent bases of the measured normals
         self.whiten = np.stack([m for _, m in w])  # (N, 3, 3) inverse Cholesky factors
         self.normals = np.stack([o.normal for o in observations])
@@ -200,8 +242,8 @@ class _Problem:
 
 
 def _setup(observations: Sequence[PlaneObservation], nominal_mount: Pose, nominal_plane: Plane,
-           given: Sequence[str], arm_translation_sigma_m: float, arm_rotation_sigma_rad: float
-           ) -> tuple[PlaneModel, _Problem, FloatArray]:
+           given: Sequence[str], arm_translation_sigma_m: float, arm_rotation_sigma_rad: float,
+           accuracy: ArmAccuracy | None = None) -> tuple[PlaneModel, _Problem, FloatArray]:
     """The model, the residual function and the normals in the flange frame (N, 3) of a problem.
 
     Raises:
@@ -222,7 +264,7 @@ def _setup(observations: Sequence[PlaneObservation], nominal_mount: Pose, nomina
         nominal_plane = Plane(-nominal_plane.normal, -nominal_plane.offset_m)  # normal toward the camera side
     model = PlaneModel(nominal_mount, nominal_plane)
     free = [i for i, name in enumerate(PARAMETERS) if name not in given]
-    problem = _Problem(model, observations, free, arm_translation_sigma_m, arm_rotation_sigma_rad)
+    problem = _Problem(model, observations, free, arm_translation_sigma_m, arm_rotation_sigma_rad, accuracy)
     normal = np.array(nominal_plane.normal)
     normals_flange = np.stack([o.flange.rotation.inv().apply(normal) for o in observations])  # u_i
     return model, problem, normals_flange
@@ -230,14 +272,14 @@ def _setup(observations: Sequence[PlaneObservation], nominal_mount: Pose, nomina
 
 def observability(observations: Sequence[PlaneObservation], nominal_mount: Pose, nominal_plane: Plane, *,
                   given: Sequence[str] = (), arm_translation_sigma_m: float = 2.5e-5,
-                  arm_rotation_sigma_rad: float = 0.0) -> Observability:
+                  arm_rotation_sigma_rad: float = 0.0, arm_accuracy: ArmAccuracy | None = None) -> Observability:
     """What the observations can determine, at the configured values (no fit).
 
     Raises:
         CalibrationError: Fewer than 2 observations, or an unknown given name.
     """
     _, problem, normals_flange = _setup(observations, nominal_mount, nominal_plane, given,
-                                        arm_translation_sigma_m, arm_rotation_sigma_rad)
+                                        arm_translation_sigma_m, arm_rotation_sigma_rad, _accuracy(arm_accuracy))
     return analyse(jacobian(problem, np.zeros(len(problem.free))), problem.free, normals_flange)
 
 
@@ -245,7 +287,8 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
                    given: Sequence[str] = (), given_sigma: Mapping[str, float] | None = None,
                    arm_translation_sigma_m: float = 2.5e-5, arm_rotation_sigma_rad: float = 0.0,
                    confidence: float = 0.95, noise_test_level: float = NOISE_TEST_LEVEL,
-                   max_interval_scale: float = MAX_INTERVAL_SCALE) -> HandEyeEstimate:
+                   max_interval_scale: float = MAX_INTERVAL_SCALE,
+                   arm_accuracy: ArmAccuracy | None = None) -> HandEyeEstimate:
     """Estimate the mount and the base-frame plane from plane observations.
 
     Args:
@@ -261,6 +304,9 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
         confidence: Level of the intervals.
         noise_test_level: Level of each tail of the chi2 test of the stated noise.
         max_interval_scale: Largest factor the residuals may put on the stated noise's 1-sigma.
+        arm_accuracy: The arm's stated absolute accuracy (:class:`ArmAccuracy`): each pose's flange
+            errs at random by it, in the weights and the intervals (None or zeros: the read-back
+            noise alone, as before issue #39).
 
     Raises:
         CalibrationError: Fewer than 2 observations, an unknown given name, or a sigma for a
@@ -270,8 +316,9 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
             residuals are more than ``max_interval_scale`` times the stated noise.
     """
     sigmas = check_given_sigma(given, given_sigma or {})
+    accuracy = _accuracy(arm_accuracy)
     model, problem, normals_flange = _setup(observations, nominal_mount, nominal_plane, given,
-                                            arm_translation_sigma_m, arm_rotation_sigma_rad)
+                                            arm_translation_sigma_m, arm_rotation_sigma_rad, accuracy)
     free = problem.free
     seen = analyse(jacobian(problem, np.zeros(len(free))), free, normals_flange)  # structural: before any fit
     if not seen.observable:
@@ -279,7 +326,7 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     # the fitted parameters: the free ones and the given ones with a prior
     fitted = [i for i, name in enumerate(PARAMETERS) if i in free or name in sigmas]
     data = problem if len(fitted) == len(free) else _Problem(model, observations, fitted, arm_translation_sigma_m,
-                                                              arm_rotation_sigma_rad)
+                                                              arm_rotation_sigma_rad, accuracy)
     prior_info = np.array([0.0 if i in free else sigmas[PARAMETERS[i]] ** -2 for i in fitted])  # 1/sigma²
     fit = _solve(data, prior_info)
     jac = jacobian(data, fit.x)
@@ -296,7 +343,18 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     params = data.full(fit.x)
     on_free = [fitted.index(i) for i in free]  # the free parameters' columns, for the observability report
     return HandEyeEstimate(model.mount(params), model.plane(params), params, cov, tuple(given), worst, chi2, dof,
-                           analyse(jac[:, on_free], free, normals_flange), confidence, noise, sigmas, absolute)
+                           analyse(jac[:, on_free], free, normals_flange), confidence, noise, sigmas, absolute,
+                           accuracy)
+
+
+def _accuracy(arm_accuracy: ArmAccuracy | None) -> ArmAccuracy | None:
+    """``arm_accuracy`` checked (finite, >= 0), None when it states no error."""
+    if arm_accuracy is None:
+        return None
+    values = (arm_accuracy.position_m, arm_accuracy.rotation_rad)
+    if not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in values):
+        raise CalibrationError(f"the arm's accuracy must be finite and >= 0, got {values}")
+    return arm_accuracy if any(values) else None
 
 
 def _solve(data: _Problem, prior_info: FloatArray) -> Any:
@@ -344,4 +402,5 @@ def _residuals(problem: _Problem, x: FloatArray) -> tuple[PoseResidual, ...]:
     return tuple(out)
 
 
-__all__ = ["HandEyeEstimate", "PoseResidual", "estimate_mount", "jacobian", "observability", "rpy_with_sigma_deg"]
+__all__ = ["ArmAccuracy", "HandEyeEstimate", "PoseResidual", "estimate_mount", "jacobian", "observability",
+           "rpy_with_sigma_deg"]

@@ -98,14 +98,49 @@ def stack_poses(poses: Sequence[Pose]) -> tuple[FloatArray, FloatArray]:
     return (np.stack([p.rotation.as_matrix() for p in poses]), np.stack([np.asarray(p.translation) for p in poses]))
 
 
+def arm_error_jacobian(obs: PlaneObservation, mount: Pose) -> FloatArray:
+    """How an error of the flange pose moves a pose's residual: 3x6, (tangent components of the normal,
+    offset) over (a turn of the flange about the base axes, rad; a shift of it, m).
+
+    The camera turns with the flange: its normal turns by the same angle across the normal and its
+    offset moves by the turn times the camera's lever ``R_A t_X`` across the normal; a shift moves the
+    offset by its component along the normal. Taken at the measured normal and ``mount`` (the nominal).
+    """
+    basis = tangent_basis(obs.normal)
+    r_c = (obs.flange @ mount).rotation_matrix
+    n_b = r_c @ np.asarray(obs.normal, dtype=np.float64)  # the plane's normal in the base frame
+    lever = obs.flange.rotation_matrix @ np.asarray(mount.translation, dtype=np.float64)  # camera from flange, base
+    cross_n = np.array([[0.0, -n_b[2], n_b[1]], [n_b[2], 0.0, -n_b[0]], [-n_b[1], n_b[0], 0.0]])
+    jac = np.zeros((3, 6))
+    jac[:2, :3] = -basis.T @ r_c.T @ cross_n  # the measured normal turns by -(dtheta x n_B), seen in the camera
+    jac[2, :3] = -np.cross(lever, n_b)  # the measured offset grows by n_B . (dtheta x lever)
+    jac[2, 3:] = -n_b  # and by n_B . dp
+    return jac
+
+
+def arm_accuracy_covariance(obs: PlaneObservation, mount: Pose, accuracy_m: float, accuracy_rad: float
+                            ) -> FloatArray:
+    """The residual's covariance (3x3) from the arm's stated absolute accuracy at this pose.
+
+    The flange's pose error is taken as a random error of each pose, isotropic, whose RMS length is
+    the stated accuracy (``accuracy_m``, ``accuracy_rad``): 1-sigma per axis ``accuracy / sqrt(3)``
+    (ADR 0055).
+    """
+    jac = arm_error_jacobian(obs, mount)
+    var = np.concatenate([np.full(3, accuracy_rad**2 / 3.0), np.full(3, accuracy_m**2 / 3.0)])
+    cov: FloatArray = (jac * var) @ jac.T
+    return cov
+
+
 def whitening(obs: PlaneObservation, arm_translation_sigma_m: float, arm_rotation_sigma_rad: float,
-              lever_m: float) -> tuple[FloatArray, FloatArray]:
+              lever_m: float, extra: FloatArray | None = None) -> tuple[FloatArray, FloatArray]:
     """The measured normal's tangent basis (3x2) and the inverse Cholesky factor (3x3) of its residual.
 
     The residual of a pose is (tangent components of the normal's error, offset error); its
     covariance is the full-frame fit's, plus the arm's read-back noise: a translation
     error moves the offset by its component along the normal, a rotation error turns the
-    normal and moves the offset by the rotation times the mount's lever ``lever_m``.
+    normal and moves the offset by the rotation times the mount's lever ``lever_m``;
+    plus ``extra`` (3x3, e.g. :func:`arm_accuracy_covariance`) when given.
 
     Raises:
         CalibrationError: If the covariance is not positive definite.
@@ -117,6 +152,8 @@ def whitening(obs: PlaneObservation, arm_translation_sigma_m: float, arm_rotatio
     cov = m @ obs.covariance @ m.T
     cov[:2, :2] += np.eye(2) * arm_rotation_sigma_rad**2
     cov[2, 2] += arm_translation_sigma_m**2 + (arm_rotation_sigma_rad * lever_m) ** 2
+    if extra is not None:
+        cov = cov + extra
     try:
         chol = np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
@@ -142,4 +179,5 @@ def observation_from_pose(record: dict[str, object]) -> PlaneObservation:
 
 
 __all__ = ["MOUNT_ROTATION", "MOUNT_TRANSLATION", "PARAMETERS", "PLANE_OFFSET", "PLANE_TILT", "PlaneModel",
-           "PlaneObservation", "observation_from_pose", "plane_covariance", "stack_poses", "tangent_basis", "whitening"]
+           "PlaneObservation", "arm_accuracy_covariance", "arm_error_jacobian",
+           "observation_from_pose", "plane_covariance", "stack_poses", "tangent_basis", "whitening"]

@@ -23,10 +23,11 @@ from cellcal.core.calibration.journal import journal_path, remove_journal
 from cellcal.core.calibration.outlock import OutputLock
 from cellcal.core.calibration.report import write_json_atomic
 from cellcal.core.geometry.planes import Plane
-from cellcal.core.handeye.estimator import HandEyeEstimate, estimate_mount, observability
+from cellcal.core.handeye.estimator import ArmAccuracy, HandEyeEstimate, estimate_mount, observability
 from cellcal.core.handeye.model import PlaneObservation, observation_from_pose
 from cellcal.core.handeye.observability import Observability
 from cellcal.core.handeye.result import HANDEYE_FILENAME, handeye_document, plane_sections
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CalibrationQualityError, ConfigError
 from cellcal.devices.pose import Pose
@@ -92,14 +93,25 @@ def check_observability(config: CellConfig, poses: Sequence[Pose]) -> Observabil
     return seen
 
 
-def estimate_from_document(config: CellConfig, document: Mapping[str, Any]) -> HandEyeEstimate:
-    """The plane method's estimate from a ``calibrate``-style result document of the plan."""
+def arm_accuracy(model: ArmModel | None) -> ArmAccuracy | None:
+    """What the hand-eye fit takes from an arm's stated model: its absolute accuracy (None: no model)."""
+    return None if model is None else ArmAccuracy(model.accuracy_m, model.accuracy_rad, model.source)
+
+
+def estimate_from_document(config: CellConfig, document: Mapping[str, Any],
+                           arm_model: ArmModel | None = None) -> HandEyeEstimate:
+    """The plane method's estimate from a ``calibrate``-style result document of the plan.
+
+    ``arm_model``: the arm's stated accuracy, in the weights and intervals (None: the read-back noise of
+    ``[handeye]`` alone).
+    """
     he = config.handeye
     observations = [observation_from_pose(pose) for pose in document["poses"]]
     return estimate_mount(observations, config.mount.pose(), reference_plane(config), given=he.given,
                           given_sigma=he.given_sigma, arm_translation_sigma_m=he.arm_translation_sigma_m,
                           arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence,
-                          noise_test_level=he.noise_test_level, max_interval_scale=he.max_interval_scale)
+                          noise_test_level=he.noise_test_level, max_interval_scale=he.max_interval_scale,
+                          arm_accuracy=arm_accuracy(arm_model))
 
 
 def mount_covariance(estimate: HandEyeEstimate) -> np.ndarray:
@@ -129,11 +141,12 @@ def run_handeye(calibrator: Calibrator, out_dir: str | Path, *, plan_kind: str, 
     config = calibrator.config
     with OutputLock.for_directory(out.parent):
         measured = calibrator.run(journal=journal, resume=resume)
-        estimate = estimate_from_document(config, measured)
+        estimate = estimate_from_document(config, measured, calibrator.arm.arm_model())
         flanges = [Pose.from_dict(p["reported_flange_pose"]) for p in measured["poses"]]
         header = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                   "config_source": config.source, "plan": plan_kind, "method": "plane",
                   "commanded_flange_poses": [p.to_dict() for p in calibrator.poses],
+                  "arm_model": calibrator.arm.arm_model().to_dict(),
                   **({"resumed_poses": measured["resumed_poses"]} if "resumed_poses" in measured else {})}
         document = handeye_document(estimate.mount, mount_covariance(estimate), estimate.confidence,
                                     config.mount.pose(), header=header, sections=plane_sections(estimate, flanges),
@@ -143,5 +156,5 @@ def run_handeye(calibrator: Calibrator, out_dir: str | Path, *, plan_kind: str, 
     return document
 
 
-__all__ = ["check_observability", "estimate_from_document", "plan_calibrator", "plane_config",
+__all__ = ["arm_accuracy", "check_observability", "estimate_from_document", "plan_calibrator", "plane_config",
            "predicted_observations", "reference_plane", "run_handeye"]

@@ -138,7 +138,8 @@ class RecordingArm(ForwardingArm):
     def _connect(self, timeout: float) -> None:
         super()._connect(timeout)
         self.recorder.log(TOPIC_ARM_INFO, {**encode_info(self.inner.info()), "intrinsics": None,
-                                           "default_timeout_s": self.inner.default_timeout_s})
+                                           "default_timeout_s": self.inner.default_timeout_s,
+                                           "arm_model": self.inner.arm_model().to_dict()})
 
     def _get_pose(self, timeout: float) -> Pose:
         return self._call("get_pose", {"timeout_s": timeout}, partial(super()._get_pose, timeout))

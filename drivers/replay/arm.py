@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from collections.abc import Callable
@@ -12,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
+from cellcal.devices.arm_model import UNSTATED_ARM_MODEL, ArmModel
 from cellcal.devices.base import BackendContext
 from cellcal.devices.errors import RecordingFileError, ReplayExhaustedError, ReplayMismatchError
 from cellcal.devices.pose import Pose
@@ -65,6 +67,11 @@ class ReplayArm(RobotArm):
         self._lock = threading.Lock()
         self._cursor = 0  # strict: next call; lenient: first call after the last replayed move
         self._moves = 0
+        infos = self.recording.arm_infos
+        recorded = infos[0].get("arm_model") if infos else None  # what the recorded arm stated (issue #39)
+        self._model = UNSTATED_ARM_MODEL if recorded is None else decoded(self.recording, lambda: dataclasses.replace(
+            ArmModel.from_dict({k: v for k, v in recorded.items() if k != "source"}, where="arm_info.arm_model"),
+            source=f"recording ({recorded.get('source', 'unstated')})"))
 
     @property
     def name(self) -> str:
@@ -138,6 +145,10 @@ class ReplayArm(RobotArm):
 
     def _close(self) -> None:
         self.state.moves = None
+
+    def _arm_model(self) -> ArmModel:
+        """What the recorded arm stated (the recording's arm info), else unstated (an older recording)."""
+        return self._model
 
     def _info(self) -> DeviceInfo:
         assert self._device_info is not None  # set by _connect

@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.base import BackendContext
 from cellcal.devices.discovery import HostScan
 from cellcal.devices.errors import (
@@ -58,6 +59,13 @@ log = logging.getLogger(__name__)
 CRASH_STOP_TIMEOUT_S = 1.0
 
 
+#: What a Universal Robots e-Series arm is worth (issue #39, ADR 0055): repeatability ±0.03 mm (UR3e, UR5e)
+#: to ±0.05 mm (UR10e, UR16e; the larger is stated, the backend does not know the model before it connects);
+#: absolute accuracy about 1-2 mm (UR ships each arm with its own kinematic calibration but states no absolute
+#: accuracy): 1.5 mm and 3 mrad (RMS over the workspace). ``[arm.model]`` overrides it.
+UR_MODEL = ArmModel(repeatability_m=5e-5, accuracy_m=1.5e-3, accuracy_rad=3e-3, source="backend")
+
+
 class URArm(URMotion):
     """A Universal Robots arm (CB3 / e-Series / UR Series) over ``ur_rtde`` 1.6.
 
@@ -89,6 +97,10 @@ class URArm(URMotion):
     """
 
     backend_name: ClassVar[str] = "ur"
+
+    def _arm_model(self) -> ArmModel:
+        """Universal Robots' e-Series figures (:data:`UR_MODEL`)."""
+        return UR_MODEL
     #: ur_rtde is C++: it runs in a worker process unless ``isolate = false`` (ADR 0038).
     wraps_native_code: ClassVar[bool] = True
     Config: ClassVar[type[URConfig]] = URConfig

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.arm import RobotArm
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.arrival import format_pose
 from cellcal.devices.base import BackendContext
 from cellcal.devices.discovery import HostScan
@@ -71,6 +72,11 @@ _LINK_ERRORS = (ProtocolError, DeviceTimeoutError, DeviceConnectionError)
 #: Serial port used when neither ``port`` nor ``host`` is given.
 DEFAULT_SERIAL_PORT = "/dev/ttyUSB0"
 _TCP_PORT_RANGE = {"ge": 1, "le": 65535}
+#: What a UFACTORY xArm 5/6/7 is worth (issue #39, ADR 0055): UFACTORY states a repeatability of ±0.1 mm
+#: for all three; it states no absolute accuracy, so an uncalibrated industrial arm's is assumed:
+#: 1.5 mm and 3 mrad (RMS over the workspace; ISO 9283 AP/AO of uncalibrated arms are 0.2-2 mm and up to a
+#: few mrad). A cell that measured its arm says so in ``[arm.model]``.
+XARM_MODEL = ArmModel(repeatability_m=1e-4, accuracy_m=1.5e-3, accuracy_rad=3e-3, source="backend")
 
 
 class XArmArm(RobotArm):
@@ -91,6 +97,10 @@ class XArmArm(RobotArm):
     """
 
     backend_name = "xarm"
+
+    def _arm_model(self) -> ArmModel:
+        """UFACTORY's repeatability (0.1 mm) and an assumed uncalibrated accuracy (:data:`XARM_MODEL`)."""
+        return XARM_MODEL
 
     @dataclass(frozen=True)
     class Config:

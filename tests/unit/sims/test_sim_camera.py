@@ -189,7 +189,8 @@ def test_capture_life_cycle_sequence_and_simulated_timestamps() -> None:
 def test_backends_built_from_one_document_share_the_world() -> None:
     doc = {
         "sim": {"plane_point_m": [0.0, 0.0, 0.05], "boxes": [{"center_xy_m": [0.3, 0.0], "size_m": [0.1, 0.1, 0.1]}],
-                "seed": 5, "systematic": {"enabled": False}},  # an ideal camera: exact heights
+                "seed": 5, "systematic": {"enabled": False},  # an ideal camera: exact heights
+                "arm_errors": {"enabled": False}},  # and an ideal arm
         "mount": {"translation_m": [0.0, 0.0, 0.02], "rpy_deg": [0.0, 0.0, 0.0], "nominal_only": True},
         "camera": {"backend": "sim", "noise": False, "quantisation_m": 0.0},
     }
