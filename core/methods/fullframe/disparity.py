@@ -23,6 +23,7 @@ from cellcal.core.methods.fullframe.passes import basis, truncation
 from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Nearness, Points, Sample, fixed_subsample
 from cellcal.core.methods.fullframe.settings import MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import Floors, Model, SpaceFit
+from cellcal.core.methods.fullframe.systematic import Response, pixel_uv
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.readable import quantity_pair
@@ -454,3 +455,14 @@ class DisparitySpace:
         """
         return Floors(fit.floor_rms_m, fit.expected_rms_m, (self.measurement.disparity_sigma_px or 0.0) > 0, 0.0,
                       points.p[2], None)
+
+    def response(self, fit: SpaceFit, points: Points, sample: Sample) -> Response:
+        """The disparity ``d = -f·B (n·a)/c`` (``a = (x/z, y/z, 1)``) fitted by least squares, weights 1."""
+        fb = self.measurement.fb_px_m
+        p = sample.p
+        a = np.vstack([p[0] / p[2], p[1] / p[2], np.ones(p.shape[1])])
+        n, c = np.asarray(fit.plane.normal, dtype=np.float64), fit.plane.offset_m
+        d = -fb * (n @ a) / c
+        jac = np.column_stack([-fb * (fit.e1 @ a) / c, -fb * (fit.e2 @ a) / c, -d / c])
+        u, v = pixel_uv(points.masks, points.shape, sample.index)
+        return Response(fit.plane, fit.e1, fit.e2, jac, np.ones(d.size), d, -d * d / fb, u, v, "stereo")

@@ -21,6 +21,7 @@ from cellcal.core.methods.fullframe.flatness import Flatness
 from cellcal.core.methods.fullframe.points import ExpectedPlane, Points, Sample
 from cellcal.core.methods.fullframe.result import IntervalFactors
 from cellcal.core.methods.fullframe.space import MeasurementSpace, SpaceFit
+from cellcal.core.methods.fullframe.systematic import systematic_budget
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 
 FloatArray = NDArray[np.float64]
@@ -284,6 +285,9 @@ def honest_intervals(fit: SpaceFit, space: MeasurementSpace, points: Points, exp
         spatial = deff if deff > 1.0 + DEFF_SIGNIFICANCE * se else 1.0
     uv = np.stack([fit.e1 @ sample.p, fit.e2 @ sample.p])     # in-plane coordinates, m
     cov, held = quantisation_floor(fit.cov * spatial, floors.floor_m, uv, int(np.count_nonzero(fit.inliers)))
+    budget = systematic_budget(space.response(fit, points, sample), cov, points.measurement.allowance)
+    if budget.widened:                                         # the camera's uncorrected systematic error (ADR 0059)
+        cov = cov + budget.covariance
     ratio = fit.residual_rms_m / floors.expected_m if floors.expected_m > 0 else math.nan
     notes = [*fit.notes, *floors.notes]
     if spatial > 1.0:
@@ -291,8 +295,10 @@ def honest_intervals(fit: SpaceFit, space: MeasurementSpace, points: Points, exp
                      f"pixels (design effect {spatial:.3g})")
     if held:
         notes.append(f"intervals held at the quantisation floor ({floors.floor_m * 1000:.3g} mm RMS across the plane)")
+    if budget.widened:
+        notes.append(budget.note())
     honest = Honest(points.measurement, space.name, floors.expected_m, floors.floor_m, floors.stated,
-                    floors.multipath_m, locked, IntervalFactors(ratio, spatial, held), tuple(notes), expected,
+                    floors.multipath_m, locked, IntervalFactors(ratio, spatial, held, budget), tuple(notes), expected,
                     points.n_pixels)
     return dataclasses.replace(fit, cov=cov, resid=None), honest   # the residuals' scratch goes before flatness
 

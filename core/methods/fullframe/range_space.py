@@ -24,6 +24,7 @@ from cellcal.core.methods.fullframe.passes import NothingLeftError, fit_from_sta
 from cellcal.core.methods.fullframe.points import FIXED_SEED, ExpectedPlane, Points, Sample, fixed_subsample, kept_array
 from cellcal.core.methods.fullframe.settings import DEFAULT_NOISE_EXPONENT, MIN_POINTS, FullFrameSettings
 from cellcal.core.methods.fullframe.space import EdgeReport, Floors, Model, SpaceFit
+from cellcal.core.methods.fullframe.systematic import Response, pixel_uv
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 from cellcal.devices.readable import quantity_pair
@@ -123,6 +124,27 @@ class RangeSpace:
         resid = fit.resid if fit.resid is not None else np.zeros(fit.inliers.size, np.float32)
         return Floors(floor, expected_m, stated, meas.multipath_m if tof else 0.0,
                       points.dm if tof else points.p[2], resid, notes)   # a ToF camera quantises the range
+
+
+    def response(self, fit: SpaceFit, points: Points, sample: Sample) -> Response:
+        """The range ``t = -c/(n·r)`` along each ray ``r``, fitted with the noise law's weights: its Jacobian."""
+        p = sample.p
+        dm = np.linalg.norm(p, axis=0)
+        r = p / dm
+        n, c = np.asarray(fit.plane.normal, dtype=np.float64), fit.plane.offset_m
+        nr = n @ r
+        t = -c / nr
+        jac = np.column_stack([c * (fit.e1 @ r) / (nr * nr), c * (fit.e2 @ r) / (nr * nr), -1.0 / nr])
+        model = self.model
+        if model.sigma is not None:
+            w = 1.0 / np.square(model.sigma[sample.index].astype(np.float64))
+        elif model.weighted:                                   # sigma ∝ t^e / sqrt|cos|
+            w = np.abs(nr) / np.power(np.abs(t), 2.0 * model.exponent)
+        else:
+            w = np.ones(t.size)
+        u, v = pixel_uv(points.masks, points.shape, sample.index)
+        kind = "tof" if self.measurement.kind == "tof" else "range"
+        return Response(fit.plane, fit.e1, fit.e2, jac, w, t, np.ones(t.size), u, v, kind)
 
 
 def noise_exponent(settings: FullFrameSettings, measurement: MeasurementModel) -> float:

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
+from cellcal.core.methods.fullframe.systematic import ErrorBudget
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 
 FloatArray = NDArray[np.float64]
@@ -64,16 +65,25 @@ class IntervalFactors:
             the squares), applied when significant.
         quantisation: Whether the quantisation floor (``residual_floor_m`` spread over the
             inliers' extent) widened the covariance.
+        systematic: What systematic depth errors do to the plane (a 1 % depth scale, a 1 mm depth
+            offset) and what the camera's systematic allowance added to the covariance
+            (:class:`~cellcal.core.methods.fullframe.systematic.ErrorBudget`; None: not computed).
     """
 
     observed_scale: float = math.nan
     spatial: float = 1.0
     quantisation: bool = False
+    systematic: ErrorBudget | None = field(default=None, compare=False)
+
+    @property
+    def allowance(self) -> bool:
+        """Whether the camera's systematic allowance widened the covariance."""
+        return self.systematic is not None and self.systematic.widened
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form."""
         return {"observed_scale": _finite_or_none(self.observed_scale), "spatial": self.spatial,
-                "quantisation": self.quantisation}
+                "quantisation": self.quantisation, "systematic_allowance": self.allowance}
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,6 +260,11 @@ class FullFrameResult:
         return self.height.interval
 
     @property
+    def error_budget(self) -> ErrorBudget | None:
+        """What a 1 % depth scale and a 1 mm depth offset do to this plane, and the allowance's share (ADR 0059)."""
+        return self.interval_factors.systematic
+
+    @property
     def passed(self) -> bool:
         """Whether every gate passed."""
         return all(ok for _, _, ok in self.gates.values())
@@ -308,4 +323,5 @@ class FullFrameResult:
             {"angle_deg": math.degrees(self.expected_departure[0]), "offset_m": self.expected_departure[1]},
             "interval_factors": self.interval_factors.to_dict(),
             "interval_notes": list(self.interval_notes),
+            "error_budget": None if self.error_budget is None else self.error_budget.to_dict(),
         }

@@ -24,6 +24,7 @@ from cellcal.core.geometry.planes import Plane
 
 if TYPE_CHECKING:
     from cellcal.core.methods.fullframe.points import ExpectedPlane, Points, Sample
+    from cellcal.core.methods.fullframe.systematic import Response
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -153,4 +154,11 @@ class MeasurementSpace(Protocol):
 
     def floors(self, fit: SpaceFit, points: Points, sample: Sample) -> Floors:
         """The quantisation floor and the expected RMS of the inliers (``sample``: a strided sample of them)."""
+        ...
+
+    def response(self, fit: SpaceFit, points: Points, sample: Sample) -> Response:
+        """How the fitted plane answers a perturbation of what the camera measures (ADR 0059).
+
+        ``sample``: a strided sample of the inliers; the fit's own Jacobian and weights there.
+        """
         ...

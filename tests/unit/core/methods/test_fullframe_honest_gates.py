@@ -95,7 +95,7 @@ def test_result_says_its_model_and_native_space() -> None:
     d = res.to_dict()
     assert d["native_space"] == "range" and d["measurement"]["kind"] == "tof"
     assert d["measurement"]["sigma_at_1m_m"] == 0.0032 and d["residual_floor_m"] == res.residual_floor_m
-    assert set(d["interval_factors"]) == {"observed_scale", "spatial", "quantisation"}
+    assert set(d["interval_factors"]) == {"observed_scale", "spatial", "quantisation", "systematic_allowance"}
     assert gate_table(res.settings, res) == res.gates
 
 
