@@ -156,12 +156,18 @@ class Registry:
             self._loaded[key] = obj
         return obj
 
-    def create(self, kind: Kind, section: Mapping[str, Any], context: BackendContext | None = None) -> Device:
+    def create(self, kind: Kind, section: Mapping[str, Any], context: BackendContext | None = None, *,
+               apply_correction: bool = True) -> Device:
         """Build an unconnected device from a config section holding ``backend = "name"``.
+
+        A camera section's ``correction`` table (``[camera.correction] file = ...``) is read here and
+        the camera wrapped in :class:`~cellcal.devices.correction.CorrectedCamera`, so that every
+        command corrects every frame (ADR 0058); ``apply_correction=False`` checks the table but
+        returns the raw camera (``cellcal depthcal``).
 
         Raises:
             ConfigError: If ``backend`` is missing or names no registered backend, or the
-                backend rejects its section.
+                backend rejects its section, or the correction table or its file is bad.
         """
         context = context or BackendContext(section=kind)
         name = section.get("backend")
@@ -172,11 +178,19 @@ class Registry:
             cls = self.get(kind, name)
         except RegistryError as exc:
             raise ConfigError(str(exc), source=context.source, key=f"{context.section}.backend") from None
+        if kind == "camera" and "correction" in section:
+            from .correction import camera_with_correction  # numpy's arithmetic, only for a corrected camera
+
+            rest = {k: v for k, v in section.items() if k != "correction"}
+            camera = cls.from_config(rest, context)
+            assert isinstance(camera, Camera3D)
+            return camera_with_correction(camera, section["correction"], context, apply=apply_correction)
         return cls.from_config(section, context)
 
-    def create_camera(self, section: Mapping[str, Any], context: BackendContext | None = None) -> Camera3D:
-        """:meth:`create` for cameras, typed."""
-        dev = self.create("camera", section, context)
+    def create_camera(self, section: Mapping[str, Any], context: BackendContext | None = None, *,
+                      apply_correction: bool = True) -> Camera3D:
+        """:meth:`create` for cameras, typed (``apply_correction``: see :meth:`create`)."""
+        dev = self.create("camera", section, context, apply_correction=apply_correction)
         assert isinstance(dev, Camera3D)
         return dev
 

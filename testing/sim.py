@@ -105,6 +105,7 @@ def cell_config(config: ConfigSource = None, tables: Mapping[str, Mapping[str, A
 
 
 def _simulated_camera(camera: Camera3D) -> SimCameraShell | None:
+    camera = getattr(camera, "raw", camera)  # behind a [camera.correction] (CorrectedCamera, ADR 0058)
     if isinstance(camera, SimCameraShell):
         return camera
     behind = getattr(camera, "sim", None)  # o3r-emulated

@@ -33,7 +33,7 @@ def _context_factory(document: Mapping[str, Any], source: str | None, seed: int)
 
 def build_devices(config: CellConfig, registry: Registry | None = None, *, source: str | None = None,
                   camera: Mapping[str, Any] | None = None, arm: Mapping[str, Any] | None = None,
-                  ) -> tuple[Camera3D, SafeArm]:
+                  apply_correction: bool = True) -> tuple[Camera3D, SafeArm]:
     """Create the (unconnected) camera and the safety-wrapped arm of a configuration.
 
     Args:
@@ -42,13 +42,16 @@ def build_devices(config: CellConfig, registry: Registry | None = None, *, sourc
         source: Configuration source the backends see; default ``config.source``.
         camera: Backend section to use instead of the document's ``[camera]``.
         arm: Backend section to use instead of the document's ``[arm]``.
+        apply_correction: Wrap the camera so that its ``[camera.correction]`` is removed from every
+            frame (default; ADR 0058); False: the raw camera (the table still checked), for ``cellcal depthcal``.
 
     Raises:
         ConfigError: If a backend is unknown or rejects its section.
     """
     registry = registry or default_registry()
     ctx = _context_factory(config.document, config.source if source is None else source, config.cell.seed)
-    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx("camera"))
+    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx("camera"),
+                                 apply_correction=apply_correction)
     inner: RobotArm = registry.create_arm(config.arm_section if arm is None else arm, ctx("arm"))
     return cam, SafeArm(inner, config.safety_limits())
 

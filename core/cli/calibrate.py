@@ -95,8 +95,13 @@ def _check(args: argparse.Namespace) -> int:
     poses = calibrator.poses
     plan = config.plan
     print(f"config:  {config.source} (cell '{config.cell.name}')")
-    print(f"camera:  backend '{camera.backend_name}'{_where(camera)} "
-          f"({type(camera).__module__}.{type(camera).__qualname__})")
+    from cellcal.devices.correction import CorrectedCamera
+
+    shown = camera.raw if isinstance(camera, CorrectedCamera) else camera
+    print(f"camera:  backend '{camera.backend_name}'{_where(shown)} "
+          f"({type(shown).__module__}.{type(shown).__qualname__})")
+    if isinstance(camera, CorrectedCamera):
+        print(f"correction: {camera.describe_correction()} (applied to every frame)")
     print(f"arm:     backend '{arm.inner.backend_name}'{_where(arm.inner)} "
           f"({type(arm.inner).__module__}.{type(arm.inner).__qualname__}), behind the safety envelope")
     print(f"plan:    {len(poses)} poses x {len(plan.perimeters_px)} perimeters x {len(plan.methods)} methods "
