@@ -91,6 +91,7 @@ from cellcal.devices.pose import Pose  # noqa: E402
 from cellcal.devices.types import Frame  # noqa: E402
 from cellcal.sims.camera import SimCamera, SimCameraConfig, noise_sigma_m  # noqa: E402
 from cellcal.sims.scene import Box, Scene  # noqa: E402
+from cellcal.sims.systematic import SystematicConfig  # noqa: E402
 from cellcal.sims.tof import ArtefactsConfig  # noqa: E402
 from cellcal.sims.world import SimWorld  # noqa: E402
 
@@ -156,7 +157,9 @@ def _camera(size: tuple[int, int], scene: Scene, seed: int, noisy: bool, view: V
     fov_y = math.degrees(2 * math.atan(h / w * math.tan(math.radians(fov_x / 2))))
     cfg = SimCameraConfig(width=w, height=h, fov_x_deg=fov_x, fov_y_deg=fov_y, noise=noisy,
                           noise_scale=view.noise_scale, quantisation_m=0.001 if noisy else 0.0, seed=seed)
-    cam = SimCamera(cfg, world=SimWorld(scene, Pose.identity(), seed=seed, artefacts=ARTEFACTS))
+    # noise only (no [sim.systematic]): the fit is measured against the Cramér-Rao bound of the noise
+    cam = SimCamera(cfg, world=SimWorld(scene, Pose.identity(), seed=seed, artefacts=ARTEFACTS,
+                                        systematic=SystematicConfig.off()))
     pose = look_at_pose(TARGET_M, PLANE_NORMAL, view.height_m, math.radians(view.inclination_deg), view.axis)
     return cam, pose
 

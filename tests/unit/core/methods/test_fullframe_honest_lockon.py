@@ -17,6 +17,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame, Intrinsics
 from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.scene import Box, Scene
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.world import SimWorld
 from tests.support.repo_paths import TEST_DATA
 
@@ -75,8 +76,8 @@ def test_subpixel_disparity_is_no_lock_on() -> None:
 def test_noise_free_exact_planes_are_no_lock_on(inclination_deg: float, stated: bool) -> None:
     """The sim without noise or quantisation: head-on every pixel has one Z and a residual of exactly 0; at 80 deg
     41 % of the float32 residuals are 0 and the rest ~1e-7 m. Neither is a lock-on, with the sim's model or none."""
-    cam = SimCamera(SimCameraConfig(noise=False, quantisation_m=0.0, seed=1),
-                    world=SimWorld(Scene(), Pose.identity(), seed=1))
+    cam = SimCamera(SimCameraConfig(noise=False, quantisation_m=0.0, seed=1),  # an ideal camera: exact planes
+                    world=SimWorld(Scene(), Pose.identity(), seed=1, systematic=SystematicConfig.off()))
     pose = look_at_pose(np.array([0.3, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), 0.6, math.radians(inclination_deg), "x")
     frame = cam.render(pose)
     if not stated:

@@ -15,6 +15,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
 from cellcal.sims.scene import Scene
 from cellcal.sims.stereo import SimStereoCamera, SimStereoConfig
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.world import SimWorld
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -23,7 +24,8 @@ UP = np.array([0.0, 0.0, 1.0])
 def _stereo(bits: int) -> tuple[Frame, Plane]:
     pose = look_at_pose(np.array([0.3, 0.0, 0.0]), UP, 0.7, math.radians(80.0), "x")
     cam = SimStereoCamera(SimStereoConfig(width=320, height=200, subpixel_bits=bits),
-                          world=SimWorld(Scene(), Pose.identity(), flange_pose=pose, seed=3))
+                          world=SimWorld(Scene(), Pose.identity(), flange_pose=pose, seed=3,
+                                         systematic=SystematicConfig.off()))  # the noise model's intervals
     truth = Plane.from_point_normal(np.zeros(3), UP).transformed(pose.inv()).oriented_toward_origin()
     return cam.render(pose), truth
 

@@ -19,6 +19,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
 from cellcal.sims.camera import SimCamera, SimCameraConfig
 from cellcal.sims.scene import Box, Scene
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.world import SimWorld
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -42,7 +43,9 @@ def _one_line(info: pytest.ExceptionInfo[BaseException]) -> str:
 def desk() -> tuple[Frame, Plane, Plane]:
     """The sim's floor with a desk top 12 cm above it hiding about two thirds of the view."""
     scene = Scene(np.zeros(3), UP, (Box((0.35, 0.0), (0.6, 0.8, DESK_M)),))
-    cam = SimCamera(SimCameraConfig(seed=2), world=SimWorld(scene, Pose.identity(), seed=2))
+    # an ideal camera: the desk top's height pinned to 2 mm
+    cam = SimCamera(SimCameraConfig(seed=2), world=SimWorld(scene, Pose.identity(), seed=2,
+                                                            systematic=SystematicConfig.off()))
     pose = look_at_pose(np.array([0.3, 0.0, 0.0]), UP, 0.9, math.radians(80.0), "x")
     floor = Plane.from_point_normal(np.zeros(3), UP).transformed(pose.inv()).oriented_toward_origin()
     top = Plane.from_point_normal(np.array([0.0, 0.0, DESK_M]), UP).transformed(pose.inv()).oriented_toward_origin()
