@@ -43,6 +43,9 @@ FloatArray = NDArray[np.float64]
 INLIER_SIGMAS = 5.0
 #: Soft-L1 scale of the robust pass, in sigmas.
 ROBUST_SCALE = 3.0
+#: The fit's weak prior on each correction term, about 0: this many times its limit (the camera's allowance).
+#: It changes nothing a plan sees (the data's sigma is far smaller) and keeps what it cannot see bounded.
+PRIOR_ALLOWANCES = 10.0
 #: Fewer views than this cannot separate the scale from the plane.
 MIN_VIEWS = 3
 #: Steps of the central differences for the geometry's columns (rad, m).
@@ -104,6 +107,7 @@ class _Problem:
     e2: FloatArray
     template: SystematicError  # kind, field order and wiggle period of the correction
     free: NDArray[np.intp]     # indices of the correction's vector that are fitted
+    prior: FloatArray          # per free term, a weak prior's 1-sigma about 0 (keeps what a plan cannot see bounded)
 
     @property
     def n_geometry(self) -> int:
@@ -132,7 +136,7 @@ class _Problem:
         t = np.empty(pts.ray.shape[0])
         cos = np.empty_like(t)
         for s, (rot, origin) in zip(pts.slices, self.camera_poses(g), strict=True):
-            nd = pts.ray[s] @ (rot.T @ n)           # n · (R ray)
+            nd = np.einsum("ij,j->i", pts.ray[s], rot.T @ n)   # n · (R ray)
             nd = np.minimum(nd, -1e-6)              # the ray must go towards the plane
             t[s] = (h - float(n @ origin)) / nd
             cos[s] = -nd
@@ -160,9 +164,19 @@ class _Problem:
         c[self.free] = x[self.n_geometry:]
         return c
 
-    def predicted(self, x: FloatArray, pts: _Points) -> FloatArray:
+    def predicted(self, x: FloatArray, pts: _Points, field: FloatArray | None = None) -> FloatArray:
+        """What the camera should measure (``distort`` of the true value), per point; ``field``: its image field."""
         true, _, _ = self.true_values(x[:self.n_geometry], pts)
-        out: FloatArray = true + self.design(true, pts) @ self.vector(x)
+        c = self.vector(x)
+        out: FloatArray = true * (1.0 + c[0]) + c[1]
+        head = 2
+        if not self.stereo:
+            head = 4
+            if self.template.wiggle_period_m > 0.0 and (c[2] or c[3]):
+                phase = (2.0 * math.pi / self.template.wiggle_period_m) * true
+                out += c[2] * np.cos(phase) + c[3] * np.sin(phase)
+        if c.size > head:
+            out += np.einsum("ij,j->i", pts.basis[:, :c.size - head], c[head:]) if field is None else field
         return out
 
 
@@ -237,6 +251,7 @@ class _Fit:
     sigma: FloatArray          # their noise, native unit
     jac: FloatArray            # whitened Jacobian at x over the inliers
     resid: FloatArray          # whitened residuals of the inliers
+    prior_jac: FloatArray      # the prior's rows of the Jacobian
 
 
 def _residual_fn(prob: _Problem, pts: _Points, sigma: FloatArray
@@ -245,19 +260,22 @@ def _residual_fn(prob: _Problem, pts: _Points, sigma: FloatArray
     steps = np.array([_STEP_ANGLE, _STEP_ANGLE, _STEP_LENGTH] + [_STEP_ANGLE] * 3 + [_STEP_LENGTH] * 3)[:ng]
 
     def fun(x: FloatArray) -> FloatArray:
-        out: FloatArray = (pts.measured - prob.predicted(x, pts)) / sigma
+        out: FloatArray = np.concatenate([(pts.measured - prob.predicted(x, pts)) / sigma, x[ng:] / prob.prior])
         return out
 
     def jac(x: FloatArray) -> FloatArray:
         true, _, _ = prob.true_values(x[:ng], pts)
         cols = [-(prob.design(true, pts)[:, prob.free]) / sigma[:, None]]
         geo = np.empty((pts.measured.size, ng))
+        field = np.zeros(pts.measured.size)   # the field does not move with the geometry: left out of the differences
         for k in range(ng):
             xp, xm = x.copy(), x.copy()
             xp[k] += steps[k]
             xm[k] -= steps[k]
-            geo[:, k] = -(prob.predicted(xp, pts) - prob.predicted(xm, pts)) / (2 * steps[k]) / sigma
-        return np.hstack([geo, *cols])
+            diff = prob.predicted(xp, pts, field) - prob.predicted(xm, pts, field)
+            geo[:, k] = -diff / (2 * steps[k]) / sigma
+        rows = np.hstack([np.zeros((prob.free.size, ng)), np.diag(1.0 / prob.prior)])
+        return np.vstack([np.hstack([geo, *cols]), rows])
 
     return fun, jac
 
@@ -293,8 +311,9 @@ def _gauss_newton(fun: Callable[[FloatArray], FloatArray], jac: Callable[[FloatA
         j = jac(x)
         w = 1.0 / np.sqrt(1.0 + (r / ROBUST_SCALE) ** 2) if robust else np.ones_like(r)
         jw = j * w[:, None]
-        a = j.T @ jw
-        b = jw.T @ r
+        # einsum, not BLAS: OpenBLAS threads on a tall, thin product lose more than they gain on a busy machine
+        a = np.einsum("ij,ik->jk", j, jw)
+        b = np.einsum("ij,i->j", jw, r)
         d = np.sqrt(np.maximum(np.diag(a), 1e-300))
         step = -np.linalg.lstsq(a / np.outer(d, d), b / d, rcond=1e-12)[0] / d
         for _half in range(8):
@@ -321,7 +340,7 @@ def _solve(prob: _Problem, model: MeasurementModel, pts: _Points, x0: FloatArray
         sigma = np.full_like(sigma, max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-5))
     fun, jac = _residual_fn(prob, pts, sigma)
     x = _gauss_newton(fun, jac, x0, robust=True, iterations=30)
-    r = fun(x)
+    r = fun(x)[:pts.measured.size]
     scale = max(1.4826 * float(np.median(np.abs(r))), 1.0)
     keep = np.abs(r) < INLIER_SIGMAS * scale
     inl = pts.take(keep)
@@ -330,7 +349,8 @@ def _solve(prob: _Problem, model: MeasurementModel, pts: _Points, x0: FloatArray
         sigma_in = sigma[keep]
     fun, jac = _residual_fn(prob, inl, sigma_in)
     x = _gauss_newton(fun, jac, x, robust=False, iterations=20)
-    return _Fit(x, inl, sigma_in, jac(x), fun(x))
+    n = inl.measured.size
+    return _Fit(x, inl, sigma_in, jac(x)[:n], fun(x)[:n], jac(x)[n:])
 
 
 def _evaluate(prob: _Problem, model: MeasurementModel, x: FloatArray, pts: _Points, fallback: float
@@ -422,7 +442,9 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
         else:
             free = np.array([k for k, name in enumerate(tp.names)
                              if not (name.startswith("wiggle_") and period <= 0.0)], dtype=np.intp)
-        return _Problem(stereo, fb, [flanges[i] for i in which], mount, estimate_mount, n0, e1, e2, tp, free)
+        prior = PRIOR_ALLOWANCES * np.array(_limits([tp.names[k] for k in free], model, stereo))
+        return _Problem(stereo, fb, [flanges[i] for i in which], mount, estimate_mount, n0, e1, e2, tp, free,
+                        prior)
 
     def x_start(prob: _Problem) -> FloatArray:
         return np.concatenate([[0.0, 0.0, h0], np.zeros(prob.n_geometry - 3), np.zeros(prob.free.size)])
@@ -477,8 +499,9 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
                                      _rms((resid_f * to_m_f)[s][k])))
 
     # --- covariance: the Jacobian's, scaled by chi-square per dof and the design effect when above 1
-    fisher = fit.jac.T @ fit.jac
-    cov, _, _ = fisher_covariance(fisher)
+    fisher = np.einsum("ij,ik->jk", fit.jac, fit.jac)       # the data's alone: what the plan sees
+    with_prior = fisher + np.einsum("ij,ik->jk", fit.prior_jac, fit.prior_jac)
+    cov, _, _ = fisher_covariance(with_prior)
     dof = max(fit.resid.size - fisher.shape[0], 1)
     chi2 = float(fit.resid @ fit.resid) / dof
     deff, se = design_effect(fit.resid.astype(np.float32), fit.pts.masks, fit.pts.shape)
