@@ -80,7 +80,10 @@ def fit_full_frame(frames: Frame | Sequence[Frame], settings: FullFrameSettings 
     space = _space_of(data.frames[0], cfg)
     fit = space.fit(data, expected)                                    # robust start -> refine -> covariance
     fit, honest = honest_intervals(fit, space, data, expected)         # floors, lock-on, widened intervals
-    flat, honest = allow_rounding(fit_flatness(fit, data, space.noise_shape, cfg), honest, fit.residual_rms_m)
+    judged = fit_flatness(fit, data, space.noise_shape, cfg)           # in sensor terms (ADR 0060)
+    flat, honest = allow_rounding(judged, honest, fit.residual_rms_m)
+    if judged.notes:                                                   # the sensor's allowances flatness used
+        honest = dataclasses.replace(honest, notes=(*honest.notes, *judged.notes))
     mask = pixel_inliers(fit.inliers, data.masks, data.shape)
     extras = Extras(image_coverage(mask, cfg, data.region), flat, honest)
     return assemble(fit, cfg, sigma_given=False, n_points=data.n, valid_fraction=data.n / data.n_pixels,

@@ -25,6 +25,8 @@ from cellcal.core.methods.fullframe.passes import basis
 from cellcal.core.methods.fullframe.points import KEEP_POINTS, Points, gather, kept_array, pixels_of
 from cellcal.core.methods.fullframe.settings import FullFrameSettings
 from cellcal.core.methods.fullframe.space import Model, SpaceFit
+from cellcal.core.methods.fullframe.staircase import bend_of, judge, staircase_of
+from cellcal.devices.measurement import MeasurementModel
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -52,11 +54,14 @@ class Flatness:
 
     Attributes:
         excess_m: Largest departure beyond ``flatness_sigma`` of its sigma, metres (>= 0).
-        where: The region it was found in, for messages ("" when none departs).
+        where: The region it was found in, for messages ("" when none departs); what the sensor
+            terms saw when they explain the departure ("a bend of 7.5 mm at the left edge ...").
+        notes: Sentences for the result's notes when an allowance of the sensor was used (ADR 0060).
     """
 
     excess_m: float
     where: str
+    notes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -318,13 +323,14 @@ def fit_flatness(fit: SpaceFit, points: Points, model: Model, cfg: FullFrameSett
                   kept_array("p_in", 3 * sel.size, np.float32).reshape(3, -1, order="F") if kept else None)
     wt = kept_array("wt", sel.size, np.float64) if kept else np.empty(sel.size)
     np.copyto(wt, _noise_orth(p_in, points.dm[sel], frame, model))
-    del sel                                                 # point-sized arrays go as soon as they are used
     np.square(wt, out=wt)
     np.divide(1.0, wt, out=wt)                              # weights 1 / noise^2
     uvw = frame.uvw(p_in, kept=kept)
-    del p_in
     best = grid_flatness(uvw, wt, cell, grid, fit.noise_scale_m, cfg.flatness_sigma)
-    del uvw, wt, cell
+    if best.excess_m > cfg.flatness_tolerance_m and points.measurement.known:   # in sensor terms (ADR 0060)
+        best = _sensor_terms(best, frame, p_in, pixels_of(sel, points.masks), (h, w), points.measurement,
+                             uvw, wt, cell, grid, fit.noise_scale_m, cfg)
+    del sel, p_in, uvw, wt, cell                            # point-sized arrays go as soon as they are used
     step = max(1, round(max(h, w) / REGION_MAP_PX))
     start = 0
     for m in points.masks:
@@ -334,9 +340,51 @@ def fit_flatness(fit: SpaceFit, points: Points, model: Model, cfg: FullFrameSett
             reg = _frame_regions(frame, points.p[:, start:start + k], points.dm[start:start + k], m, inl, (h, w),
                                  step, fit.noise_scale_m, model, cfg)
             if reg.excess_m > best.excess_m:
-                best = reg
+                best = Flatness(reg.excess_m, reg.where, best.notes)
         start += k
     return best
+
+
+def _sensor_terms(best: Flatness, frame: PlaneFrame, p_in: F32, pix: NDArray[np.intp], shape: tuple[int, int],
+                  model: MeasurementModel, uvw: FloatArray, wt: FloatArray, cell: NDArray[np.intp],
+                  grid: tuple[int, int], scale_m: float, cfg: FullFrameSettings) -> Flatness:
+    """The grid's departure judged in sensor terms: a staircase, a bend within the allowance, or local."""
+    h, w = shape
+    p = p_in.astype(np.float64)
+    rng = np.sqrt(np.einsum("ij,ij->j", p, p))
+    cos = frame.n @ p / rng                                      # n · unit ray
+    along = -frame.offset / cos                                  # the plane's range along each ray
+    rows, cols = np.divmod(pix, w)
+    u = (cols - (w - 1) / 2.0) / (w / 2.0)
+    v = (rows - (h - 1) / 2.0) / (h / 2.0)
+    field_allowance = model.allowance[2]
+    if model.triangulating:
+        fb = model.fb_px_m
+        z, z_hat = p[2], along * p[2] / rng
+        d_meas, d_hat = fb / z, fb / z_hat
+        resid, to_m = d_meas - d_hat, z_hat * z_hat / fb
+    else:
+        resid, to_m = rng - along, np.ones_like(rng)
+
+    def local(field: FloatArray) -> float:
+        """The grid's excess with ``field`` (native unit) taken out of the measurements."""
+        clean = np.array(uvw)
+        if model.triangulating:
+            clean[2] = cos * (fb / (d_meas - field)) * rng / z + frame.offset
+        else:
+            clean[2] = cos * (rng - field) + frame.offset
+        return grid_flatness(clean, wt, cell, grid, scale_m, cfg.flatness_sigma).excess_m
+
+    bend = bend_of(resid, u, v, cols, rows, to_m, field_allowance)
+    stair = None
+    if model.triangulating:
+        step = model.disparity_step_px
+        sigma = model.disparity_sigma_px
+        if sigma is None:                                        # the noise before rounding, bend taken out
+            sigma = math.sqrt(max(float(np.var(resid - bend.field)) - step * step / 12.0, 0.0))
+        stair = staircase_of(d_meas, d_hat, cell, float(np.median(z_hat)), model, sigma)
+    verdict = judge(best.excess_m, best.where, cfg.flatness_tolerance_m, stair, bend, local)
+    return Flatness(verdict.excess_m, verdict.where, verdict.notes)
 
 
 def _frame_regions(frame: PlaneFrame, p: F32, dm: F32, m: BoolArray, inl: BoolArray, shape: tuple[int, int],

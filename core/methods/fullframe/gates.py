@@ -23,6 +23,9 @@ GATE_NAMES = ("valid_fraction", "residual_floor", "expected_plane", "flatness", 
 GATE_UNITS = {"valid_fraction": "", "residual_floor": "", "expected_plane": "rad", "flatness": "m",
               "inlier_fraction": "", "residual_rms_m": "m", "coverage": ""}
 
+#: How a flatness refusal judged in sensor terms begins (``staircase.judge``): said after the value, not as a place.
+SENSOR_TERMS = ("a staircase of ", "a bend of ")
+
 #: Gate name -> (what is measured, how it failed, display unit) for the error message.
 _GATE_TEXT = {
     "valid_fraction": ("valid pixels", "below the minimum", "%"),
@@ -149,6 +152,8 @@ def _message(name: str, value: float, threshold: float, result: FullFrameResult,
     expected = expected_rms_m(result, settings)
     if name == "residual_rms_m" and expected > 0:
         text += f" ({value / expected:.3g} x the {quantity(expected, 'm')} the noise model expects for these pixels)"
+    elif name == "flatness" and result.flatness_where.startswith(SENSOR_TERMS):
+        text += f": {result.flatness_where}"                # what the sensor terms saw (ADR 0060)
     elif name == "flatness" and result.flatness_where:
         text += f" (in {result.flatness_where})"
     return text
