@@ -26,6 +26,7 @@ import numpy as np
 
 from cellcal.core.calibration.sections import (
     CellSection,
+    DepthcalSection,
     HandEyeSection,
     MonitorSection,
     MountSection,
@@ -42,7 +43,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.safety import SafetyLimits
 
 TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "region", "safety", "plan", "sim", "monitor",
-                    "full_frame", "handeye")
+                    "full_frame", "handeye", "depthcal")
 #: Backends built on the simulated world, the only readers of ``[sim]`` (tests/unit/core/calibration/test_config.py
 #: checks this against the registered backends that live in ``cellcal.sims``).
 SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated", "ur-emulated"})
@@ -73,6 +74,7 @@ class CellConfig:
     full_frame: FullFrameSettings = field(default_factory=FullFrameSettings)
     handeye: HandEyeSection = field(default_factory=HandEyeSection)
     region: RegionSection = field(default_factory=RegionSection)
+    depthcal: DepthcalSection = field(default_factory=DepthcalSection)
 
     @property
     def search_reference(self) -> ReferenceSection | None:
@@ -153,6 +155,7 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
         full_frame=parse_section(FullFrameSettings, document.get("full_frame"), where="full_frame", source=source),
         handeye=parse_section(HandEyeSection, document.get("handeye"), where="handeye", source=source),
         region=parse_section(RegionSection, document.get("region"), where="region", source=source),
+        depthcal=parse_section(DepthcalSection, document.get("depthcal"), where="depthcal", source=source),
     )
 
 

@@ -27,6 +27,7 @@ __all__ = [
     "MAX_POLYGON_VERTICES",
     "MAX_POSES",
     "CellSection",
+    "DepthcalSection",
     "HandEyeParameter",
     "HandEyeSection",
     "MethodName",
@@ -374,3 +375,44 @@ class MonitorSection:
     def tilt_threshold_rad(self) -> float:
         """``tilt_threshold_deg`` in radians."""
         return math.radians(self.tilt_threshold_deg)
+
+
+@dataclass(frozen=True)
+class DepthcalSection:
+    """``[depthcal]``: the plan and the fit of ``cellcal depthcal`` (docs/adr/0057-depthcal-command.md).
+
+    The plan views ``target_m`` (default: ``[plan] target_m``) from every height (along the
+    optical axis; default: three heights spread over the ``[plan]`` heights, at least 0.2 m
+    apart end to end) at every inclination; a tilted view is taken at two tool rolls 90
+    degrees apart, the pair turning by 180 degrees from one height to the next, so that the
+    plane's slope crosses the image in four directions. From one height to the next the
+    target moves by ``offset_m`` across the base's y axis (-, 0, +): other arm configurations,
+    another part of the table. Frames are fitted uncorrected; every ``holdout_every``-th is
+    held out of the fit to measure its error before and after.
+
+    Attributes:
+        heights_m: The camera's distances from the target along its optical axis, metres (unset: from ``[plan]``).
+        inclinations_deg: The optical axis' angles with the plane, degrees (90: looking straight at it).
+        rolls_deg: Tool rolls about its axis the tilted views take, in pairs, degrees.
+        offset_m: The target's move across the base's y axis from one height to the next, metres.
+        target_m: Where the optical axis meets the plane, base frame, metres (unset: ``[plan] target_m``).
+        field_max_order: The highest order of the image field tried (chosen by held-out error).
+        holdout_every: Every this-many-th view is held out of the fit.
+        frames_per_pose: Frames captured at each pose (each frame a view of its own).
+        max_points_per_view: Pixels of a view the fit uses at most (a seeded sample).
+        wiggle_period_m: A ToF camera's wiggling period in range, metres (unset: no wiggling term fitted).
+    """
+
+    heights_m: tuple[float, ...] | None = field(default=None, metadata={"ge": 0.05, "le": 10.0, "min_items": 1,
+                                                                         "max_items": 20})
+    inclinations_deg: tuple[float, ...] = field(default=(90.0, 80.0, 70.0),
+                                                metadata={"ge": 10.0, "le": 90.0, "min_items": 1, "max_items": 20})
+    rolls_deg: tuple[float, ...] = field(default=(0.0, 90.0, 180.0, 270.0),
+                                         metadata={"ge": -360.0, "le": 360.0, "min_items": 1, "max_items": 72})
+    offset_m: float = field(default=0.05, metadata={"ge": 0.0, "le": 1.0})
+    target_m: Vec3 | None = field(default=None, metadata={"ge": -10.0, "le": 10.0})
+    field_max_order: int = field(default=3, metadata={"ge": 0, "le": 4})
+    holdout_every: int = field(default=4, metadata={"ge": 2, "le": 1000})
+    frames_per_pose: int = field(default=1, metadata={"ge": 1, "le": 20})
+    max_points_per_view: int = field(default=4000, metadata={"ge": 100, "le": 1_000_000})
+    wiggle_period_m: float | None = field(default=None, metadata={"gt": 0.0, "le": 100.0})

@@ -34,6 +34,7 @@ __all__ = ["SUBCOMMANDS", "SUMMARIES", "build_parser", "exit_status", "run_comma
 SUMMARIES = {
     "calibrate": "run the calibration plan and write DIR/result.json",
     "handeye": "estimate the camera mount ([mount]) from the measuring plane",
+    "depthcal": "calibrate the camera's systematic depth error from the plane and the arm's motion",
     "board": "write the ChArUco board of [handeye] charuco_* as a page to print",
     "monitor": "watch cameras for drift of the measuring plane (tilt, height)",
     "track": "keep the mount and the plane calibrated from the cell's normal work",

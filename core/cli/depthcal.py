@@ -163,6 +163,22 @@ def _measure(args: argparse.Namespace, calibrator: Any) -> Any:
                          resume_command("depthcal", args))
 
 
+def _compare(path: str, document: dict[str, Any]) -> str:
+    """One line saying whether ``document`` equals the depthcal result recorded in ``path`` exactly."""
+    from cellcal.core.calibration.replay import exact_part
+    from cellcal.devices.recording import read_recording
+
+    recorded = read_recording(path).result
+    if not recorded or not recorded.get("ok") or not isinstance(recorded.get("result"), dict):
+        return "replay: the recording holds no successful result to compare with"
+    want, got = exact_part(recorded["result"]), exact_part(document)
+    if want == got:
+        return f"replay: identical to the recorded result ({len(got.get('plan', []))} poses, the correction and " \
+               "every figure)"
+    keys = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
+    return f"replay: DIFFERS from the recorded result: {', '.join(keys)}"
+
+
 def _finish(args: argparse.Namespace, config: Any, document: dict[str, Any], result: Any, views: list[Any],
             corrected: bool) -> None:
     """The terminal summary, the replay's comparison and the report."""
@@ -176,9 +192,7 @@ def _finish(args: argparse.Namespace, config: Any, document: dict[str, Any], res
         print(format_summary(document, out))
     print(f"result written to {out}")
     if args.replay:
-        from cellcal.core.calibration.replay import compare_with_recording
-
-        print(compare_with_recording(args.replay, document))
+        print(_compare(args.replay, document))
     if not args.no_report:
         page = write_report(args.out, config, document, result, views)
         if page is not None and not args.quiet:
