@@ -44,6 +44,7 @@ from cellcal.core.methods.measure import (
     measure_frames,
     measure_full_frame,
 )
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.blocking import DeadlineGuard
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import (
@@ -260,7 +261,7 @@ class Calibrator:
             "config": dict(self.config.document),
             "mount": self.config.mount.pose().to_dict(),
             "poses": poses,
-            "summary": summarize_poses(poses, self._reference_plane()),
+            "summary": summarize_poses(poses, self._reference_plane(), arm=self._arm_model()),
             "timings_s": {
                 "total": total_s,
                 "connect": connect_s,
@@ -268,6 +269,12 @@ class Calibrator:
             },
             **({"resumed_poses": resumed} if resumed is not None else {}),
         }
+
+    def _arm_model(self) -> ArmModel | None:
+        """The arm's stated model for the error budget (None when the backend states none; ADR 0059)."""
+        stated = getattr(self.arm, "arm_model", None)
+        model = stated() if callable(stated) else None
+        return model if isinstance(model, ArmModel) else None
 
     def _check_arm_ready(self, when: str) -> None:
         """Raise VendorError if the arm reports an error (e.g. a protective stop)."""

@@ -17,8 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from cellcal.core.calibration.budget import budget_line, error_budget
 from cellcal.core.geometry.consistency import PosePlane, plane_consistency
 from cellcal.core.geometry.planes import Plane
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.errors import CalibrationError, OutputError
 from cellcal.devices.jsonsafe import json_safe
 from cellcal.devices.pose import Pose
@@ -209,16 +211,19 @@ def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = 
     return out
 
 
-def summarize_poses(poses: Iterable[Mapping[str, Any]], reference: Plane | None = None) -> dict[str, Any]:
-    """The document's ``summary``: per-method statistics and the plane's consistency.
+def summarize_poses(poses: Iterable[Mapping[str, Any]], reference: Plane | None = None, *,
+                    arm: ArmModel | None = None) -> dict[str, Any]:
+    """The document's ``summary``: per-method statistics, the plane's consistency and the error budget.
 
     Args:
         poses: Pose records (``document["poses"]``).
         reference: The ``[reference]`` plane in the base frame, if known.
+        arm: The arm's stated model for the error budget (None: unstated, ADR 0059).
     """
     pose_list = list(poses)
     rows = [r for p in pose_list for r in p.get("measurements", [])]
-    return {"methods": summarize(rows), "plane_consistency": plane_summary(pose_list, reference)}
+    return {"methods": summarize(rows), "plane_consistency": plane_summary(pose_list, reference),
+            "error_budget": error_budget(pose_list, arm)}
 
 
 def _ci(value: Any, ci: Any, spec: str) -> str:
@@ -327,6 +332,9 @@ def format_full_frame(document: Mapping[str, Any]) -> str:
             lines.append(f"  vs [reference] plane: {ref['angle_deg']:.4f} deg apart, "
                          f"{ref['height_m'] * 1000:+.3f} mm above it at "
                          f"{_vec(_mm(cons['reference_point_m']), '+.3f')} mm")
+    budget = budget_line((document.get("summary") or {}).get("error_budget"))
+    if budget:
+        lines.append(budget)
     if above:
         lines.append(ABOVE_NOTE)
     return "\n".join(lines)
