@@ -18,6 +18,7 @@ import os
 import stat
 import threading
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,13 +28,14 @@ from numpy.typing import NDArray
 from . import boundedjson
 from .base import BackendContext
 from .camera import Camera3D
+from .config import parse_section
 from .errors import CalibrationError, ConfigError
 from .forwarding import ForwardingCamera
 from .measurement import MeasurementModel
 from .systematic import SystematicError, field_basis, normalised_pixels
 from .types import Frame, Intrinsics
 
-__all__ = ["CORRECTION_KEY", "MAX_CORRECTION_BYTES", "CorrectedCamera", "camera_with_correction",
+__all__ = ["CORRECTION_KEY", "MAX_CORRECTION_BYTES", "CorrectedCamera", "CorrectionSection", "camera_with_correction",
            "correct_frame", "corrected_model", "leftover_allowance", "load_correction_file", "wiggle_passes"]
 
 #: The dotted key every problem with the correction file is reported under.
@@ -121,26 +123,37 @@ def load_correction_file(path: str | Path, *, source: str | None = None, key: st
         raise ConfigError(f"{shown}: {exc.key or where}: {exc.reason}", source=source, key=key) from None
 
 
+@dataclass(frozen=True)
+class CorrectionSection:
+    """The ``[camera.correction]`` table: a depth correction removed from every frame before every fit (ADR 0058).
+
+    The camera is wrapped so that calibrate, handeye, monitor, track, record and the live view see
+    corrected frames, whose measurement model states the systematic allowance the correction's
+    covariance leaves (scale, offset, the field at the image corner) in place of the vendor's.
+    ``cellcal calibrate --check`` shows the correction; a missing or bad file stops every command
+    with one line naming ``camera.correction.file``.
+    """
+
+    file: str = field(metadata={
+        "doc": "the depthcal.json of 'cellcal depthcal' (its correction) or a cellcal.systematic/1 JSON; "
+               "a relative path is read from the configuration file's folder"})
+
+
 def correction_from_table(table: Any, context: BackendContext) -> tuple[SystematicError, str]:
-    """A ``[camera.correction]`` table (``file``, relative to the configuration file): the correction and its path.
+    """A ``[camera.correction]`` table (:class:`CorrectionSection`): the correction and its resolved path.
 
     Raises:
         ConfigError: Naming ``camera.correction`` (not a table, an unknown key) or
             ``camera.correction.file`` (missing, not a string, a bad file).
     """
-    section = context.section or "camera"
-    where = f"{section}.correction"
+    where = f"{context.section or 'camera'}.correction"
     if not isinstance(table, Mapping):
         raise ConfigError(f"expected a table with file = \"depthcal.json\", got {type(table).__name__}",
                           source=context.source, key=where)
-    for name in table:
-        if name != "file":
-            raise ConfigError("unknown key; expected only file", source=context.source, key=f"{where}.{name}")
-    file = table.get("file")
-    if not isinstance(file, str) or not file or any(ord(ch) < 0x20 for ch in file):
-        raise ConfigError("missing or not a path string (the depthcal.json of 'cellcal depthcal')",
-                          source=context.source, key=f"{where}.file")
-    path = Path(file).expanduser()
+    section = parse_section(CorrectionSection, table, where=where, source=context.source)
+    if not section.file.strip():
+        raise ConfigError("empty; expected the path of a depthcal.json", source=context.source, key=f"{where}.file")
+    path = Path(section.file).expanduser()
     if not path.is_absolute() and context.source and Path(context.source).is_file():
         path = context.base_dir / path  # relative to the configuration file
     return load_correction_file(path, source=context.source, key=f"{where}.file"), str(path)

@@ -143,6 +143,7 @@ def config_tables() -> dict[str, tuple[type, bool]]:
     backend's ``[camera]`` or ``[arm]`` table is ``camera:NAME`` / ``arm:NAME``.
     """
     from cellcal.core.calibration.config import CellConfig
+    from cellcal.devices.correction import CorrectionSection
     from cellcal.devices.measurement import MeasurementModel
     from cellcal.devices.registry import default_registry
     from cellcal.sims.world import SimConfig
@@ -154,6 +155,7 @@ def config_tables() -> dict[str, tuple[type, bool]]:
             tables.update((i, (c, a)) for i, c, a in _nested(f.name, _unwrap(hints[f.name])))
     tables.update((i, (c, a)) for i, c, a in _nested("sim", SimConfig))
     tables.update((i, (c, a)) for i, c, a in _nested("camera.model", MeasurementModel))
+    tables.update((i, (c, a)) for i, c, a in _nested("camera.correction", CorrectionSection))
     registry = default_registry()
     for entry in registry.entries():
         config_cls = registry.get(entry.kind, entry.name).Config
