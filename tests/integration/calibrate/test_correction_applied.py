@@ -17,12 +17,13 @@ from cellcal.devices.correction import CorrectedCamera, correct_frame, leftover_
 from cellcal.devices.systematic import SystematicError
 
 SIM_OAK = resources.files("cellcal.configs").joinpath("sim_oak.toml").read_text()
+SIM_TOF = resources.files("cellcal.configs").joinpath("sim.toml").read_text()
 
 
 def write_cell(tmp_path: Path, correction: SystematicError | None, *, ideal: bool = False,
-               file: str = "depthcal.json") -> Path:
-    """configs/sim_oak.toml in ``tmp_path`` with ``[camera.correction] file`` beside it (and ``depthcal.json``)."""
-    text = SIM_OAK
+               file: str = "depthcal.json", base: str = SIM_OAK) -> Path:
+    """configs/sim_oak.toml (or ``base``) in ``tmp_path`` with ``[camera.correction] file`` beside it."""
+    text = base
     if ideal:   # an ideal camera: no systematic error drawn
         text = text.replace("\n[sim]\n", "\n[sim.systematic]\nenabled = false\n\n[sim]\n")
     if correction is not None:
@@ -74,22 +75,24 @@ def test_a_zero_correction_with_a_covariance_states_its_allowance_in_every_frame
     assert np.allclose(again.xyz[raw.valid], raw.xyz[raw.valid], rtol=1e-6, atol=0)
 
 
-def test_the_true_correction_brings_the_heights_to_the_ideal_cameras(tmp_path: Path) -> None:
+@pytest.mark.parametrize("base", [SIM_OAK, SIM_TOF], ids=["stereo", "tof"])
+def test_the_true_correction_brings_the_heights_to_the_ideal_cameras(tmp_path: Path, base: str) -> None:
     """With the sim's own systematic error removed, calibrate's heights are the ideal camera's (same seed)."""
-    raw_cell = write_cell(tmp_path, None)
+    raw_cell = write_cell(tmp_path, None, base=base)
     truth = sim_truth(raw_cell)
     if truth is None or truth.is_zero:
-        pytest.skip("the stereo sim draws no systematic error ([sim.systematic], engineer A)")
+        pytest.skip("the sim draws no systematic error ([sim.systematic], engineer A)")
     k = len(truth.names)
-    exact = SystematicError.from_vector("stereo", truth.vector, field_order=truth.field_order,
-                                        covariance=np.zeros((k, k)))
+    exact = SystematicError.from_vector(truth.kind, truth.vector, field_order=truth.field_order,
+                                        wiggle_period_m=truth.wiggle_period_m, covariance=np.zeros((k, k)))
     (tmp_path / "ideal").mkdir()
     (tmp_path / "fixed").mkdir()
     uncorrected = height_errors_mm(run(raw_cell))
-    ideal = height_errors_mm(run(write_cell(tmp_path / "ideal", None, ideal=True)))
-    corrected = height_errors_mm(run(write_cell(tmp_path / "fixed", exact)))
-    # measured (seed 7): uncorrected -3.8, -5.4, -5.6 mm; corrected and ideal -0.18, -0.17, -0.11 mm,
-    # equal to 2 um (the rounding of the corrected disparities is not the ideal camera's)
+    ideal = height_errors_mm(run(write_cell(tmp_path / "ideal", None, ideal=True, base=base)))
+    corrected = height_errors_mm(run(write_cell(tmp_path / "fixed", exact, base=base)))
+    # measured (seed 7): stereo uncorrected -3.8, -5.4, -5.6 mm, corrected and ideal -0.18, -0.17, -0.11 mm
+    # (equal to 2 um: the rounding of corrected disparities is not the ideal camera's); ToF uncorrected
+    # +3.6, +4.3, +4.4 mm, corrected and ideal -0.18, -0.19, -0.11 mm (equal to 3 um)
     assert np.abs(uncorrected - ideal).min() > 2.0
     assert np.abs(corrected - ideal).max() < 0.02
 
