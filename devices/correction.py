@@ -29,9 +29,9 @@ from . import boundedjson
 from .base import BackendContext
 from .camera import Camera3D
 from .config import parse_section
-from .errors import CalibrationError, ConfigError
+from .errors import CalibrationError, CellcalError, ConfigError
 from .forwarding import ForwardingCamera
-from .measurement import MeasurementModel
+from .measurement import UNKNOWN_MODEL, MeasurementModel
 from .systematic import SystematicError, field_basis, normalised_pixels
 from .types import Frame, Intrinsics
 
@@ -371,7 +371,10 @@ class CorrectedCamera(ForwardingCamera):
         super().__init__(inner)
         self.correction = correction
         self.correction_file = file
-        known = inner.measurement_model
+        try:
+            known = inner.measurement_model
+        except CellcalError:   # a backend that can only tell once connected: checked at the first frame
+            known = UNKNOWN_MODEL
         if known.known:   # a mismatch the configuration alone shows is a configuration error, before connecting
             try:
                 _check_kind(known, correction)
