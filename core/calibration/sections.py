@@ -382,7 +382,7 @@ class DepthcalSection:
     """``[depthcal]``: the plan and the fit of ``cellcal depthcal`` (docs/adr/0057-depthcal-command.md).
 
     The plan views ``target_m`` (default: ``[plan] target_m``) from every height (along the
-    optical axis; default: three heights spread over the ``[plan]`` heights, at least 0.2 m
+    optical axis; default: three heights spread over the ``[plan]`` heights, at least 0.3 m
     apart end to end) at every inclination; a tilted view is taken at two tool rolls 90
     degrees apart, the pair turning by 180 degrees from one height to the next, so that the
     plane's slope crosses the image in four directions. From one height to the next the

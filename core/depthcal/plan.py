@@ -26,7 +26,7 @@ from cellcal.devices.pose import Pose
 __all__ = ["MIN_HEIGHT_SPAN_M", "Coverage", "PlanView", "depthcal_heights", "depthcal_plan", "plan_coverage"]
 
 #: The default heights span at least this much, metres (the arm's motion between them fixes the scale).
-MIN_HEIGHT_SPAN_M = 0.2
+MIN_HEIGHT_SPAN_M = 0.3
 #: Heights of the default plan.
 DEFAULT_N_HEIGHTS = 3
 
@@ -55,7 +55,7 @@ class PlanView:
 
 
 def depthcal_heights(config: CellConfig) -> tuple[float, ...]:
-    """The plan's heights: ``[depthcal] heights_m``, else three over the ``[plan]`` heights widened to 0.2 m."""
+    """The plan's heights: ``[depthcal] heights_m``, else three over the ``[plan]`` heights widened to 0.3 m."""
     dc = config.depthcal
     if dc.heights_m is not None:
         return tuple(dc.heights_m)

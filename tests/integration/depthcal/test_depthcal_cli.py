@@ -65,7 +65,7 @@ def test_the_command_writes_the_correction_and_the_report(tmp_path: Path, name: 
 def test_the_default_plan_spans_heights_inclinations_and_image_directions() -> None:
     config = load_config(REPO_ROOT / "configs" / "sim.toml")
     views = depthcal_plan(config)
-    assert depthcal_heights(config) == (0.435, 0.535, 0.635)  # [plan] 0.46-0.61 m widened to 0.2 m
+    assert depthcal_heights(config) == (0.385, 0.535, 0.685)  # [plan] 0.46-0.61 m widened to 0.3 m
     assert len(views) == 15
     seen = plan_coverage(config, views)
     assert seen.inclinations_deg == (90.0, 80.0, 70.0) and len(seen.slope_directions) == 4 and not seen.notes
@@ -86,8 +86,8 @@ def test_dry_run_draws_the_plan_and_moves_nothing(tmp_path: Path, monkeypatch: p
     assert main(["depthcal", "--config", str(REPO_ROOT / "configs" / "sim_oak.toml"), "--dry-run",
                  "--out", str(tmp_path / "o")]) == 0
     out = capsys.readouterr().out
-    assert out.count("move ") == 15 and "[h 0.635 m, 70 deg, roll 270]" in out
-    assert "coverage: 3 heights (435-635 mm)" in out and "dry run OK" in out
+    assert out.count("move ") == 15 and "[h 0.685 m, 70 deg, roll 270]" in out
+    assert "coverage: 3 heights (385-685 mm)" in out and "dry run OK" in out
     assert not (tmp_path / "o").exists()
 
 
