@@ -33,7 +33,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
-from cellcal.core.methods.fullframe.passes import step_plane
 
 FloatArray = NDArray[np.float64]
 
@@ -141,6 +140,13 @@ _DERIVED: tuple[Callable[[Plane], float], ...] = (
     Plane.distance_along_optical_axis_m)
 
 
+def _step_plane(n: FloatArray, e1: FloatArray, e2: FloatArray, offset: float, step: FloatArray
+                ) -> tuple[FloatArray, float]:
+    """``passes.step_plane`` (not imported: passes -> space -> this module would close a circle)."""
+    n_new = n + step[0] * e1 + step[1] * e2
+    return n_new / np.linalg.norm(n_new), offset + float(step[2])
+
+
 def derived_jacobian(plane: Plane, e1: FloatArray, e2: FloatArray) -> FloatArray:
     """(4, 3) d(angle, tilt_x, tilt_y, height)/d(step) by central differences."""
     n0 = np.asarray(plane.normal, dtype=np.float64)
@@ -151,7 +157,7 @@ def derived_jacobian(plane: Plane, e1: FloatArray, e2: FloatArray) -> FloatArray
         for sgn in (1.0, -1.0):
             step = np.zeros(3)
             step[k] = sgn * h[k]
-            n, c = step_plane(n0, e1, e2, plane.offset_m, step)
+            n, c = _step_plane(n0, e1, e2, plane.offset_m, step)
             p = Plane(n, c)
             vals.append(np.array([f(p) for f in _DERIVED]))
         out[:, k] = (vals[0] - vals[1]) / (2.0 * h[k])
