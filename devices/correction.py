@@ -252,8 +252,9 @@ class _Maps:
 
 
 _MAPS = _Maps()
-#: The ToF wiggle is inverted by fixed-point passes until their error bound ``R s^n`` is below this, m.
-_WIGGLE_TOLERANCE_M = 1e-8
+#: The ToF wiggle is inverted by fixed-point passes until their error bound ``R s^n`` is below this, m (below
+#: half a float32 step of a range beyond 1 m: the frame stores no finer).
+_WIGGLE_TOLERANCE_M = 5e-8
 _MAX_WIGGLE_PASSES = 8
 
 
