@@ -25,6 +25,8 @@ from cellcal.core.handeye.model import (
     MOUNT_ROTATION,
     MOUNT_TRANSLATION,
     PARAMETERS,
+    PLANE_OFFSET,
+    PLANE_TILT,
     PlaneModel,
     PlaneObservation,
     arm_accuracy_covariance,
@@ -146,28 +148,56 @@ class HandEyeEstimate:
 class ArmAccuracy:
     """The arm's stated absolute accuracy as the hand-eye fit takes it (issue #39, ADR 0055).
 
-    Each pose's flange is taken to err by a random pose error, isotropic, of RMS length
-    ``position_m`` and ``rotation_rad`` (1-sigma per axis: those over sqrt(3)), propagated into
-    that pose's plane residual (:func:`~cellcal.core.handeye.model.arm_accuracy_covariance`):
-    it weighs the poses and widens the intervals; it is not estimated. Its real error is smooth
-    with the pose; part of it (a turn about the plane's normal, a shift along the plane) the
-    planes cannot see at all, so the intervals are on the safe side of it.
+    A real arm's error is smooth with the pose: over a plan it is mostly common to the poses, and
+    varies from pose to pose by part of it. Both parts are isotropic with RMS length ``position_m``
+    and ``rotation_rad`` (1-sigma per axis: those over sqrt(3)). The varying part, ``varying``
+    times that, is each pose's random flange error, propagated into its plane residual
+    (:func:`~cellcal.core.handeye.model.arm_accuracy_covariance`): it weighs the poses and is
+    in the chi2 test. The common part is not in the residuals at all: in the flange frame it is
+    a mount error, in the base frame a plane error, added to their covariance
+    (:meth:`common_covariance`) and never scaled by chi2/dof. ``varying = 0.5`` is what the sim's
+    kinematic errors show on the hand-eye plan (ADR 0055; ``benchmarks/handeye_arm_errors.py``).
 
     Attributes:
         position_m: RMS position error of a reported flange pose, m.
         rotation_rad: RMS orientation error, rad.
         source: Who stated it (``backend``, ``config``, ``sim``, ``recording ...``).
+        varying: The part of it that varies from pose to pose (the rest is common to the poses).
     """
 
     position_m: float
     rotation_rad: float
     source: str = "unstated"
+    varying: float = 0.5
+
+    def common_covariance(self, mount: Pose, free: Sequence[int]) -> FloatArray:
+        """9x9 covariance the error common to every pose puts on the estimated parameters (rows of ``free`` only).
+
+        Common in the flange frame it is a mount error, exactly (``X' = D X``: the turn, and the turn
+        times the mount's lever plus the shift); common in the base frame, the plane's tilt and offset.
+        """
+        var_r, var_t = self.rotation_rad**2 / 3.0, self.position_m**2 / 3.0
+        t = np.asarray(mount.translation, dtype=np.float64)
+        cross_t = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        jac = np.zeros((6, 6))
+        jac[:3, :3] = np.eye(3)  # the mount turns with the flange
+        jac[3:, :3] = -cross_t  # its translation by dtheta x t
+        jac[3:, 3:] = np.eye(3)  # and by the shift
+        cov = np.zeros((len(PARAMETERS), len(PARAMETERS)))
+        cov[:6, :6] = (jac * np.concatenate([np.full(3, var_r), np.full(3, var_t)])) @ jac.T
+        cov[PLANE_TILT, PLANE_TILT] = np.eye(2) * var_r
+        cov[PLANE_OFFSET, PLANE_OFFSET] = var_t
+        keep = np.zeros(len(PARAMETERS), dtype=bool)
+        keep[list(free)] = True
+        cov[~keep, :] = 0.0
+        cov[:, ~keep] = 0.0
+        return cov
 
     def note(self) -> str:
         """One line for the intervals' notes."""
         return (f"the arm's absolute accuracy ({1000 * self.position_m:.3g} mm, "
                 f"{math.degrees(self.rotation_rad):.3g} deg RMS, stated by {self.source}) is in the weights and the "
-                "intervals as a random error of each pose's flange")
+                "intervals: common to the poses in the mount and plane, half of it at random per pose in the weights")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form (SI units)."""
@@ -215,8 +245,8 @@ class _Problem:
         lever = float(np.linalg.norm(model.nominal_mount.translation))
         mount = model.nominal_mount
         w = [whitening(o, arm_translation_sigma_m, arm_rotation_sigma_rad, lever,
-                       None if accuracy is None else arm_accuracy_covariance(o, mount, accuracy.position_m,
-                                                                             accuracy.rotation_rad))
+                       None if accuracy is None else arm_accuracy_covariance(
+                           o, mount, accuracy.varying * accuracy.position_m, accuracy.varying * accuracy.rotation_rad))
              for o in observations]
         self.bases = np.stack([b for b, _ in w])  # (N, 3, 2) tangent bases of the measured normals
         self.whiten = np.stack([m for _, m in w])  # (N, 3, 3) inverse Cholesky factors
@@ -340,6 +370,9 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
                         detail=f"largest residual at pose {k + 1} (chi2 {worst[k].chi2:.4g})")
     absolute = _full_covariance(fitted, scaled_covariance(info_data, info_prior, 1.0))  # the stated noise
     cov = _full_covariance(fitted, scaled_covariance(info_data, info_prior, noise.interval_scale))  # Birge-scaled
+    if accuracy is not None:  # the arm's error common to the poses: not in the residuals, never scaled
+        common = accuracy.common_covariance(model.nominal_mount, free)
+        absolute, cov = absolute + common, cov + common
     params = data.full(fit.x)
     on_free = [fitted.index(i) for i in free]  # the free parameters' columns, for the observability report
     return HandEyeEstimate(model.mount(params), model.plane(params), params, cov, tuple(given), worst, chi2, dof,
