@@ -41,6 +41,8 @@ BEND_ORDER = 3
 LATTICE_SHARE = 0.8
 #: A disparity sits on the lattice when within this share of a step of a multiple of it.
 LATTICE_TOLERANCE = 0.05
+#: Points (strided) the lattice and the bend's coefficients are read from.
+SAMPLE_POINTS = 4096
 #: How far (relative) the lattice's pitch may be from the stated ``f·B`` and step.
 LATTICE_PITCH_SPREAD = 0.05
 #: The rounding makes terraces while the noise before it is at most this share of a step (beyond it the
@@ -142,12 +144,11 @@ def lattice_share(k: FloatArray, spread: float = LATTICE_PITCH_SPREAD) -> float:
     """
     if k.size == 0:
         return 0.0
-    sample = k[:: max(1, k.size // 4096)]
-    best = 0.0
-    for scale in np.linspace(1.0 - spread, 1.0 + spread, 201):
-        x = sample * scale
-        best = max(best, float(np.mean(np.abs(x - np.round(x)) <= LATTICE_TOLERANCE)))
-    return best
+    sample = k[:: max(1, 2 * k.size // SAMPLE_POINTS)]
+    x = np.linspace(1.0 - spread, 1.0 + spread, 201)[:, None] * sample[None, :]   # (pitches, points)
+    x -= np.round(x)
+    on = np.count_nonzero(np.abs(x) <= LATTICE_TOLERANCE, axis=1)
+    return float(on.max()) / sample.size
 
 
 def _region(u: FloatArray, v: FloatArray, cols: NDArray[np.intp], rows: NDArray[np.intp], field: FloatArray,
@@ -184,14 +185,28 @@ def bend_of(resid: FloatArray, u: FloatArray, v: FloatArray, cols: NDArray[np.in
         to_m: (N,) metres of depth per native unit at each inlier (``Z²/(f·B)``, or 1).
         allowance: The camera's field allowance at the image corner, native unit.
     """
-    x = np.column_stack([np.ones(u.size), field_basis(u, v, BEND_ORDER)])
-    coef = np.linalg.lstsq(x, resid, rcond=None)[0]
-    high = x[:, 3:] @ coef[3:]                                  # the terms a plane does not absorb
-    affine = x[:, :3]
-    field = high - affine @ np.linalg.lstsq(affine, high, rcond=None)[0]
+    s = slice(None, None, max(1, u.size // SAMPLE_POINTS))     # coefficients from a strided sample
+    xs = np.column_stack([np.ones(u[s].size), field_basis(u[s], v[s], BEND_ORDER)])
+    coef = _solve(xs, resid[s])
+    high_s = xs[:, 3:] @ coef[3:]                               # the terms a plane does not absorb ...
+    aff = _solve(xs[:, :3], high_s)                             # ... less their affine part
+    coef[:3] = -aff
+    field = np.full(u.size, coef[0])                            # at every point: the monomials by products
+    field += coef[1] * u + coef[2] * v
+    k = 3
+    for deg in range(2, BEND_ORDER + 1):
+        for j in range(deg + 1):
+            field += coef[k] * (u ** (deg - j)) * (v ** j)
+            k += 1
     k = int(np.argmax(np.abs(field) * to_m))
     return Bend(field, float(abs(field[k]) * to_m[k]), float(allowance * to_m[k]),
-                _region(u, v, cols, rows, field, k))
+                _region(u[s], v[s], cols[s], rows[s], field[s], int(np.argmax(np.abs(field[s]) * to_m[s]))))
+
+
+def _solve(x: FloatArray, y: FloatArray) -> FloatArray:
+    """Least squares by the normal equations (a few columns, well scaled: |u|, |v| <= 1)."""
+    out: FloatArray = np.asarray(np.linalg.solve(x.T @ x, x.T @ y), dtype=np.float64)
+    return out
 
 
 def judge(excess_m: float, where: str, tolerance_m: float, stair: Staircase | None, bend: Bend | None,

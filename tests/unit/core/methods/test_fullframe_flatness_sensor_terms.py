@@ -4,7 +4,8 @@ and said so, a bend beyond it is refused as a bend (where, how large), a box is 
 The camera is the stereo sim's (configs/sim_oak.toml: an OAK-D 400P pair, 3 subpixel bits, 0.25 px
 disparity noise) looking at a table 0.55 m away at an 80 deg inclination; its systematic error is
 drawn here with ``SystematicError.distort`` (a radial bow: the field's value at the image corner,
-zero at the centre), as the sim's ``[sim.systematic]`` defaults do (0.5 px).
+zero at the centre), as the sim's ``[sim.systematic]`` defaults do (0.5 px); the last tests use the
+stereo sim itself with those defaults.
 """
 
 from __future__ import annotations
@@ -14,12 +15,18 @@ import math
 import numpy as np
 import pytest
 
+from cellcal.core.calibration.config import look_at_pose
 from cellcal.core.methods.fullframe import check_gates, fit_full_frame
 from cellcal.core.methods.fullframe.staircase import lattice_share
 from cellcal.devices.errors import CalibrationQualityError
 from cellcal.devices.measurement import MeasurementModel
+from cellcal.devices.pose import Pose
 from cellcal.devices.systematic import SystematicError, normalised_pixels
 from cellcal.devices.types import Frame, Intrinsics
+from cellcal.sims.scene import Box, Scene
+from cellcal.sims.stereo import SimStereoCamera, SimStereoConfig
+from cellcal.sims.systematic import SystematicConfig
+from cellcal.sims.world import SimWorld
 
 W, H = 640, 400
 FX = 320.0 / math.tan(math.radians(36.0))          # 440.4 px: 72 deg HFOV
@@ -106,3 +113,40 @@ def test_lattice_share_finds_a_pitch_a_few_per_cent_off() -> None:
     k = np.repeat(np.arange(40, 60), 50) * 1.02                          # levels on a 2 % longer pitch
     assert lattice_share(k) > 0.95
     assert lattice_share(k + np.random.default_rng(0).uniform(-0.5, 0.5, k.size)) < 0.5
+
+
+# ---------------------------------------------------------------------- the stereo sim itself ([sim.systematic])
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def _sim_frame(systematic: SystematicConfig, boxes: tuple[Box, ...] = (), height_m: float = 0.59) -> Frame:
+    """configs/sim_oak.toml's camera over the table from one of the plan's heights at 80 deg."""
+    world = SimWorld(Scene(np.zeros(3), UP, boxes), Pose.identity(), seed=3, systematic=systematic)
+    cam = SimStereoCamera(SimStereoConfig(seed=3), world=world)
+    return cam.render(look_at_pose(np.array([0.3, 0.0, 0.0]), UP, height_m, math.radians(80.0), "x"))
+
+
+@pytest.mark.parametrize("height_m", [0.46, 0.61])
+def test_the_stereo_sims_flat_table_is_accepted_with_its_default_bow_and_says_so(height_m: float) -> None:
+    result = fit_full_frame(_sim_frame(SystematicConfig(), height_m=height_m))
+    check_gates(result)                                                  # every gate passes
+    notes = [n for n in result.interval_notes if n.startswith("flatness accepted a bend of ")]
+    assert len(notes) == 1 and "within the camera's" in notes[0]         # measured: 2.5-4.3 mm within 3.7-6.5 mm
+
+
+def test_the_stereo_sims_table_with_a_larger_bow_is_refused_as_a_bend() -> None:
+    result = fit_full_frame(_sim_frame(SystematicConfig(disparity_bow_px=1.5)))
+    with pytest.raises(CalibrationQualityError) as info:
+        check_gates(result)
+    text = str(info.value)
+    assert info.value.gate == "flatness" and "a bend of " in text and "beyond the camera's" in text
+
+
+@pytest.mark.parametrize("systematic", [SystematicConfig(), SystematicConfig.off()], ids=["default", "off"])
+def test_a_box_on_the_stereo_sims_table_still_fails_flatness(systematic: SystematicConfig) -> None:
+    result = fit_full_frame(_sim_frame(systematic, (Box((0.3, 0.0), (0.36, 0.28, 0.05)),)))
+    with pytest.raises(CalibrationQualityError) as info:
+        check_gates(result)
+    assert info.value.gate == "flatness"
+    assert 0.04 < info.value.value < 0.06                                # its top, 50 mm up (47.8 / 49.8 mm)
+    assert "planar region" in str(info.value)                            # refused as before, not as a bend
