@@ -106,7 +106,11 @@ def test_stereo_floor_region_is_accepted_with_an_honest_interval(path: Path) -> 
     for tilt in (result.tilt_x, result.tilt_y):
         half = (tilt.interval[1] - tilt.interval[0]) / 2.0
         assert half > _tilt_floor_rad(result, model)           # the target
-        assert 0.05 < math.degrees(half) < 1.0                 # and a useful one
+        # and a useful one: 0.32-0.42 deg (tilt x) and 1.96-2.02 deg (tilt y) measured since the intervals
+        # carry the camera's uncorrected systematic allowance (ADR 0059: a 0.5 px field of shape u is a
+        # tilt about y), 0.18-0.23 deg before; what cellcal depthcal narrows
+        assert 0.05 < math.degrees(half) < 3.0
+    assert any("systematic allowance" in note for note in result.interval_notes)
     assert result.height.value == pytest.approx(0.70, abs=0.03)
 
 
