@@ -150,3 +150,37 @@ def test_a_box_on_the_stereo_sims_table_still_fails_flatness(systematic: Systema
     assert info.value.gate == "flatness"
     assert 0.04 < info.value.value < 0.06                                # its top, 50 mm up (47.8 / 49.8 mm)
     assert "planar region" in str(info.value)                            # refused as before, not as a bend
+
+
+# ---------------------------------------------------------------------- a ToF camera: the allowance in metres
+def _tof_frame(bow_m: float, **allowance: float) -> Frame:
+    """A 224x172 ToF camera (0.3 mm range noise) over a plane 0.6 m away tilted 10 deg; a radial range bow."""
+    w, h, f = 224, 172, 200.0
+    intr = Intrinsics(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2, cy=(h - 1) / 2)
+    cols, rows = np.meshgrid(np.arange(w), np.arange(h))
+    x, y = (cols - intr.cx) / f, (rows - intr.cy) / f
+    t = math.radians(10.0)
+    z = 0.6 * math.cos(t) / (math.sin(t) * y + math.cos(t))
+    u, v = normalised_pixels(w, h, intr.cx, intr.cy)
+    a2 = (w / h) ** 2
+    r = z * np.sqrt(x * x + y * y + 1.0) + bow_m * (a2 * u * u + v * v) / (a2 + 1.0)
+    r += 0.0003 * np.random.default_rng(1).standard_normal(r.shape)
+    ray = np.stack([x, y, np.ones_like(x)], axis=2)
+    ray /= np.linalg.norm(ray, axis=2, keepdims=True)
+    model = MeasurementModel(kind="tof", sigma_at_1m_m=0.0003, distance_exponent=0.0, source="sim", **allowance)
+    return Frame(distance=r.astype(np.float32), xyz=(ray * r[..., None]).astype(np.float32),
+                 amplitude=np.ones((h, w), np.float32), valid=np.ones((h, w), bool), intrinsics=intr,
+                 timestamp=0.0, sequence=0, measurement=model)
+
+
+def test_a_tof_bend_is_judged_against_the_allowance_in_metres() -> None:
+    accepted = fit_full_frame(_tof_frame(0.0025))                        # the ToF default: 2 mm at the corner
+    check_gates(accepted)
+    assert any(n.startswith("flatness accepted a bend of ") and "within the camera's 2 mm field allowance" in n
+               for n in accepted.interval_notes)                         # measured: a 1.56 mm bend
+    with pytest.raises(CalibrationQualityError) as info:                 # a camera stated ideal
+        check_gates(fit_full_frame(_tof_frame(0.0025, field_allowance=0.0)))
+    assert "a bend of " in str(info.value) and "beyond the camera's 0 mm field allowance" in str(info.value)
+    with pytest.raises(CalibrationQualityError) as info:                 # 8 mm at the corner: beyond 2 mm
+        check_gates(fit_full_frame(_tof_frame(0.008)))
+    assert info.value.gate == "flatness" and "beyond the camera's 2 mm field allowance" in str(info.value)
