@@ -16,6 +16,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from statistics import NormalDist  # not scipy.special: its 0.2 s import is off calibrate's start-up
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -172,6 +173,18 @@ def _derived(fit: SpaceFit) -> tuple[list[float], list[float], FloatArray]:
     return v[0].tolist(), np.sqrt(np.maximum(var, 0.0)).tolist(), jac
 
 
+def _noise_and_shifts(hon: Honest, e: FloatArray) -> dict[str, Any]:
+    """The noise-only covariances and the allowance's per-term shifts (ADR 0059, "Amended"); {}: noise = total."""
+    budget = hon.factors.systematic
+    if hon.noise_cov is None or budget is None or not budget.widened:
+        return {}
+    c = hon.noise_cov
+    return {"noise_normal_covariance": e @ c[:2, :2] @ e.T, "noise_offset_sigma_m": math.sqrt(max(c[2, 2], 0.0)),
+            "noise_normal_offset_covariance": e @ c[:2, 2],
+            "systematic_shifts": {k: (np.asarray(s.normal, dtype=np.float64), float(s.offset_m))
+                                  for k, s in budget.allowance_shifts.items()}}
+
+
 def assemble(fit: SpaceFit, settings: FullFrameSettings, *, sigma_given: bool, n_points: int,
              valid_fraction: float, inlier_mask: BoolArray, n_frames: int, extras: Extras) -> FullFrameResult:
     """The result: estimates with intervals, covariances of normal and offset, gate values.
@@ -214,7 +227,8 @@ def assemble(fit: SpaceFit, settings: FullFrameSettings, *, sigma_given: bool, n
         residual_floor_m=hon.floor_m, sigma_stated=hon.sigma_stated, multipath_allowance_m=hon.multipath_m,
         lock_on=hon.lock_on, expected_departure=None if exp is None else exp.departure(fit.plane),
         expected_tolerance=None if exp is None else (exp.angle_tolerance_rad, exp.offset_tolerance_m),
-        region_pixels=hon.region_pixels, interval_factors=hon.factors, interval_notes=hon.notes)
+        region_pixels=hon.region_pixels, interval_factors=hon.factors, interval_notes=hon.notes,
+        **_noise_and_shifts(hon, e))
     if extras.honest is None:                            # raw clouds: the expected RMS from the default noise
         expected = res.residual_unit_rms_m * (1.0 if sigma_given else settings.noise_at_1m_m(UNKNOWN_MODEL))
         res = dataclasses.replace(res, residual_expected_m=expected)

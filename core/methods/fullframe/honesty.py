@@ -265,6 +265,7 @@ class Honest:
     notes: tuple[str, ...] = ()
     expected: ExpectedPlane | None = None
     region_pixels: int = 0
+    noise_cov: FloatArray | None = None   # the steps' covariance before the systematic allowance (None: = total)
 
 
 def honest_intervals(fit: SpaceFit, space: MeasurementSpace, points: Points, expected: ExpectedPlane | None
@@ -286,6 +287,7 @@ def honest_intervals(fit: SpaceFit, space: MeasurementSpace, points: Points, exp
     uv = np.stack([fit.e1 @ sample.p, fit.e2 @ sample.p])     # in-plane coordinates, m
     cov, held = quantisation_floor(fit.cov * spatial, floors.floor_m, uv, int(np.count_nonzero(fit.inliers)))
     budget = systematic_budget(space.response(fit, points, sample), cov, points.measurement.allowance)
+    noise_cov = cov
     if budget.widened:                                         # the camera's uncorrected systematic error (ADR 0059)
         cov = cov + budget.covariance
     ratio = fit.residual_rms_m / floors.expected_m if floors.expected_m > 0 else math.nan
@@ -299,7 +301,7 @@ def honest_intervals(fit: SpaceFit, space: MeasurementSpace, points: Points, exp
         notes.append(budget.note())
     honest = Honest(points.measurement, space.name, floors.expected_m, floors.floor_m, floors.stated,
                     floors.multipath_m, locked, IntervalFactors(ratio, spatial, held, budget), tuple(notes), expected,
-                    points.n_pixels)
+                    points.n_pixels, noise_cov)
     return dataclasses.replace(fit, cov=cov, resid=None), honest   # the residuals' scratch goes before flatness
 
 

@@ -156,6 +156,16 @@ class FullFrameResult:
         region_pixels: Pixels of the region of interest (all frames; the whole image without one).
         interval_factors: What widened the intervals (:class:`IntervalFactors`).
         interval_notes: Short sentences saying so, for reports.
+        noise_normal_covariance: The part of ``normal_covariance`` from the fit's noise alone (3x3),
+            without the camera's systematic allowance; equal to it when nothing systematic was added.
+        noise_offset_sigma_m: Same for :attr:`offset_sigma_m`, metres.
+        noise_normal_offset_covariance: Same for ``normal_offset_covariance`` (3,), m.
+        systematic_shifts: Per term of the camera's systematic allowance (``scale``, ``offset``,
+            ``field:<shape>``), its 1-sigma shift of the plane ``(normal_delta (3,), offset_delta_m)``
+            in the camera frame (the convention of ``plane.normal`` / ``plane.offset_m``). A term is
+            common to every pose of the same camera: consumers that combine poses treat it as one
+            coefficient, not as per-pose noise (ADR 0059, "Amended"). The noise part plus the sum of
+            the shifts' outer products is the total covariance. Empty without an allowance.
     """
 
     plane: Plane
@@ -198,6 +208,18 @@ class FullFrameResult:
     region_pixels: int = 0
     interval_factors: IntervalFactors = field(default_factory=IntervalFactors)
     interval_notes: tuple[str, ...] = ()
+    noise_normal_covariance: FloatArray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    noise_offset_sigma_m: float = math.nan
+    noise_normal_offset_covariance: FloatArray = field(default_factory=lambda: np.full(3, np.nan))
+    systematic_shifts: dict[str, tuple[FloatArray, float]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """Without a stated noise-only part (NaN), the noise part is the total."""
+        if not math.isfinite(self.noise_offset_sigma_m):
+            object.__setattr__(self, "noise_normal_covariance", np.array(self.normal_covariance, dtype=np.float64))
+            object.__setattr__(self, "noise_offset_sigma_m", self.offset_sigma_m)
+            object.__setattr__(self, "noise_normal_offset_covariance",
+                               np.array(self.normal_offset_covariance, dtype=np.float64))
 
     @property
     def angle_rad(self) -> float:
@@ -324,4 +346,9 @@ class FullFrameResult:
             "interval_factors": self.interval_factors.to_dict(),
             "interval_notes": list(self.interval_notes),
             "error_budget": None if self.error_budget is None else self.error_budget.to_dict(),
+            "noise_normal_covariance": np.asarray(self.noise_normal_covariance).tolist(),
+            "noise_offset_sigma_m": self.noise_offset_sigma_m,
+            "noise_normal_offset_covariance": np.asarray(self.noise_normal_offset_covariance).tolist(),
+            "systematic_shifts": {k: {"normal": [float(x) for x in n], "offset_m": float(c)}
+                                  for k, (n, c) in self.systematic_shifts.items()},
         }
