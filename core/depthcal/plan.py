@@ -19,11 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from cellcal.core.calibration.config import CellConfig
-from cellcal.core.handeye.plan import check_plan, view_pose
+from cellcal.core.handeye.plan import MAX_ITERATIONS, YAW_TOLERANCE_RAD, check_plan
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 
-__all__ = ["MIN_HEIGHT_SPAN_M", "Coverage", "PlanView", "depthcal_heights", "depthcal_plan", "plan_coverage"]
+__all__ = ["MIN_HEIGHT_SPAN_M", "Coverage", "PlanView", "depthcal_heights", "depthcal_plan", "plan_coverage",
+           "view_pose"]
 
 #: The default heights span at least this much, metres (the arm's motion between them fixes the scale).
 MIN_HEIGHT_SPAN_M = 0.3
@@ -52,6 +53,49 @@ class PlanView:
     def label(self) -> str:
         """``h 0.450 m, 80 deg, roll 90`` (for the dry run and the report)."""
         return f"h {self.height_m:.3f} m, {self.inclination_deg:g} deg, roll {self.roll_deg:g}"
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _radial_matrix(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """:func:`~cellcal.devices.geometry.reach.radial_flange_rotation` as a matrix, without scipy's import.
+
+    Tool down (about x by pi), pitched in the vertical plane at base yaw ``yaw``, rolled about the tool axis.
+    """
+    c, s = math.cos(pitch), math.sin(pitch)
+    ry = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    rx_pi = np.diag([1.0, -1.0, -1.0])
+    out: np.ndarray = _rz(yaw) @ ry @ rx_pi @ _rz(roll)
+    return out
+
+
+def view_pose(target_m: np.ndarray, height_m: float, inclination_rad: float, roll_rad: float, mount: Pose) -> Pose:
+    """The flange pose whose camera's optical axis meets ``target_m`` at ``height_m``.
+
+    :func:`cellcal.core.handeye.plan.view_pose`'s view (the tool pitched toward the base within the
+    vertical plane through the base axis, rolled about its axis) in rotation matrices, so that the plan
+    does not import scipy (0.3 s or more of a run that otherwise needs none).
+
+    Raises:
+        ConfigError: If the flange yaw does not converge (target on the base axis).
+    """
+    pitch = math.pi / 2 - inclination_rad
+    yaw = math.atan2(target_m[1], target_m[0])
+    mount_r, mount_t = mount.rotation_matrix, np.asarray(mount.translation, dtype=np.float64)
+    for _ in range(MAX_ITERATIONS):
+        rot = _radial_matrix(yaw, pitch, roll_rad)
+        axis = rot @ mount_r[:, 2]  # optical axis in the base frame
+        flange = target_m - height_m * axis - rot @ mount_t
+        new_yaw = math.atan2(flange[1], flange[0])
+        step = math.remainder(new_yaw - yaw, 2 * math.pi)
+        yaw = new_yaw
+        if abs(step) < YAW_TOLERANCE_RAD:
+            return Pose.from_rotation_matrix(_radial_matrix(yaw, pitch, roll_rad), flange)
+    raise ConfigError("no flange yaw puts the tool in the base's vertical plane for this view (target "
+                      f"{np.round(target_m, 3).tolist()} m too close to the base axis?)", key="depthcal.target_m")
 
 
 def depthcal_heights(config: CellConfig) -> tuple[float, ...]:
@@ -145,7 +189,7 @@ def plan_coverage(config: CellConfig, views: Sequence[PlanView]) -> Coverage:
     for v in views:
         if v.inclination_deg >= 90.0:
             continue
-        n_cam = (v.pose @ mount).rotation.inv().apply(normal)  # the plane's normal seen from the camera
+        n_cam = (v.pose @ mount).rotation_matrix.T @ normal  # the plane's normal seen from the camera
         directions.add(float(5 * round(math.degrees(math.atan2(n_cam[1], n_cam[0])) / 5) % 360))
     notes = []
     if len(heights) < 2:

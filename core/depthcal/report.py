@@ -138,7 +138,7 @@ def held_out_residuals(view: Any, mount: Any, document: Mapping[str, Any], corre
     rng = np.linalg.norm(xyz, axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         ray = xyz / rng[..., None]
-        n_cam = cam.rotation.inv().apply(n)
+        n_cam = cam.rotation_matrix.T @ n
         d_cam = offset - float(n @ np.asarray(cam.translation, dtype=np.float64))
         r_true = d_cam / (ray @ n_cam)
         u, v = normalised_pixels(intr.width, intr.height, intr.cx, intr.cy)

@@ -161,3 +161,19 @@ def test_record_then_replay_gives_the_same_correction(tmp_path: Path, capsys: py
     assert "replay: identical to the recorded result (6 poses" in capsys.readouterr().out
     a, b = (json.loads((tmp_path / d / DEPTHCAL_FILENAME).read_text()) for d in "ab")
     assert a["correction"] == b["correction"] and a["holdout"] == b["holdout"]
+
+
+def test_the_plan_views_are_the_hand_eye_plan_s_without_scipy() -> None:
+    import math
+
+    import numpy as np
+
+    from cellcal.core.handeye.plan import view_pose
+
+    config = load_config(REPO_ROOT / "configs" / "sim.toml")
+    mount = config.mount.pose()
+    for v in depthcal_plan(config):
+        want = view_pose(np.array(v.target_m), v.height_m, math.radians(v.inclination_deg), math.radians(v.roll_deg),
+                         mount)
+        assert np.allclose(want.rotation_matrix, v.pose.rotation_matrix, atol=1e-12)
+        assert np.allclose(want.translation, v.pose.translation, atol=1e-12)
