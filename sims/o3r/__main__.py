@@ -14,6 +14,7 @@ import argparse
 import signal
 import sys
 import threading
+from typing import Any
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -39,6 +40,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated world")
     ap.add_argument("--no-noise", action="store_true", help="render noise-free frames")
     ap.add_argument("--no-distortion", action="store_true", help="pinhole lens")
+    ap.add_argument("--no-systematic", action="store_true",
+                    help="an ideal camera: no systematic depth error ([sim.systematic] enabled = false, ADR 0054)")
     return ap
 
 
@@ -54,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     per_pose = args.frames == "per_pose"
     cfg = SimCameraConfig(noise=not (args.no_noise or per_pose), distortion=not args.no_distortion,
                           frame_rate_hz=min(args.frame_rate, 1000.0))  # the sim's own clock step
-    cam = SimCamera(cfg, BackendContext(seed=args.seed)).connect()
+    document: dict[str, Any] = {"sim": {"systematic": {"enabled": False}}} if args.no_systematic else {}
+    cam = SimCamera(cfg, BackendContext(seed=args.seed, document=document)).connect()
     base = None if args.pcic_port is not None else args.pcic_base_port
     emu = O3REmulator(cam, xmlrpc_port=args.xmlrpc_port, pcic_port=args.pcic_port or 0, pcic_base_port=base,
                       port_name=args.port_name, state=args.state, frame_rate_hz=args.frame_rate,
