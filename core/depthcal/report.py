@@ -101,7 +101,9 @@ def format_summary(document: Mapping[str, Any], path: str | Path) -> str:
         tilt = math.degrees(math.acos(min(1.0, abs(float(n[2])) / float(np.linalg.norm(n)))))
         lines.append(f"plane (base frame): tilt {tilt:.3f} deg from the base z axis, offset "
                      f"{1000 * float(plane.get('offset_m', 0.0)):+.2f} mm")
-    lines.append("what the plan sees: " + _observability_text(document.get("observability") or {}))
+    if document.get("coverage"):
+        lines.append(f"the plan: {document['coverage']}")
+    lines.append("what the fit sees: " + _observability_text(document.get("observability") or {}))
     lines += [f"note: {note}" for note in document.get("notes") or []]
     lines.append(f'apply it: [camera.correction] file = "{Path(path).absolute()}" (or that path relative to the '
                  "configuration file's directory)")

@@ -28,7 +28,7 @@ from cellcal.core.calibration.journal import journal_path, remove_journal
 from cellcal.core.calibration.outlock import OutputLock
 from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.report import write_bytes_atomic, write_json_atomic
-from cellcal.core.depthcal.plan import PlanView
+from cellcal.core.depthcal.plan import PlanView, plan_coverage
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CalibrationError, VendorError
 from cellcal.devices.pose import Pose
@@ -219,6 +219,7 @@ def run_depthcal(calibrator: DepthcalCalibrator, out_dir: str | Path, *, resume:
                     "cellcal_version": cellcal_version(),
                     "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                     "config_source": config.source,
+                    "coverage": plan_coverage(config, calibrator.views).message(),
                     "plan": [{"label": v.label(), "height_m": v.height_m, "inclination_deg": v.inclination_deg,
                               "roll_deg": v.roll_deg, "target_m": list(v.target_m),
                               "commanded_flange_pose": v.pose.to_dict(),

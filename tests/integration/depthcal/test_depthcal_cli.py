@@ -54,7 +54,7 @@ def test_the_command_writes_the_correction_and_the_report(tmp_path: Path, name: 
     assert sum(v["held_out"] for v in doc["views"]) == 2
     assert doc["holdout"]["rms_after"] <= doc["holdout"]["rms_before"] * 1.05
     assert f"depth calibration of a {kind} camera from 6 views (2 held out)" in text
-    assert "held-out residual RMS" in text and "what the plan sees" in text
+    assert "held-out residual RMS" in text and "what the fit sees" in text and "the plan: 2 heights" in text
     assert '[camera.correction] file = "' in text
     assert (out / "depthcal-report.html").exists()
     for png in ("field", "residuals", "views", "orders"):
@@ -177,3 +177,23 @@ def test_the_plan_views_are_the_hand_eye_plan_s_without_scipy() -> None:
                          mount)
         assert np.allclose(want.rotation_matrix, v.pose.rotation_matrix, atol=1e-12)
         assert np.allclose(want.translation, v.pose.translation, atol=1e-12)
+
+
+def test_a_configured_correction_is_not_applied_to_the_frames_depthcal_fits(tmp_path: Path,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    first = tmp_path / "first"
+    cfg = small_config(tmp_path)
+    assert main(["depthcal", "--config", str(cfg), "--out", str(first), "--no-report", "--quiet"]) == 0
+    plain = json.loads((first / DEPTHCAL_FILENAME).read_text())
+    corrected = tmp_path / "corrected.toml"
+    corrected.write_text(cfg.read_text().replace('[camera]\nbackend = "sim"\n', '[camera]\nbackend = "sim"\n\n'
+                                                 f'[camera.correction]\nfile = "{first / DEPTHCAL_FILENAME}"\n', 1))
+    assert "[camera.correction]" in corrected.read_text()
+    capsys.readouterr()
+    assert main(["depthcal", "--config", str(corrected), "--check"]) == 0
+    assert "its [camera.correction] is not applied: depthcal fits the raw frames" in capsys.readouterr().out
+    again = tmp_path / "again"
+    assert main(["depthcal", "--config", str(corrected), "--out", str(again), "--no-report"]) == 0
+    assert "the configured [camera.correction] was not applied" in capsys.readouterr().out
+    # the same raw frames (same seed): the same correction, not a correction of the corrected frames
+    assert json.loads((again / DEPTHCAL_FILENAME).read_text())["correction"] == plain["correction"]
