@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.core.calibration.budget import budget_line, error_budget
+from cellcal.core.calibration.budget import budget_line, error_budget, pose_budget_line
 from cellcal.core.geometry.consistency import PosePlane, plane_consistency
 from cellcal.core.geometry.planes import Plane
 from cellcal.devices.arm_model import ArmModel
@@ -304,6 +304,9 @@ def format_full_frame(document: Mapping[str, Any]) -> str:
             if mp:
                 lines.append(f"          {mp}")
             lines.append(f"          gates: {_gates(ff['gates'])}")
+            pose_budget = pose_budget_line((document.get("summary") or {}).get("error_budget"), p["index"])
+            if pose_budget:
+                lines.append(f"          {pose_budget}")
             pb = ff.get("plane_base")
             if pb:
                 lines.append(f"          plane in base frame: normal {_vec(pb['normal'])}, "
