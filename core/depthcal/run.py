@@ -226,6 +226,10 @@ def run_depthcal(calibrator: DepthcalCalibrator, out_dir: str | Path, *, resume:
                               "reported_flange_pose": measured["poses"][i]["reported_flange_pose"]}
                              for i, v in enumerate(calibrator.views)],
                     **({"resumed_poses": measured["resumed_poses"]} if "resumed_poses" in measured else {})}
+        if config.depthcal.frames_per_pose > 1:  # held out by view: a held-out frame's pose-mates were fitted
+            document["notes"] = [*document.get("notes", []), "each pose's frames are views of their own: a held-out "
+                                 "frame's other frames were fitted, so the held-out error is optimistic "
+                                 "(frames_per_pose = 1 gives an honest one)"]
         write_json_atomic(out, document)
         remove_journal(journal)
         shutil.rmtree(calibrator.frames_dir, ignore_errors=True)
