@@ -25,6 +25,7 @@ h1{font-size:1.5em}h2{font-size:1.2em;border-bottom:1px solid #999;margin-top:1.
 table{border-collapse:collapse;margin:.6em 0}td,th{border:1px solid #bbb;padding:.2em .5em;text-align:right}
 th{background:#eee}td.l,th.l{text-align:left}.failed{color:#b2182b;font-weight:bold}
 .error{border:2px solid #b2182b;padding:.6em;background:#fff0f0}pre{background:#f6f6f6;padding:.6em;overflow-x:auto}
+tr.dominant td,td.dominant{background:#ffe9a8;font-weight:bold}p.budget-next{font-weight:bold}
 figure{margin:1em 0}img{max-width:100%;border:1px solid #ddd}figcaption{font-size:.9em;color:#333}
 """
 
@@ -49,6 +50,105 @@ def _ci(ci: Sequence[Any] | None, spec: str, scale: float = 1.0) -> str:
 def _table(head: Sequence[str], rows: Sequence[str]) -> str:
     th = "".join(f'<th class="l">{_e(h)}</th>' if i == 0 else f"<th>{_e(h)}</th>" for i, h in enumerate(head))
     return f"<table><tr>{th}</tr>{''.join(rows)}</table>"
+
+
+_DEG = 180.0 / math.pi
+
+
+def _budget_tables(budget: Mapping[str, Any] | None) -> str:
+    """calibrate's error budget: the consensus by term (at the allowance and per unit), then each pose (ADR 0059).
+
+    Millimetres and degrees (ADR 0042); the exact values (m, rad) in ``data-value``; the dominant
+    term's row (and a pose's dominant cells) highlighted, what to calibrate next said.
+    """
+    from cellcal.core.calibration.budget import ALLOWANCE_TERMS, TERMS
+
+    if not budget:
+        return ""
+    c = budget["consensus"]
+    at = c.get("at_allowance") or {}
+    judged = c.get("judged")
+    dom = c["dominant"]
+    per_unit = {"depth_scale": "depth_scale_1pct", "depth_offset": "depth_offset_1mm"}
+    where = "at the camera's stated systematic allowance (1-sigma) and the arm's stated accuracy" \
+        if judged == "allowance" else "per 1 % depth scale and 1 mm depth offset (the camera states no allowance)"
+    parts = ["<h2>Error budget</h2>",
+             f"<p>What each systematic error would move the plane by: {_e(where)}; the sensitivities per 1 % "
+             "depth scale and per 1 mm depth offset beside them. The consensus in the base frame (a depth error "
+             "is common to every pose), each pose in its camera frame.</p>",
+             f"<p class='budget-next'>height: <span class='dominant-term'>{_e(ALLOWANCE_TERMS[dom['height']])}"
+             f"</span> dominates; tilt: {_e(ALLOWANCE_TERMS[dom['tilt']])} dominates; next: "
+             f"<span class='next'>{_e(c.get('next', ''))}</span></p>"]
+    rows = []
+    for key, label in ALLOWANCE_TERMS.items():
+        a = at.get(key)
+        unit = c.get(per_unit.get(key, "")) or {}
+        if a is None and key == "depth_field":
+            continue
+        if key == "arm_accuracy":
+            arm = budget.get("arm_model") or {}
+            stated = (f"{float(arm['accuracy_m']) * 1000:.3g} mm, {float(arm['accuracy_rad']) * _DEG:.3g} deg "
+                      f"({arm.get('source', '')})") if arm else "stated accuracy"
+            a, probe, unit = a or c["arm_accuracy"], "", {}
+        else:
+            stated = "n/a" if a is None else str(a["stated"])
+            probe = TERMS[per_unit[key]].split("(")[-1].rstrip(")") if key in per_unit else ""
+        mark = " dominant" if key == dom["height"] else ""
+        rows.append(f"<tr class='budget{mark}' data-term='{_e(key)}'><td class='l'>{_e(label)}</td>"
+                    f"<td class='l'>{_e(stated)}</td>"
+                    + (_cell(abs(a["tilt_rad"]), ".4f", _DEG) + _cell(abs(a["height_m"]), ".3f", 1000.0)
+                       if a is not None else "<td>n/a</td><td>n/a</td>")
+                    + f"<td class='l'>{_e(probe)}</td>"
+                    + (_cell(abs(unit["tilt_rad"]), ".4f", _DEG) + _cell(abs(unit["height_m"]), ".3f", 1000.0)
+                       if unit else "<td></td><td></td>") + "</tr>")
+    parts.append(_table(["term (consensus)", "stated", "tilt (deg)", "height (mm)", "per", "tilt (deg)",
+                         "height (mm)"], rows))
+    keys = [k for k in ALLOWANCE_TERMS if any((r.get("at_allowance") or {}).get(k) for r in budget["poses"])]
+    if keys:
+        rows = []
+        for r in budget["poses"]:
+            a = r.get("at_allowance") or {}
+            cells = []
+            for what, spec, scale in (("height", ".3f", 1000.0), ("tilt", ".4f", _DEG)):
+                for k in keys:
+                    v = a.get(k) or {}
+                    cell = _cell(abs(v[what + ("_m" if what == "height" else "_rad")]), spec, scale) if v else \
+                        "<td>n/a</td>"
+                    if k == r["dominant"][what]:
+                        cell = cell.replace("<td", "<td class='dominant'", 1)
+                    cells.append(cell)
+            rows.append(f"<tr class='budget-pose' data-index='{int(r['index'])}'><td class='l'>pose "
+                        f"{int(r['index']) + 1}</td>{''.join(cells)}</tr>")
+        head = (["pose"] + [f"{ALLOWANCE_TERMS[k]} height (mm)" for k in keys]
+                + [f"{ALLOWANCE_TERMS[k]} tilt (deg)" for k in keys])
+        parts += ["<p>Each pose in its camera frame, at the allowance; its dominant terms highlighted.</p>",
+                  _table(head, rows)]
+    return "".join(parts)
+
+
+def _handeye_budget(doc: Mapping[str, Any]) -> str:
+    """The hand-eye result's ``error_budget`` (when there): per term, how far the mount and the plane move."""
+    from cellcal.core.calibration.budget import HANDEYE_TERMS, HANDEYE_VALUES
+
+    eb = doc.get("error_budget")
+    if not isinstance(eb, Mapping) or not eb.get("terms"):
+        return ""
+    dom = eb.get("dominant")
+    rows = []
+    for key, term in eb["terms"].items():
+        mark = " dominant" if key == dom else ""
+        cells = "".join(_cell(None if term.get(v) is None else abs(float(term[v])), ".3f" if unit == "mm" else ".4f",
+                              1000.0 if unit == "mm" else _DEG) for v, (_, unit) in HANDEYE_VALUES.items())
+        rows.append(f"<tr class='handeye-budget{mark}' data-term='{_e(key)}'><td class='l'>"
+                    f"{_e(HANDEYE_TERMS.get(key, key))}</td>{cells}</tr>")
+    head = ["term"] + [f"{label} ({unit})" for label, unit in HANDEYE_VALUES.values()]
+    out = ["<h2>Error budget</h2><p>What each systematic error would move the mount and the plane by.</p>"]
+    if dom:
+        out.append(f"<p class='budget-next'><span class='dominant-term'>{_e(HANDEYE_TERMS.get(dom, dom))}</span>"
+                   f" dominates" + (f"; next: <span class='next'>{_e(eb['next'])}</span>" if eb.get("next") else "")
+                   + "</p>")
+    out.append(_table(head, rows))
+    return "".join(out)
 
 
 def _calibrate_tables(section: Mapping[str, Any]) -> str:
@@ -84,6 +184,7 @@ def _calibrate_tables(section: Mapping[str, Any]) -> str:
         parts.append("<h2>Cross-pose consistency (base frame)</h2>")
         parts.append(f'<p>verdict <b class="verdict">{_e(cons.get("verdict"))}</b>: '
                      f"{_e(cons.get('interpretation', ''))}</p>")
+    parts.append(_budget_tables(summary.get("error_budget")))
     return "".join(parts)
 
 
@@ -114,6 +215,7 @@ def _handeye_tables(section: Mapping[str, Any]) -> str:
                     + "".join(_cell(v, "+.4f") for v in m["rpy_deg"]) + "</tr>")
         out += ["<h2>OpenCV's methods on the ChArUco board against the plane</h2>",
                 _table(["method", "tx (mm)", "ty (mm)", "tz (mm)", "roll (deg)", "pitch (deg)", "yaw (deg)"], rows)]
+    out.append(_handeye_budget(doc))
     return "".join(out)
 
 
