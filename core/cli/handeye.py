@@ -142,10 +142,14 @@ def _tee(report: Any, document: dict[str, Any]) -> Any:
 
 def _print_result(args: argparse.Namespace, document: dict[str, Any]) -> None:
     """The terminal report (unless ``--quiet``) and where the result is."""
+    from cellcal.core.calibration.budget import handeye_budget_line
     from cellcal.core.handeye.result import HANDEYE_FILENAME, format_report
 
     if not args.quiet:
         print(format_report(document))
+        budget = handeye_budget_line(document)        # when the result has its error budget (ADR 0059)
+        if budget:
+            print(budget)
     print(f"result written to {Path(args.out) / HANDEYE_FILENAME}")
 
 

@@ -163,3 +163,21 @@ def test_the_handeye_line() -> None:
     assert handeye_budget_line(doc) == (
         "error budget of the mount: depth scale (1 %) dominates (depth scale (1 %) 6 mm, 0.057 deg; "
         "depth offset (1 mm) 1 mm, 0 deg; arm accuracy 0.5 mm, 0.11 deg): run cellcal depthcal")
+
+
+def test_cellcal_handeye_prints_the_line_when_the_result_has_a_budget(monkeypatch: pytest.MonkeyPatch,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    from cellcal.core.cli import handeye
+    from cellcal.core.handeye import result
+
+    monkeypatch.setattr(result, "format_report", lambda doc: "mount: ...")
+    doc = {"error_budget": {"terms": {"arm_accuracy": {"tx_m": 0.0005, "roll_rad": 0.002}},
+                            "dominant": "arm_accuracy", "next": "calibrate the arm"}}
+    handeye._print_result(argparse.Namespace(quiet=False, out="out"), doc)
+    assert capsys.readouterr().out.splitlines()[:2] == [
+        "mount: ...", "error budget of the mount: arm accuracy dominates (arm accuracy 0.5 mm, 0.11 deg): "
+                      "calibrate the arm"]
+    handeye._print_result(argparse.Namespace(quiet=False, out="out"), {})
+    assert "error budget" not in capsys.readouterr().out
