@@ -13,9 +13,11 @@ moves by ``δθ = (JᵀWJ)⁻¹ JᵀW δm`` (``θ``: the plane's steps ``(d_e1, 
 the model's Jacobian at the fitted plane over the inliers, ``W`` the fit's weights) — exact to
 first order and cheap on a strided sample of the inliers. The covariance gains
 ``Σ_terms δθ δθᵀ`` at each term's 1-sigma allowance. The field's shape is unknown before
-``depthcal``: of a few smooth shapes with the stated value at the image corner (a radial bow,
-``u²``, ``v²``, ``uv``, ``u``, ``v``) the one that moves the plane most, in the fit's own
-sigmas, is taken.
+``depthcal``: its prior is the sum of ``K = 6`` smooth shapes, each 1 at the image corner (a
+radial bow, ``u²``, ``v²``, ``uv``, ``u``, ``v``), with independent coefficients of variance
+``field² / K`` (so the field at the corner has the stated 1-sigma); each shape is its own term
+``field:<shape>`` at ``field / sqrt(K)``. The sum is positive semi-definite by construction and
+the same for every derived value (both tilts widen by the linear shapes) — ADR 0059, "Amended".
 
 The same responses give the error budget: what a 1 % depth scale and a 1 mm depth offset do to
 the plane's tilt and height. Points in the camera frame (OpenCV), metres. Rationale:
@@ -38,7 +40,8 @@ FloatArray = NDArray[np.float64]
 
 __all__ = ["FIELD_SHAPES", "ErrorBudget", "PlaneShift", "Response", "field_shapes", "pixel_uv", "systematic_budget"]
 
-#: The smooth field shapes tried (each 1 at the image corner ``u = v = 1``): the worst one is taken.
+#: The smooth field shapes (each 1 at the image corner ``u = v = 1``); the field's prior is their sum with
+#: independent coefficients of variance ``field² / K`` (``K`` shapes), each shape its own term ``field:<shape>``.
 FIELD_SHAPES: tuple[str, ...] = ("radial bow", "u^2", "v^2", "uv", "u", "v")
 #: Depth scale of the budget (relative) and depth offset (m).
 BUDGET_SCALE = 0.01
@@ -180,8 +183,10 @@ class ErrorBudget:
         depth_scale: The plane's shift for depths 1 % long.
         depth_offset: The plane's shift for depths 1 mm long (stereo: Z-depth; ToF: range).
         allowance: The camera's systematic allowance ``(scale, offset, field)`` (relative; px or m; px or m).
-        allowance_shifts: Per allowance term (``scale``, ``offset``, ``field``), its 1-sigma shift.
-        field_shape: The field shape taken (the worst of :data:`FIELD_SHAPES`), "" without an image.
+        allowance_shifts: Per allowance term (``scale``, ``offset``, ``field:<shape>`` for each of
+            :data:`FIELD_SHAPES`), its 1-sigma shift.
+        field_shape: The field shape that moves the plane most in the fit's own sigmas (for reports;
+            every shape is in the covariance), "" without an image.
         sigma_before: 1-sigma of (angle, tilt_x, tilt_y, height) without the allowance (rad, m).
         sigma_after: ... with it.
     """
@@ -216,7 +221,8 @@ class ErrorBudget:
         what = (f"f·B scale {scale * 100:.3g} %, disparity offset {offset:.3g} px" if stereo
                 else f"range scale {scale * 100:.3g} %, offset {offset * 1000:.3g} mm")
         if fld > 0 and self.field_shape:
-            what += f", field {fld * k:.3g} {unit} at the image corner (worst shape: {self.field_shape})"
+            what += (f", field {fld * k:.3g} {unit} at the image corner as {len(FIELD_SHAPES)} independent smooth "
+                     f"shapes, largest here: {self.field_shape}")
         b, a = self.sigma_before, self.sigma_after
 
         def ratio(i: int) -> str:
@@ -255,7 +261,7 @@ def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, f
 
     Args:
         resp: The fit's response (:class:`Response`).
-        cov: The fit's covariance of the steps before the allowance (the worst field shape is
+        cov: The fit's covariance of the steps before the allowance (the field shape named is
             the one largest in its sigmas).
         allowance: ``(scale, offset, field)`` 1-sigma (relative; px or m; px or m at the corner).
     """
@@ -274,16 +280,16 @@ def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, f
     steps = resp.shift(np.stack(cols, axis=1))
     shifts = {"scale": _plane_shift(steps[2], resp, geo), "offset": _plane_shift(steps[3], resp, geo)}
     worst = ""
-    if shapes is not None:
-        fsteps = steps[4:]
+    if shapes is not None:                    # the field: K independent shapes at field / sqrt(K) each
+        fsteps = steps[4:] / math.sqrt(len(FIELD_SHAPES))
         try:
             whiten = np.linalg.pinv(cov)
         except np.linalg.LinAlgError:
             whiten = np.eye(3)
         size = np.einsum("ki,ij,kj->k", fsteps, whiten, fsteps)
-        k = int(np.argmax(size))
-        worst = FIELD_SHAPES[k]
-        shifts["field"] = _plane_shift(fsteps[k], resp, geo)
+        worst = FIELD_SHAPES[int(np.argmax(size))]
+        for name, fstep in zip(FIELD_SHAPES, fsteps, strict=True):
+            shifts[f"field:{name}"] = _plane_shift(fstep, resp, geo)
     shifts = {k: s for k, s in shifts.items() if np.any(s.step != 0.0)}
     add = np.zeros((3, 3))
     for s in shifts.values():

@@ -29,7 +29,7 @@ def test_a_known_fb_error_within_the_allowance_is_covered_and_without_the_allowa
     assert not _covers(ideal.height_ci_m, HEIGHT)               # ... without it the interval is confidently wrong
     assert honest.interval_factors.allowance and not ideal.interval_factors.allowance
     note = [n for n in honest.interval_notes if "systematic allowance" in n]
-    assert len(note) == 1 and "height x" in note[0] and "worst shape" in note[0]
+    assert len(note) == 1 and "height x" in note[0] and "independent smooth shapes" in note[0]
     assert not any("systematic allowance" in n for n in ideal.interval_notes)
 
 
@@ -68,7 +68,9 @@ def test_the_linear_response_is_the_refit_of_a_distorted_frame() -> None:
     assert b is not None
     seen = moved.tilt_y_rad - base.tilt_y_rad                     # -0.0289 rad
     assert b.field_shape == "u"                                   # a shape along the plane's tilt moves it most
-    assert b.allowance_shifts["field"].tilt_y_rad == pytest.approx(seen, rel=0.02)
+    k = len(FIELD_SHAPES)                                         # each shape's term is at field / sqrt(K)
+    assert b.allowance_shifts["field:u"].tilt_y_rad * math.sqrt(k) == pytest.approx(seen, rel=0.02)
+    assert {f"field:{name}" for name in FIELD_SHAPES} <= set(b.allowance_shifts)
     assert math.isfinite(b.sigma_after[1])
 
 
