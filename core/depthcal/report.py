@@ -185,32 +185,35 @@ def _map_figure(maps: Sequence[tuple[str, NDArray[np.float64]]], title: str, uni
 
 
 def _bars_figure(groups: Sequence[tuple[str, Sequence[float], str]], labels: Sequence[str], hatched: Sequence[bool],
-                 title: str, ylabel: str, line: float | None = None, line_label: str = "") -> bytes:
+                 title: str, xlabel: str, ylabel: str, line: float | None = None, line_label: str = "") -> bytes:
     """Grouped bars (one colour per group) over ``labels``; ``hatched`` marks some positions (held out)."""
-    from cellcal.core.report.canvas import Canvas
+    from cellcal.core.report.canvas import DASHED, Canvas
     from cellcal.core.report.chart import Chart
 
     canvas = Canvas((max(5.0, 0.45 * len(labels) * max(1, len(groups)) + 1.5), 3.6), 100)
-    chart = Chart(canvas, (0.1, 0.22, 0.86, 0.66))
+    chart = Chart(canvas, (0.12, 0.27, 0.84, 0.6))
     k = len(groups)
     step = k + 1
     for g, (_name, values, colour) in enumerate(groups):
         pos = [i * step + g for i in range(len(labels))]
         chart.bars(pos, np.asarray(values, dtype=np.float64), [colour] * len(labels), hatched=hatched)
     if line is not None and math.isfinite(line):
-        from cellcal.core.report.canvas import DASHED
-
-        chart.hline(line, "#000000", 1.0, DASHED, label=line_label)
+        chart.hline(line, "#000000", 1.0, DASHED)
     chart.ticks("x", [i * step + (k - 1) / 2 for i in range(len(labels))], list(labels), 7.0)
-    chart.labels = (title, "", ylabel)
+    chart.labels = (title, xlabel, ylabel)
     chart.grid_axes = "y"
     chart.render()
-    x = 0.1 * canvas.width
-    for g, (name, _values, colour) in enumerate(groups):  # the groups' key, under the title
-        y = 0.06 * canvas.height + 0.035 * canvas.height * g + canvas.px(12.0)
-        canvas.rectangle((x, y - canvas.px(4.0), x + canvas.px(10.0), y + canvas.px(4.0)), "#000000", 1.0,
-                         fill=colour)
-        canvas.text((x + canvas.px(14.0), y), name, 8.0, anchor="lm")
+    keys = [(name, colour) for name, _values, colour in groups] if k > 1 else []
+    if line is not None and math.isfinite(line) and line_label:
+        keys.append((f"- - {line_label}", ""))
+    x, y = 0.12 * canvas.width, canvas.height - canvas.px(9.0)
+    for name, colour in keys:  # the key, in one line under the axes
+        if colour:
+            canvas.rectangle((x, y - canvas.px(4.0), x + canvas.px(10.0), y + canvas.px(4.0)), "#000000", 1.0,
+                             fill=colour)
+            x += canvas.px(14.0)
+        canvas.text((x, y), name, 8.0, anchor="lm")
+        x += canvas.text_width(name, 8.0) + canvas.px(18.0)
     return canvas.png()
 
 
@@ -247,8 +250,9 @@ def _figures(document: Mapping[str, Any], result: Any, views: Sequence[Any], mou
                     _bars_figure([("before", [scale * r["rms_before"] for r in rows], "#d6604d"),
                                   ("after", [scale * r["rms_after"] for r in rows], "#4393c3")], labels,
                                  [bool(r.get("held_out")) for r in rows] * 2,
-                                 "residual RMS per view (hatched: held out)", f"RMS ({unit})",
+                                 "residual RMS per view (hatched: held out)", "pose", f"RMS ({unit})",
                                  None if noise is None else scale * noise, "noise alone")))
+    noise = (document.get("holdout") or {}).get("noise_only_rms")
     scores = {int(k): val for k, val in (document.get("order_scores") or {}).items() if val is not None}
     if scores:
         orders = sorted(scores)
@@ -257,7 +261,8 @@ def _figures(document: Mapping[str, Any], result: Any, views: Sequence[Any], mou
                     "lowest within the noise of the best.",
                     _bars_figure([("held-out RMS", [scale * scores[k] for k in orders], "#92c5de")],
                                  [f"{k}{' *' if k == chosen else ''}" for k in orders], [],
-                                 "held-out RMS per field order (* chosen)", f"RMS ({unit})")))
+                                 "held-out RMS per field order (* chosen)", "field order", f"RMS ({unit})",
+                                 None if noise is None else scale * noise, "noise alone")))
     return out
 
 
