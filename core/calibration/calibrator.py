@@ -34,7 +34,8 @@ from cellcal.core.calibration.reach import check_reach, reachable_plan_poses
 from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.region import expected_plane, region_document, region_mask
 from cellcal.core.calibration.report import RESULT_SCHEMA, summarize_poses, write_json_atomic
-from cellcal.core.geometry.planes import Plane, plane_covariance
+from cellcal.core.geometry.consistency import noise_plane_covariance
+from cellcal.core.geometry.planes import Plane
 from cellcal.core.geometry.view_follows import ViewFollowsArm, ViewSample
 from cellcal.core.methods.fullframe import FullFrameResult, fit_full_frame
 from cellcal.core.methods.measure import (
@@ -392,7 +393,9 @@ class Calibrator:
                 fit = fit_full_frame(list(frames), self.config.full_frame)
             except CalibrationError:
                 return  # no plane in the frame: nothing to compare
-        cov = plane_covariance(fit.normal_covariance, fit.offset_sigma_m, fit.normal_offset_covariance)
+        # the noise alone: a camera that does not follow the arm sees the same systematic error in every frame
+        # (ADR 0055, "Poses combined"); the allowance as if independent per pose would hide it
+        cov = noise_plane_covariance(fit)
         try:
             self.view_check.add(ViewSample(str(index + 1), flange, fit.plane.normal, fit.plane.offset_m, cov))
         except CalibrationQualityError:

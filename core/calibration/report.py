@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from cellcal.core.calibration.budget import budget_line, error_budget, pose_budget_line
-from cellcal.core.geometry.consistency import PosePlane, plane_consistency
+from cellcal.core.geometry.consistency import PosePlane, noise_shifts, plane_consistency
 from cellcal.core.geometry.planes import Plane
 from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.errors import CalibrationError, OutputError
@@ -159,26 +159,36 @@ def format_table(rows: list[Mapping[str, Any]]) -> str:
 def _pose_plane(pose: Mapping[str, Any], method: str) -> PosePlane | None:
     """The plane a pose record holds for ``method`` (``plane_fit``: at the largest perimeter)."""
     camera = Pose.from_dict(pose["camera_pose"])
+    flange = Pose.from_dict(pose["reported_flange_pose"]) if pose.get("reported_flange_pose") else None
     if method == "full_frame":
         ff = pose.get("full_frame")
         if not ff:
             return None
-        cov = np.asarray(ff["normal_covariance"], dtype=np.float64)
+        # the noise alone per pose and the systematic allowance's shifts, a coefficient common to the poses
+        # (ADR 0055, "Poses combined"); an older document's covariance is taken as noise, without shifts
+        cov = np.asarray(ff.get("noise_normal_covariance") or ff["normal_covariance"], dtype=np.float64)
+        sigma = ff.get("noise_offset_sigma_m")
+        if sigma is None:
+            sigma = ff["plane_cam"].get("noise_offset_sigma_m", ff["plane_cam"].get("offset_sigma_m"))
         return PosePlane.from_camera(Plane.from_dict(ff["plane_cam"]), camera,
                                      normal_sigma_rad=float(np.sqrt(max(np.trace(cov), 0.0))),
-                                     offset_sigma_m=ff["plane_cam"].get("offset_sigma_m"))
+                                     offset_sigma_m=sigma, shifts_cam=noise_shifts(ff), flange_in_base=flange)
     fits = [m for m in pose.get("measurements", []) if m["method"] == method and m.get("plane_cam")]
     if not fits:
         return None
     best = max(fits, key=lambda m: m["perimeter_px"] or 0)
-    return PosePlane.from_camera(Plane.from_dict(best["plane_cam"]), camera)
+    return PosePlane.from_camera(Plane.from_dict(best["plane_cam"]), camera, flange_in_base=flange)
 
 
-def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = None) -> dict[str, Any] | None:
+def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = None, *,
+                  arm: ArmModel | None = None) -> dict[str, Any] | None:
     """Consensus plane in the base frame and its consistency across poses, from pose records.
 
     Uses each pose's ``full_frame`` plane (or, when the method was not run, the
-    ``plane_fit`` plane at the largest perimeter) and its ``camera_pose``. Adds
+    ``plane_fit`` plane at the largest perimeter) and its ``camera_pose``; the spread is
+    judged against the poses' noise, the differential part of the camera's systematic
+    allowance and the arm's varying accuracy, the consensus's interval carries the common
+    parts (``arm``: the arm's stated model, None: not counted; ADR 0055). Adds
     ``source_method`` and, with a ``reference`` plane (base frame), ``reference``: the
     angle between the consensus and reference normals (deg) and the consensus's height
     above the reference along the reference normal at the consensus reference point (m).
@@ -196,7 +206,7 @@ def plane_summary(poses: Iterable[Mapping[str, Any]], reference: Plane | None = 
     else:
         return None
     try:
-        result = plane_consistency(planes)
+        result = plane_consistency(planes, arm=arm)
     except CalibrationError as exc:
         return {"source_method": source, "n_poses": len(planes), "verdict": "failed",
                 "interpretation": f"{exc}: the hand-eye transform or the arm's pose readings are far off"}
@@ -222,7 +232,7 @@ def summarize_poses(poses: Iterable[Mapping[str, Any]], reference: Plane | None 
     """
     pose_list = list(poses)
     rows = [r for p in pose_list for r in p.get("measurements", [])]
-    return {"methods": summarize(rows), "plane_consistency": plane_summary(pose_list, reference),
+    return {"methods": summarize(rows), "plane_consistency": plane_summary(pose_list, reference, arm=arm),
             "error_budget": error_budget(pose_list, arm)}
 
 
