@@ -275,7 +275,7 @@ def test_commented_artefacts_table_in_sim_toml_shows_the_real_defaults() -> None
     from importlib import resources
 
     text = resources.files("cellcal.configs").joinpath("sim.toml").read_text(encoding="utf-8")
-    block = text[text.index("# [sim.artefacts]"):]
+    block = text[text.index("# [sim.artefacts]"):].split("\n#\n")[0]  # up to the next commented table
     shown = tomllib.loads("\n".join(line[2:] for line in block.splitlines() if line.startswith("# ") and " = " in line))
     assert len(shown) >= 10
     defaults = ArtefactsConfig()

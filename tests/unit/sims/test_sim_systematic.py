@@ -180,3 +180,17 @@ def test_a_bad_key_or_value_is_one_line_naming_it(table: dict[str, object], key:
         world_from_context(BackendContext(source="cell.toml", document={"sim": {"systematic": table}}))
     text = str(info.value)
     assert f"sim.systematic.{key}" in text and "\n" not in text and "cell.toml" in text
+
+
+@pytest.mark.parametrize("name", ["sim.toml", "sim_oak.toml"])
+def test_the_commented_table_in_the_shipped_configs_shows_the_real_defaults(name: str) -> None:
+    import tomllib
+    from importlib import resources
+
+    text = resources.files("cellcal.configs").joinpath(name).read_text(encoding="utf-8")
+    block = text[text.index("# [sim.systematic]"):].split("\n#\n")[0]
+    shown = tomllib.loads("\n".join(line[2:] for line in block.splitlines() if line.startswith("# ") and " = " in line))
+    assert len(shown) >= 4 and shown["enabled"] is True
+    defaults = SystematicConfig()
+    for key, value in shown.items():
+        assert getattr(defaults, key) == pytest.approx(value, rel=1e-4), key
