@@ -31,7 +31,7 @@ from cellcal.devices.arm_model import UNSTATED_ARM_MODEL, ArmModel
 from cellcal.devices.pose import Pose
 
 __all__ = ["ALLOWANCE_TERMS", "HANDEYE_TERMS", "HANDEYE_VALUES", "NEXT_STEP", "TERMS", "budget_line", "budget_table",
-           "error_budget", "handeye_budget_line", "handeye_value", "pose_budget_line"]
+           "error_budget", "handeye_budget_line", "handeye_value", "pose_budget_line", "term_label"]
 
 #: Budget sensitivities and their labels for people.
 TERMS: dict[str, str] = {"depth_scale_1pct": "depth scale (1 %)", "depth_offset_1mm": "depth offset (1 mm)",
@@ -48,6 +48,11 @@ NEXT_STEP: dict[str, str] = {"depth_scale": "run cellcal depthcal", "depth_offse
                              "arm_accuracy": "calibrate the arm's kinematics (or state its accuracy in [arm.model])"}
 #: The allowance's keys in ``full_frame.error_budget.allowance_shifts`` and ``allowance``.
 _SHIFT_KEY: dict[str, str] = {"depth_scale": "scale", "depth_offset": "offset", "depth_field": "field"}
+
+
+def term_label(key: str) -> str:
+    """A term's name for people (a judged term, a sensitivity, or the key itself: documents of other versions)."""
+    return ALLOWANCE_TERMS.get(key) or TERMS.get(key) or key
 
 
 def _arm(arm: ArmModel, lever_m: float) -> dict[str, float]:
@@ -229,7 +234,7 @@ def _judged_clause(block: Mapping[str, Any], what: str) -> str:
     at = block["at_allowance"]
     dom = block["dominant"][what.split("_")[0]]
     order = [dom, *sorted((k for k in at if k != dom), key=lambda k: -_size(at[k], what))]
-    return f"{ALLOWANCE_TERMS[dom]} dominates ({'; '.join(_figure(k, at[k], what) for k in order)})"
+    return f"{term_label(dom)} dominates ({'; '.join(_figure(k, at[k], what) for k in order)})"
 
 
 def budget_line(budget: Mapping[str, Any] | None) -> str:
@@ -245,13 +250,13 @@ def budget_line(budget: Mapping[str, Any] | None) -> str:
                 f"per 1 mm offset {_size(c['depth_offset_1mm'], 'height_m') * 1000:.3g} mm")
     if c.get("judged") != "allowance" or not c.get("at_allowance"):
         dom = c["dominant"]["height"]
-        return (f"error budget, height: {ALLOWANCE_TERMS[dom]} dominates per unit ({per_unit}, "
+        return (f"error budget, height: {term_label(dom)} dominates per unit ({per_unit}, "
                 f"arm {_size(c['arm_accuracy'], 'height_m') * 1000:.3g} mm; the camera states no allowance): "
                 f"{c['next']}")
     line = f"error budget, height: {_judged_clause(c, 'height_m')[:-1]}; {per_unit})"
     if c["dominant"]["tilt"] != c["dominant"]["height"]:
         tdom = c["dominant"]["tilt"]
-        line += f"; tilt: {ALLOWANCE_TERMS[tdom]} dominates ({_figure(tdom, c['at_allowance'][tdom], 'tilt_rad')})"
+        line += f"; tilt: {term_label(tdom)} dominates ({_figure(tdom, c['at_allowance'][tdom], 'tilt_rad')})"
     return f"{line}: {c['next']}"
 
 

@@ -61,7 +61,7 @@ def _budget_tables(budget: Mapping[str, Any] | None) -> str:
     Millimetres and degrees (ADR 0042); the exact values (m, rad) in ``data-value``; the dominant
     term's row (and a pose's dominant cells) highlighted, what to calibrate next said.
     """
-    from cellcal.core.calibration.budget import ALLOWANCE_TERMS, TERMS
+    from cellcal.core.calibration.budget import ALLOWANCE_TERMS, TERMS, term_label
 
     if not budget:
         return ""
@@ -76,8 +76,8 @@ def _budget_tables(budget: Mapping[str, Any] | None) -> str:
              f"<p>What each systematic error would move the plane by: {_e(where)}; the sensitivities per 1 % "
              "depth scale and per 1 mm depth offset beside them. The consensus in the base frame (a depth error "
              "is common to every pose), each pose in its camera frame.</p>",
-             f"<p class='budget-next'>height: <span class='dominant-term'>{_e(ALLOWANCE_TERMS[dom['height']])}"
-             f"</span> dominates; tilt: {_e(ALLOWANCE_TERMS[dom['tilt']])} dominates; next: "
+             f"<p class='budget-next'>height: <span class='dominant-term'>{_e(term_label(dom['height']))}"
+             f"</span> dominates; tilt: {_e(term_label(dom['tilt']))} dominates; next: "
              f"<span class='next'>{_e(c.get('next', ''))}</span></p>"]
     rows = []
     for key, label in ALLOWANCE_TERMS.items():
@@ -93,7 +93,7 @@ def _budget_tables(budget: Mapping[str, Any] | None) -> str:
         else:
             stated = "n/a" if a is None else str(a["stated"])
             probe = TERMS[per_unit[key]].split("(")[-1].rstrip(")") if key in per_unit else ""
-        mark = " dominant" if key == dom["height"] else ""
+        mark = " dominant" if dom["height"] in (key, per_unit.get(key)) else ""
         rows.append(f"<tr class='budget{mark}' data-term='{_e(key)}'><td class='l'>{_e(label)}</td>"
                     f"<td class='l'>{_e(stated)}</td>"
                     + (_cell(abs(a["tilt_rad"]), ".4f", _DEG) + _cell(abs(a["height_m"]), ".3f", 1000.0)

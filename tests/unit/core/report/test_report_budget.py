@@ -123,3 +123,21 @@ def test_the_handeye_report_has_the_budget_when_its_result_has_one() -> None:
     scale = rows["depth_scale_1pct"]["cells"]
     assert [c["text"] for c in scale[1:]] == ["1.200", "0.800", "6.100", "0.0229", "0.0115", "0.0000", "4.900"]
     assert float(scale[3]["value"]) == 0.0061
+
+
+def test_a_report_of_an_earlier_budget_is_still_drawn(passing: dict[str, Any]) -> None:
+    """A run directory from before the budget was judged at the allowance (no at_allowance, per-unit names)."""
+    from cellcal.core.calibration.budget import budget_line
+
+    data = copy.deepcopy(passing)
+    old = data["calibrate"]["result"]["summary"]["error_budget"]
+    for block in [old["consensus"], *old["poses"]]:
+        block.pop("at_allowance"), block.pop("judged")
+        block["dominant"] = {"tilt": "arm_accuracy", "height": "depth_scale_1pct"}
+    page = parse(render_html(data, []))
+    text = "".join(page.text)
+    assert "depth scale (1 %) dominates" in text
+    marked = [r["attrs"]["data-term"] for r in page.rows if "dominant" in _class(r)]
+    assert marked == ["depth_scale"]
+    assert not [r for r in page.rows if _class(r) == "budget-pose"]
+    assert budget_line(old).startswith("error budget, height: depth scale (1 %) dominates per unit")
