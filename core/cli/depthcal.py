@@ -182,7 +182,7 @@ def _compare(path: str, document: dict[str, Any]) -> str:
 def _finish(args: argparse.Namespace, config: Any, document: dict[str, Any], result: Any, views: list[Any],
             corrected: bool) -> None:
     """The terminal summary, the replay's comparison and the report."""
-    from cellcal.core.depthcal.report import format_summary, write_report
+    from cellcal.core.depthcal.report import format_summary
     from cellcal.core.depthcal.run import DEPTHCAL_FILENAME
 
     out = Path(args.out) / DEPTHCAL_FILENAME
@@ -194,6 +194,8 @@ def _finish(args: argparse.Namespace, config: Any, document: dict[str, Any], res
     if args.replay:
         print(_compare(args.replay, document))
     if not args.no_report:
+        from cellcal.core.report.depthcal import write_report
+
         page = write_report(args.out, config, document, result, views)
         if page is not None and not args.quiet:
             print(f"report written to {page}")
