@@ -15,9 +15,16 @@ inclinations 90, 80 and 70 deg, the tilt's azimuth and the image position varyin
   correction (``devices.correction.correct_frame``): its tilt and height errors over their Cramér-Rao
   bounds for the noise alone (the Fisher information of the frame's native values), RMS over the views
   (target <= 1.5); the uncorrected fit's for comparison;
+* **the floor** of that check: the height error a perfect (noise-free) fit of ONE corrected frame would
+  still have, the fitted correction's covariance propagated through the frame's fit, in micrometres beside
+  the noise-alone bound. A single frame's noise bound is tiny (thousands of pixels) and the correction's
+  leftover dominates it, so the issue's "<= 1.5x the noise-alone bound" cannot be met by any correction
+  fitted from a plan of a dozen views; what a corrected fit can meet is <= 1.5x the two in quadrature,
+  printed beside it. The floor shrinks with the points the depth calibration uses (``--points``);
 * **time** of the fit (median; wall clock, shared machine: re-measure on a quiet one).
 
-Run: ``.venv/bin/python benchmarks/depthcal.py [--seeds 5] [--points 4000]``.
+Run: ``.venv/bin/python benchmarks/depthcal.py [--seeds 5] [--points 16000]`` (``--points``: the fit's
+``max_points_per_view``, default its default).
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from cellcal.core.depthcal import DepthcalResult, fit_depthcal  # noqa: E402
+from cellcal.core.depthcal.fit import DEFAULT_POINTS_PER_VIEW  # noqa: E402
 from cellcal.core.geometry.planes import Plane  # noqa: E402
 from cellcal.core.methods.fullframe import fit_full_frame  # noqa: E402
 from cellcal.devices.correction import correct_frame  # noqa: E402
@@ -57,13 +65,15 @@ CHECK_POSES = [Pose.from_xyz_rpy([0.02, -0.01, 0.5], np.radians([180.0 + 8.0, 0.
 
 
 def crb_sigmas(exact: Frame, truth: Plane, native_sigma: np.ndarray | float, stereo: bool, fb: float,
-               correction: SystematicError) -> tuple[float, float, float, float]:
+               correction: SystematicError) -> tuple[float, float, float, float, float, float]:
     """Cramér-Rao 1-sigmas of a plane's tilt (RMS angle, rad) and height (m) from a frame's native values.
 
     Every valid pixel of the noise-free frame measures ``f·B/Z`` (stereo) or the range (ToF) of its ray's
     meeting with the plane, with the noise alone; the Fisher information of (two tilts, distance) inverts
     to the smallest covariance an unbiased fit can reach. Also the same with the correction's leftover
-    (its covariance propagated through the weighted fit): ``(tilt, height, tilt_with, height_with)``.
+    (its covariance propagated through the weighted fit), and the leftover's part alone, the floor: what a
+    perfect (noise-free) frame corrected with this correction would still err by:
+    ``(tilt, height, tilt_with, height_with, tilt_floor, height_floor)``.
     """
     xyz = exact.xyz[exact.valid].astype(np.float64)
     rays = xyz / np.linalg.norm(xyz, axis=1)[:, None]
@@ -91,22 +101,27 @@ def crb_sigmas(exact: Frame, truth: Plane, native_sigma: np.ndarray | float, ste
     u, v = normalised_pixels(intr.width, intr.height, intr.cx, intr.cy)
     design = correction.jacobian(native(np.zeros(3)), u[exact.valid], v[exact.valid])
     gain = cov @ (jw.T @ (design / sig[:, None]))          # plane parameters per correction term
-    both = cov + gain @ np.asarray(correction.covariance) @ gain.T
+    floor = gain @ np.asarray(correction.covariance) @ gain.T
+    both = cov + floor
     return (math.sqrt(cov[0, 0] + cov[1, 1]), math.sqrt(cov[2, 2]),
-            math.sqrt(both[0, 0] + both[1, 1]), math.sqrt(both[2, 2]))
+            math.sqrt(both[0, 0] + both[1, 1]), math.sqrt(both[2, 2]),
+            math.sqrt(floor[0, 0] + floor[1, 1]), math.sqrt(floor[2, 2]))
 
 
-def check_after(result: DepthcalResult, kind: str, seed: int) -> tuple[list[float], list[float], list[float]]:
+def check_after(result: DepthcalResult, kind: str, seed: int
+                ) -> tuple[list[float], list[float], list[float], list[tuple[float, float, float]]]:
     """Full-frame fits of fresh views, corrected and not: (tilt, height) errors over their CRB sigmas.
 
     Returns the corrected fit's errors over the noise-alone bound, over the bound with the correction's
-    leftover, and the uncorrected fit's over the noise-alone bound (tilt, height pairs).
+    leftover, the uncorrected fit's over the noise-alone bound (tilt, height pairs), and per view the
+    height's figures in metres: (the corrected fit's error, the noise-alone bound, the correction's floor).
     """
     truth_err = STEREO_TRUTH if kind == "stereo" else TOF_TRUTH
     make = stereo_views if kind == "stereo" else tof_views
     views, _ = make(truth_err, CHECK_POSES, seed=seed + 1000)
     exact_views, _ = make(SystematicError(truth_err.kind), CHECK_POSES, seed=seed + 1000, noise=False)
     ratios_after, ratios_before, ratios_with = [], [], []
+    heights: list[tuple[float, float, float]] = []
     for view, exact, pose in zip(views, exact_views, CHECK_POSES, strict=True):
         plane = Plane.from_point_normal(np.zeros(3), [0.0, 0.0, 1.0]).transformed(pose.inv()).oriented_toward_origin()
         model = view.frame.measurement
@@ -119,8 +134,8 @@ def check_after(result: DepthcalResult, kind: str, seed: int) -> tuple[list[floa
             cos = np.abs(xyz @ plane.normal) / rho
             sig = np.asarray(model.range_sigma_m(rho, cos))
             fb = 1.0
-        s_tilt, s_height, w_tilt, w_height = crb_sigmas(exact.frame, plane, sig, kind == "stereo", fb,
-                                                        result.correction)
+        s_tilt, s_height, w_tilt, w_height, _, f_height = crb_sigmas(exact.frame, plane, sig, kind == "stereo",
+                                                                     fb, result.correction)
         for frame, out in ((correct_frame(view.frame, result.correction), ratios_after), (view.frame, ratios_before)):
             fit = fit_full_frame(frame)
             tilt = math.acos(min(1.0, abs(float(fit.plane.normal @ plane.normal))))
@@ -128,7 +143,8 @@ def check_after(result: DepthcalResult, kind: str, seed: int) -> tuple[list[floa
             out.extend([tilt / s_tilt, height / s_height])
             if out is ratios_after:
                 ratios_with.extend([tilt / w_tilt, height / w_height])
-    return ratios_after, ratios_with, ratios_before
+                heights.append((height, s_height, f_height))
+    return ratios_after, ratios_with, ratios_before, heights
 
 
 def run(kind: str, seeds: int, points: int) -> dict[str, float]:
@@ -137,6 +153,7 @@ def run(kind: str, seeds: int, points: int) -> dict[str, float]:
     inside = total = 0
     held, half_scale, half_offset, times, after, before, orders = [], [], [], [], [], [], []
     with_leftover: list[float] = []
+    heights: list[tuple[float, float, float]] = []
     for seed in range(seeds):
         views, _ = (stereo_views(truth, plan(seed=seed), seed=seed) if kind == "stereo"
                     else tof_views(truth, plan(seed=seed), seed=seed))
@@ -156,7 +173,8 @@ def run(kind: str, seeds: int, points: int) -> dict[str, float]:
         half_scale.append(1.96 * sig[0])
         to_m = WORKING_DISTANCE_M ** 2 / model.fb_px_m if kind == "stereo" else 1.0
         half_offset.append(1.96 * sig[1] * to_m)
-        a, w, b = check_after(res, kind, seed)
+        a, w, b, hs = check_after(res, kind, seed)
+        heights.extend(hs)
         after.extend(a)
         with_leftover.extend(w)
         before.extend(b)
@@ -168,8 +186,11 @@ def run(kind: str, seeds: int, points: int) -> dict[str, float]:
     before_t, before_h = rms(before[0::2]), rms(before[1::2])
     with_t, with_h = rms(with_leftover[0::2]), rms(with_leftover[1::2])
     cov_share = inside / total
+    err_h = rms([h[0] for h in heights])
+    crb_h = rms([h[1] for h in heights])
+    floor_h = rms([h[2] for h in heights])
     out = {"coverage": cov_share, "held": max(held), "scale": max(half_scale), "offset": max(half_offset),
-           "time": statistics.median(times), "tilt": after_t, "height": after_h}
+           "time": statistics.median(times), "tilt": after_t, "height": after_h, "floor_m": floor_h}
 
     def verdict(ok: bool) -> str:
         return "PASS" if ok else "FAIL"
@@ -186,6 +207,10 @@ def run(kind: str, seeds: int, points: int) -> dict[str, float]:
           f"height {before_h:.2f}")
     print(f"  the same over the bound with the correction's leftover (its covariance through the fit): "
           f"tilt {with_t:.2f}, height {with_h:.2f} {verdict(max(with_t, with_h) <= 1.5)}")
+    print(f"  height floor of ONE corrected frame: the noise-alone CRB {1e6 * crb_h:.1f} um, the correction's own "
+          f"leftover (a perfect fit of the frame, the correction's covariance) {1e6 * floor_h:.1f} um = "
+          f"{floor_h / crb_h:.0f}x the CRB; the corrected fit's RMS error {1e6 * err_h:.1f} um = "
+          f"{err_h / math.hypot(crb_h, floor_h):.2f}x their sum in quadrature (meetable target <= 1.5)")
     print(f"  fit time: median {statistics.median(times):.2f} s (wall, shared machine)")
     return out
 
@@ -193,7 +218,7 @@ def run(kind: str, seeds: int, points: int) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--points", type=int, default=4000, help="max_points_per_view")
+    parser.add_argument("--points", type=int, default=DEFAULT_POINTS_PER_VIEW, help="max_points_per_view")
     parser.add_argument("--kind", choices=("stereo", "tof", "both"), default="both")
     args = parser.parse_args()
     for kind in ("stereo", "tof") if args.kind == "both" else (args.kind,):

@@ -414,5 +414,5 @@ class DepthcalSection:
     field_max_order: int = field(default=3, metadata={"ge": 0, "le": 4})
     holdout_every: int = field(default=4, metadata={"ge": 2, "le": 1000})
     frames_per_pose: int = field(default=1, metadata={"ge": 1, "le": 20})
-    max_points_per_view: int = field(default=4000, metadata={"ge": 100, "le": 1_000_000})
+    max_points_per_view: int = field(default=16000, metadata={"ge": 100, "le": 1_000_000})
     wiggle_period_m: float | None = field(default=None, metadata={"gt": 0.0, "le": 100.0})

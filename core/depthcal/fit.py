@@ -19,9 +19,10 @@ design effect of spatially correlated residuals (as the full-frame fit, ADR 0028
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,9 +35,9 @@ from cellcal.core.methods.fullframe.honesty import DEFF_SIGNIFICANCE, design_eff
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.measurement import DEFAULT_ALLOWANCES, MeasurementModel
 from cellcal.devices.pose import Pose
-from cellcal.devices.systematic import SystematicError, field_basis, normalised_pixels
+from cellcal.devices.systematic import SystematicError, field_terms
 
-__all__ = ["INLIER_SIGMAS", "MIN_VIEWS", "fit_depthcal"]
+__all__ = ["DEFAULT_POINTS_PER_VIEW", "INLIER_SIGMAS", "MIN_VIEWS", "fit_depthcal"]
 
 FloatArray = NDArray[np.float64]
 #: Points farther than this many (robust) sigmas from the robust fit are outliers (speckle, edges).
@@ -48,7 +49,14 @@ ROBUST_SCALE = 3.0
 PRIOR_ALLOWANCES = 10.0
 #: Fewer views than this cannot separate the scale from the plane.
 MIN_VIEWS = 3
-#: Steps of the central differences for the geometry's columns (rad, m).
+#: Valid pixels a view gives the fit at most (a seeded sample): the scale's precision grows with them.
+DEFAULT_POINTS_PER_VIEW = 16000
+#: The robust pass (soft-L1, to tell the outliers) runs on a strided subsample of about this many points a view.
+ROBUST_POINTS_PER_VIEW = 2000
+#: Gauss-Newton stops after a step below this share of every parameter's (conditional) sigma: it converges
+#: quadratically here (a step of 2 sigmas is followed by one of about 0.01), so the next would be ~1e-4.
+_STEP_SIGMAS = 0.1
+#: Steps of the central differences for the mount's columns (rad, m).
 _STEP_ANGLE = 1e-6
 _STEP_LENGTH = 1e-6
 _PLANE_NAMES = ["plane_tilt_a_rad", "plane_tilt_b_rad", "plane_offset_m"]
@@ -63,19 +71,25 @@ class _Points:
     u: FloatArray
     v: FloatArray
     measured: FloatArray       # native value, px or m
-    basis: FloatArray          # (N, n_field) field monomials at the chosen order
+    basis: FloatArray          # (n_field, N) field monomials at the highest order, one row per monomial
     slices: list[slice]        # per view
     masks: list[NDArray[np.bool_]]   # per view, flat pixel mask of the sample
     shape: tuple[int, int]
 
+    def index(self, views: Sequence[int]) -> NDArray[np.intp]:
+        """Indices of the named views' points, in the order of ``views``."""
+        if not views:
+            return np.zeros(0, dtype=np.intp)
+        return np.concatenate([np.arange(self.slices[i].start, self.slices[i].stop) for i in views])
+
     def subset(self, views: Sequence[int]) -> _Points:
-        idx = np.concatenate([np.arange(self.slices[i].start, self.slices[i].stop) for i in views])
+        idx = self.index(views)
         slices, start = [], 0
         for i in views:
             n = self.slices[i].stop - self.slices[i].start
             slices.append(slice(start, start + n))
             start += n
-        return _Points(self.ray[idx], self.u[idx], self.v[idx], self.measured[idx], self.basis[idx], slices,
+        return _Points(self.ray[idx], self.u[idx], self.v[idx], self.measured[idx], self.basis[:, idx], slices,
                        [self.masks[i] for i in views], self.shape)
 
     def take(self, keep: NDArray[np.bool_]) -> _Points:
@@ -89,7 +103,7 @@ class _Points:
             mm = m.copy()
             mm[np.flatnonzero(m)[~k]] = False
             masks.append(mm)
-        return _Points(self.ray[keep], self.u[keep], self.v[keep], self.measured[keep], self.basis[keep], slices,
+        return _Points(self.ray[keep], self.u[keep], self.v[keep], self.measured[keep], self.basis[:, keep], slices,
                        masks, self.shape)
 
 
@@ -113,6 +127,10 @@ class _Problem:
     def n_geometry(self) -> int:
         return 3 + (6 if self.estimate_mount else 0)
 
+    @property
+    def n_field(self) -> int:
+        return len(self.template.field_coeffs) if self.template.field_order else 0
+
     def normal(self, g: FloatArray) -> FloatArray:
         n = self.n0 + g[0] * self.e1 + g[1] * self.e2
         out: FloatArray = n / np.linalg.norm(n)
@@ -129,34 +147,53 @@ class _Problem:
             out.append((c.rotation_matrix, np.asarray(c.translation, dtype=np.float64)))
         return out
 
-    def true_values(self, g: FloatArray, pts: _Points) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """True native value, range along the ray (m) and cos of incidence, per point."""
+    def true_values(self, g: FloatArray, pts: _Points, derivatives: bool = False
+                    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]:
+        """True native value, range along the ray (m), cos of incidence and (``derivatives``) d(true)/d(g), per point.
+
+        The derivatives are one row per geometry parameter, ``(n_geometry, N)``.
+
+        The plane's columns are analytic (per view: the ray meets ``n · x = h`` at ``t = (h - n·o) / (n·R ray)``);
+        the mount's, when estimated, central differences.
+        """
         n = self.normal(g)
         h = float(g[2])
-        t = np.empty(pts.ray.shape[0])
-        cos = np.empty_like(t)
-        for s, (rot, origin) in zip(pts.slices, self.camera_poses(g), strict=True):
-            nd = np.einsum("ij,j->i", pts.ray[s], rot.T @ n)   # n · (R ray)
+        size = pts.ray.shape[0]
+        t = np.empty(size)
+        nd_all = np.empty(size)
+        poses = self.camera_poses(g)
+        if derivatives:
+            # d n / d g_k for the two tilts: the tangent's part normal to n over |n0 + g0 e1 + g1 e2|
+            m = float(np.linalg.norm(self.n0 + g[0] * self.e1 + g[1] * self.e2))
+            dn = [(e - n * float(n @ e)) / m for e in (self.e1, self.e2)]
+            dt = np.empty((3, size))
+        for s, (rot, origin) in zip(pts.slices, poses, strict=True):
+            ray = pts.ray[s]
+            nd = ray @ (rot.T @ n)                  # n · (R ray)
             nd = np.minimum(nd, -1e-6)              # the ray must go towards the plane
-            t[s] = (h - float(n @ origin)) / nd
-            cos[s] = -nd
+            ts = (h - float(n @ origin)) / nd
+            t[s] = ts
+            nd_all[s] = nd
+            if derivatives:
+                for k in range(2):                  # dt/dg_k = -(o·dn_k + t ray·(Rᵀ dn_k)) / nd
+                    dt[k, s] = -(float(origin @ dn[k]) + ts * (ray @ (rot.T @ dn[k]))) / nd
+                dt[2, s] = 1.0 / nd
+        clipped = t < 1e-4
         t = np.maximum(t, 1e-4)
+        cos = -nd_all
         true = self.fb / (t * pts.ray[:, 2]) if self.stereo else t
-        return true, t, cos
-
-    def design(self, true: FloatArray, pts: _Points) -> FloatArray:
-        """d(measured)/d(correction vector): head columns from the true values, the field's from the basis."""
-        tp = self.template
-        if self.stereo:
-            head = np.column_stack([true, np.ones_like(true)])
-        else:
-            if tp.wiggle_period_m > 0.0:
-                phase = 2.0 * math.pi * true / tp.wiggle_period_m
-                cos, sin = np.cos(phase), np.sin(phase)
-            else:
-                cos = sin = np.zeros_like(true)
-            head = np.column_stack([true, np.ones_like(true), cos, sin])
-        return np.hstack([head, pts.basis[:, :tp.field_order and len(tp.field_coeffs)]])
+        if not derivatives:
+            return true, t, cos, None
+        jac = np.empty((self.n_geometry, size))    # one row per geometry parameter
+        dtrue_dt = np.where(clipped, 0.0, -true / t if self.stereo else 1.0)
+        np.multiply(dt, dtrue_dt, out=jac[:3])
+        for k in range(3, self.n_geometry):
+            step = _STEP_ANGLE if k < 6 else _STEP_LENGTH
+            gp, gm = g.copy(), g.copy()
+            gp[k] += step
+            gm[k] -= step
+            jac[k] = (self.true_values(gp, pts)[0] - self.true_values(gm, pts)[0]) / (2.0 * step)
+        return true, t, cos, jac
 
     def vector(self, x: FloatArray) -> FloatArray:
         """The correction's full vector from the fitted parameters (fixed terms 0)."""
@@ -164,65 +201,110 @@ class _Problem:
         c[self.free] = x[self.n_geometry:]
         return c
 
-    def predicted(self, x: FloatArray, pts: _Points, field: FloatArray | None = None) -> FloatArray:
-        """What the camera should measure (``distort`` of the true value), per point; ``field``: its image field."""
-        true, _, _ = self.true_values(x[:self.n_geometry], pts)
+    def _wiggle(self, true: FloatArray) -> tuple[FloatArray, FloatArray]:
+        phase = (2.0 * math.pi / self.template.wiggle_period_m) * true
+        return np.cos(phase), np.sin(phase)
+
+    def predicted(self, x: FloatArray, pts: _Points, true: FloatArray | None = None) -> FloatArray:
+        """What the camera should measure (``distort`` of the true value), per point."""
+        if true is None:
+            true = self.true_values(x[:self.n_geometry], pts)[0]
         c = self.vector(x)
         out: FloatArray = true * (1.0 + c[0]) + c[1]
         head = 2
         if not self.stereo:
             head = 4
             if self.template.wiggle_period_m > 0.0 and (c[2] or c[3]):
-                phase = (2.0 * math.pi / self.template.wiggle_period_m) * true
-                out += c[2] * np.cos(phase) + c[3] * np.sin(phase)
+                cos, sin = self._wiggle(true)
+                out += c[2] * cos + c[3] * sin
         if c.size > head:
-            out += np.einsum("ij,j->i", pts.basis[:, :c.size - head], c[head:]) if field is None else field
+            out += c[head:] @ pts.basis[:c.size - head]
         return out
+
+    def columns(self, x: FloatArray, pts: _Points) -> tuple[FloatArray, FloatArray]:
+        """d(predicted)/d(fitted parameters), one row per parameter ``(n_geometry + n_free, N)``, and the prediction."""
+        ng = self.n_geometry
+        true, _, _, dtrue = self.true_values(x[:ng], pts, derivatives=True)
+        assert dtrue is not None
+        c = self.vector(x)
+        tp = self.template
+        slope = np.full(true.size, 1.0 + c[0])   # d(predicted)/d(true)
+        full = [true, np.ones_like(true)]
+        if not self.stereo:
+            if tp.wiggle_period_m > 0.0:
+                cos, sin = self._wiggle(true)
+                slope += (2.0 * math.pi / tp.wiggle_period_m) * (c[3] * cos - c[2] * sin)
+            else:
+                cos = sin = np.zeros_like(true)
+            full += [cos, sin]
+        head = len(full)
+        out = np.empty((ng + self.free.size, true.size))
+        np.multiply(dtrue, slope, out=out[:ng])
+        for k, j in enumerate(self.free):
+            out[ng + k] = full[j] if j < head else pts.basis[j - head]
+        return out, self.predicted(x, pts, true)
 
 
 def _sample(views: Sequence[DepthcalView], model: MeasurementModel, order: int, max_points: int,
-            seed: int) -> _Points:
+            seed: int) -> tuple[_Points, FloatArray]:
+    """Up to ``max_points`` valid pixels per view (seeded), and their measured points (camera frame)."""
     rng = np.random.default_rng(seed)
-    rays, us, vs, meas, masks, slices = [], [], [], [], [], []
+    rays, us, vs, meas, masks, slices, points = [], [], [], [], [], [], []
     start = 0
     shape = (views[0].frame.intrinsics.height, views[0].frame.intrinsics.width)
     for k, view in enumerate(views):
         fr = view.frame
         intr = fr.intrinsics
-        xyz = fr.xyz.reshape(-1, 3).astype(np.float64)
-        dist = fr.distance.reshape(-1).astype(np.float64)
-        ok = fr.valid.reshape(-1) & np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 0) & np.isfinite(dist)
+        xyz32 = fr.xyz.reshape(-1, 3)
+        dist32 = fr.distance.reshape(-1)
+        z = xyz32[:, 2]
+        ok = fr.valid.reshape(-1) & (z > 0) & np.isfinite(xyz32[:, 0]) & np.isfinite(xyz32[:, 1]) \
+            & np.isfinite(z) & np.isfinite(dist32)
         idx = np.flatnonzero(ok)
         if idx.size < 50:
             raise ConfigError(f"view {view.name or k}: {idx.size} valid pixels, too few to see the plane",
                               key="depthcal.views")
         if idx.size > max_points:
             idx = np.sort(rng.choice(idx, size=max_points, replace=False))
-        p = xyz[idx]
+        p = xyz32[idx].astype(np.float64)
+        points.append(p)
         rays.append(p / np.linalg.norm(p, axis=1)[:, None])
-        u, v = normalised_pixels(intr.width, intr.height, intr.cx, intr.cy)
-        us.append(u.reshape(-1)[idx])
-        vs.append(v.reshape(-1)[idx])
-        meas.append(model.fb_px_m / p[:, 2] if model.triangulating else dist[idx])
+        rows, cols = np.divmod(idx, intr.width)
+        us.append((cols - intr.cx) / (intr.width / 2.0))
+        vs.append((rows - intr.cy) / (intr.height / 2.0))
+        meas.append(model.fb_px_m / p[:, 2] if model.triangulating else dist32[idx].astype(np.float64))
         mask = np.zeros(ok.size, dtype=bool)
         mask[idx] = True
         masks.append(mask)
         slices.append(slice(start, start + idx.size))
         start += idx.size
     u_all, v_all = np.concatenate(us), np.concatenate(vs)
-    return _Points(np.concatenate(rays), u_all, v_all, np.concatenate(meas), field_basis(u_all, v_all, order),
-                   slices, masks, shape)
+    return (_Points(np.concatenate(rays), u_all, v_all, np.concatenate(meas), _monomials(u_all, v_all, order),
+                    slices, masks, shape), np.concatenate(points))
 
 
-def _initial_plane(views: Sequence[DepthcalView], mount: Pose) -> tuple[FloatArray, float]:
+def _monomials(u: FloatArray, v: FloatArray, order: int) -> FloatArray:
+    """The field's monomials (:func:`~cellcal.devices.systematic.field_basis`'s, in its order) as rows ``(n, N)``,
+    by products of powers (``**`` of arrays is several times slower)."""
+    terms = field_terms(order)
+    out = np.empty((len(terms), u.size))
+    pu, pv = [np.ones_like(u)], [np.ones_like(v)]
+    for _ in range(order):
+        pu.append(pu[-1] * u)
+        pv.append(pv[-1] * v)
+    for k, (i, j) in enumerate(terms):
+        np.multiply(pu[i], pv[j], out=out[k])
+    return out
+
+
+def _initial_plane(pts: _Points, points: FloatArray, flanges: Sequence[Pose], mount: Pose
+                   ) -> tuple[FloatArray, float]:
     """A plane through the measured points in the base frame (trimmed least squares), normal towards the cameras."""
-    pts = []
-    for view in views:
-        xyz = view.frame.xyz.reshape(-1, 3).astype(np.float64)
-        ok = view.frame.valid.reshape(-1) & np.all(np.isfinite(xyz), axis=1)
-        sample = xyz[ok][:: max(1, int(np.count_nonzero(ok)) // 2000)]
-        pts.append((view.flange_pose @ mount).apply(sample))
-    p = np.concatenate(pts)
+    base = []
+    for s, flange in zip(pts.slices, flanges, strict=True):
+        sample = points[s][:: max(1, (s.stop - s.start) // 2000)]
+        base.append((flange @ mount).apply(sample))
+    p = np.concatenate(base)
     keep = np.ones(len(p), dtype=bool)
     for _ in range(4):
         c = p[keep].mean(axis=0)
@@ -231,7 +313,7 @@ def _initial_plane(views: Sequence[DepthcalView], mount: Pose) -> tuple[FloatArr
         r = (p - c) @ n
         mad = float(np.median(np.abs(r[keep] - np.median(r[keep])))) + 1e-9
         keep = np.abs(r - np.median(r[keep])) < 4.0 * 1.4826 * mad
-    origin = np.asarray((views[0].flange_pose @ mount).translation)
+    origin = np.asarray((flanges[0] @ mount).translation)
     if float((origin - c) @ n) < 0:
         n = -n
     return n, float(n @ c)
@@ -249,120 +331,107 @@ class _Fit:
     x: FloatArray
     pts: _Points               # the inliers
     sigma: FloatArray          # their noise, native unit
-    jac: FloatArray            # whitened Jacobian at x over the inliers
+    fisher: FloatArray         # JᵀJ of the whitened residuals at x (the data's alone, no prior)
     resid: FloatArray          # whitened residuals of the inliers
-    prior_jac: FloatArray      # the prior's rows of the Jacobian
-
-
-def _residual_fn(prob: _Problem, pts: _Points, sigma: FloatArray
-                 ) -> tuple[Callable[[FloatArray], FloatArray], Callable[[FloatArray], FloatArray]]:
-    ng = prob.n_geometry
-    steps = np.array([_STEP_ANGLE, _STEP_ANGLE, _STEP_LENGTH] + [_STEP_ANGLE] * 3 + [_STEP_LENGTH] * 3)[:ng]
-
-    def fun(x: FloatArray) -> FloatArray:
-        out: FloatArray = np.concatenate([(pts.measured - prob.predicted(x, pts)) / sigma, x[ng:] / prob.prior])
-        return out
-
-    def jac(x: FloatArray) -> FloatArray:
-        true, _, _ = prob.true_values(x[:ng], pts)
-        cols = [-(prob.design(true, pts)[:, prob.free]) / sigma[:, None]]
-        geo = np.empty((pts.measured.size, ng))
-        field = np.zeros(pts.measured.size)   # the field does not move with the geometry: left out of the differences
-        for k in range(ng):
-            xp, xm = x.copy(), x.copy()
-            xp[k] += steps[k]
-            xm[k] -= steps[k]
-            diff = prob.predicted(xp, pts, field) - prob.predicted(xm, pts, field)
-            geo[:, k] = -diff / (2 * steps[k]) / sigma
-        rows = np.hstack([np.zeros((prob.free.size, ng)), np.diag(1.0 / prob.prior)])
-        return np.vstack([np.hstack([geo, *cols]), rows])
-
-    return fun, jac
+    prior: FloatArray          # the prior's information, diagonal over the parameters (0 for the geometry)
 
 
 def _noise(prob: _Problem, model: MeasurementModel, x: FloatArray, pts: _Points, fallback: float) -> FloatArray:
     """Per point noise 1-sigma in the native unit (stereo: constant; ToF: the model's law at range and incidence)."""
     if prob.stereo:
         return np.full(pts.measured.size, model.disparity_noise_px)
-    _, t, cos = prob.true_values(x[:prob.n_geometry], pts)
+    _, t, cos, _ = prob.true_values(x[:prob.n_geometry], pts)
     sig = model.range_sigma_m(t, cos)
     if sig is None:
         return np.full(pts.measured.size, fallback)
     return np.maximum(np.asarray(sig, dtype=np.float64), 1e-6)
 
 
-def _gauss_newton(fun: Callable[[FloatArray], FloatArray], jac: Callable[[FloatArray], FloatArray], x: FloatArray,
-                  robust: bool, iterations: int) -> FloatArray:
+def _gauss_newton(prob: _Problem, pts: _Points, sigma: FloatArray, x: FloatArray, robust: bool,
+                  iterations: int) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Gauss-Newton on the normal equations (the problem is linear in the correction, nearly so in the plane).
 
-    ``robust``: iteratively reweighted with soft-L1 weights of scale :data:`ROBUST_SCALE` (speckle and
-    edges lose their pull). Singular directions (a plan that cannot see a parameter) get the minimum-norm
-    step. A step that raises the cost is halved.
+    The normal equations are built from the analytic columns (:meth:`_Problem.columns`) and the weak prior
+    is added to them directly. ``robust``: iteratively reweighted with soft-L1 weights of scale
+    :data:`ROBUST_SCALE` (speckle and edges lose their pull). Singular directions (a plan that cannot see
+    a parameter) get the minimum-norm step. A step that raises the cost is halved. Stops when a step is
+    below :data:`_STEP_SIGMAS` of every parameter's (conditional) sigma.
+
+    Returns:
+        ``(x, fisher, resid)``: the solution, ``JᵀJ`` of the whitened residuals at the last linearisation
+        (unweighted, no prior) and the whitened residuals at ``x``.
     """
-    def cost(r: FloatArray) -> float:
+    ng = prob.n_geometry
+    prior_info = np.concatenate([np.zeros(ng), 1.0 / prob.prior ** 2])
+    inv_sigma = 1.0 / sigma
+
+    def cost(r: FloatArray, xx: FloatArray) -> float:
+        p = float(np.sum(xx[ng:] ** 2 / prob.prior ** 2))
         if robust:
             k = ROBUST_SCALE
-            return float(np.sum(2.0 * k * k * (np.sqrt(1.0 + (r / k) ** 2) - 1.0)))
-        return float(r @ r)
+            return float(np.sum(2.0 * k * k * (np.sqrt(1.0 + (r / k) ** 2) - 1.0))) + p
+        return float(r @ r) + p
 
-    r = fun(x)
-    c = cost(r)
+    cols, pred = prob.columns(x, pts)
+    r = (pts.measured - pred) * inv_sigma
+    c = cost(r, x)
+    fisher = np.zeros((x.size, x.size))
     for _ in range(iterations):
-        j = jac(x)
-        w = 1.0 / np.sqrt(1.0 + (r / ROBUST_SCALE) ** 2) if robust else np.ones_like(r)
-        jw = j * w[:, None]
-        # einsum, not BLAS: OpenBLAS threads on a tall, thin product lose more than they gain on a busy machine
-        a = np.einsum("ij,ik->jk", j, jw)
-        b = np.einsum("ij,i->j", jw, r)
+        jw = cols * inv_sigma                     # d(predicted)/dx whitened (rows): the residual's Jacobian is -jwᵀ
+        if robust:
+            w = 1.0 / np.sqrt(1.0 + (r / ROBUST_SCALE) ** 2)
+            jww = jw * w
+            a = jww @ jw.T
+            b = jww @ r
+            fisher = a
+        else:
+            fisher = jw @ jw.T
+            a = fisher
+            b = jw @ r
+        a = a + np.diag(prior_info)
+        b = b - prior_info * x
         d = np.sqrt(np.maximum(np.diag(a), 1e-300))
-        step = -np.linalg.lstsq(a / np.outer(d, d), b / d, rcond=1e-12)[0] / d
+        scaled = np.linalg.lstsq(a / np.outer(d, d), b / d, rcond=1e-12)[0]
+        step = scaled / d
+        accepted = False
         for _half in range(8):
-            r_new = fun(x + step)
-            c_new = cost(r_new)
+            x_new = x + step
+            r_new = (pts.measured - prob.predicted(x_new, pts)) * inv_sigma
+            c_new = cost(r_new, x_new)
             if c_new <= c:
+                accepted = True
                 break
             step = step / 2.0
-        else:
+            scaled = scaled / 2.0
+        if not accepted:
             break
-        x = x + step
-        done = c - c_new <= 1e-10 * max(c, 1e-300)
-        r, c = r_new, c_new
-        if done:
+        x, r, c = x_new, r_new, c_new
+        if float(np.max(np.abs(scaled))) < _STEP_SIGMAS:
             break
-    return x
+        cols, _ = prob.columns(x, pts)
+    return x, fisher, r
 
 
-def _solve(prob: _Problem, model: MeasurementModel, pts: _Points, x0: FloatArray) -> _Fit:
-    """Robust pass (soft-L1 weights) on every point, then a plain fit on the inliers."""
-    sigma = _noise(prob, model, x0, pts, fallback=0.001)
-    if not prob.stereo and model.range_sigma_m(1.0) is None:
-        r0 = pts.measured - prob.predicted(x0, pts)
-        sigma = np.full_like(sigma, max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-5))
-    fun, jac = _residual_fn(prob, pts, sigma)
-    x = _gauss_newton(fun, jac, x0, robust=True, iterations=30)
-    r = fun(x)[:pts.measured.size]
-    scale = max(1.4826 * float(np.median(np.abs(r))), 1.0)
-    keep = np.abs(r) < INLIER_SIGMAS * scale
-    inl = pts.take(keep)
-    sigma_in = _noise(prob, model, x, inl, fallback=float(np.median(sigma)))
-    if not prob.stereo and model.range_sigma_m(1.0) is None:
-        sigma_in = sigma[keep]
-    fun, jac = _residual_fn(prob, inl, sigma_in)
-    x = _gauss_newton(fun, jac, x, robust=False, iterations=20)
-    n = inl.measured.size
-    return _Fit(x, inl, sigma_in, jac(x)[:n], fun(x)[:n], jac(x)[n:])
+def _solve(prob: _Problem, pts: _Points, sigma: FloatArray, x0: FloatArray, iterations: int = 20) -> _Fit:
+    """A plain (not robust) fit of the points from ``x0``."""
+    x, fisher, r = _gauss_newton(prob, pts, sigma, x0, robust=False, iterations=iterations)
+    prior = np.concatenate([np.zeros(prob.n_geometry), 1.0 / prob.prior ** 2])
+    return _Fit(x, pts, sigma, fisher, r, prior)
 
 
 def _evaluate(prob: _Problem, model: MeasurementModel, x: FloatArray, pts: _Points, fallback: float
               ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Native residuals, their noise and the metres-per-native-unit factor, per point."""
-    resid = pts.measured - prob.predicted(x, pts)
-    sigma = _noise(prob, model, x, pts, fallback)
-    _, t, _ = prob.true_values(x[:prob.n_geometry], pts)
+    true, t, cos, _ = prob.true_values(x[:prob.n_geometry], pts)
+    resid = pts.measured - prob.predicted(x, pts, true)
     if prob.stereo:
+        sigma = np.full(pts.measured.size, model.disparity_noise_px)
         z = t * pts.ray[:, 2]
         to_m = z * z / prob.fb
     else:
+        sig = model.range_sigma_m(t, cos)
+        sigma = (np.full(pts.measured.size, fallback) if sig is None
+                 else np.maximum(np.asarray(sig, dtype=np.float64), 1e-6))
         to_m = np.ones_like(t)
     return resid, sigma, to_m
 
@@ -391,7 +460,7 @@ def _limits(names: Sequence[str], model: MeasurementModel, stereo: bool) -> list
 def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: MeasurementModel,
                  field_orders: Sequence[int] = (0, 1, 2, 3), holdout_every: int = 4,
                  wiggle_period_m: float | None = None, estimate_mount: bool = False,
-                 max_points_per_view: int = 4000, seed: int = 0) -> DepthcalResult:
+                 max_points_per_view: int = DEFAULT_POINTS_PER_VIEW, seed: int = 0) -> DepthcalResult:
     """Fit the camera's systematic depth error jointly with the plane in the base frame (module docstring).
 
     Args:
@@ -429,11 +498,12 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
                           key="depthcal.holdout_every")
     period = float(wiggle_period_m or 0.0) if not stereo else 0.0
     kind = "stereo" if stereo else "tof"
-    pts_all = _sample(views, model, max(orders), max_points_per_view, seed)
-    n0, h0 = _initial_plane(views, mount)
+    pts_all, points = _sample(views, model, max(orders), max_points_per_view, seed)
+    flanges = [v.flange_pose for v in views]
+    n0, h0 = _initial_plane(pts_all, points, flanges, mount)
     e1, e2 = _tangents(n0)
     fb = model.fb_px_m if stereo else 1.0
-    flanges = [v.flange_pose for v in views]
+    no_law = not stereo and model.range_sigma_m(1.0) is None
 
     def problem(order: int | None, which: Sequence[int]) -> _Problem:
         tp = SystematicError(kind, wiggle_period_m=period, field_order=order or 0)   # type: ignore[arg-type]
@@ -446,41 +516,96 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
         return _Problem(stereo, fb, [flanges[i] for i in which], mount, estimate_mount, n0, e1, e2, tp, free,
                         prior)
 
-    def x_start(prob: _Problem) -> FloatArray:
-        return np.concatenate([[0.0, 0.0, h0], np.zeros(prob.n_geometry - 3), np.zeros(prob.free.size)])
+    def start_from(prob: _Problem, src: _Problem, x: FloatArray, normal: FloatArray | None = None) -> FloatArray:
+        """``prob``'s parameters from ``src``'s solution ``x``: the geometry and the terms both have.
 
-    def solve(order: int | None, which: Sequence[int]) -> tuple[_Problem, _Fit]:
+        With ``src``'s normal matrix at ``x`` (its solution on the same points), the terms ``prob`` lacks are
+        dropped and the rest moved as the normal equations say (exact for a linear problem, so the lower
+        orders of the held-out pass start a step or two from their own solutions).
+        """
+        ng = prob.n_geometry
+        src_names = [src.template.names[k] for k in src.free]
+        kept = list(range(ng)) + [ng + src_names.index(prob.template.names[k]) if prob.template.names[k] in src_names
+                                  else -1 for k in prob.free]
+        if normal is None or -1 in kept:
+            names = dict(zip(src.template.names, src.vector(x), strict=True))
+            terms = [names.get(prob.template.names[k], 0.0) for k in prob.free]
+            return np.concatenate([x[:ng], np.asarray(terms, dtype=np.float64)])
+        dropped = [i for i in range(x.size) if i not in kept]
+        out = x[kept].copy()
+        if dropped:
+            a_kk = normal[np.ix_(kept, kept)]
+            d = np.sqrt(np.maximum(np.diag(a_kk), 1e-300))
+            rhs = normal[np.ix_(kept, dropped)] @ x[dropped]
+            out += np.linalg.lstsq(a_kk / np.outer(d, d), rhs / d, rcond=1e-12)[0] / d
+        return out
+
+    everything = list(range(len(views)))
+    # --- the robust pass: the highest order on every view, on a strided subsample (its job is to tell the
+    #     outliers, and to start the plain fits near their solutions)
+    prob_r = problem(max(orders), everything)
+    stride = max(1, -(-pts_all.measured.size // (ROBUST_POINTS_PER_VIEW * len(views))))
+    sub = pts_all.take(np.arange(pts_all.measured.size) % stride == 0)
+    x0 = np.concatenate([[0.0, 0.0, h0], np.zeros(prob_r.n_geometry - 3), np.zeros(prob_r.free.size)])
+    sigma_sub = _noise(prob_r, model, x0, sub, fallback=0.001)
+    fallback = 0.001
+    if no_law:
+        r0 = sub.measured - prob_r.predicted(x0, sub)
+        fallback = max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-5)
+        sigma_sub = np.full_like(sigma_sub, fallback)
+    x_r, _, r_sub = _gauss_newton(prob_r, sub, sigma_sub, x0, robust=True, iterations=30)
+    scale = max(1.4826 * float(np.median(np.abs(r_sub))), 1.0)
+    sigma_all = _noise(prob_r, model, x_r, pts_all, fallback=fallback)
+    keep = np.abs((pts_all.measured - prob_r.predicted(x_r, pts_all)) / sigma_all) < INLIER_SIGMAS * scale
+    inl = pts_all.take(keep)
+    sigma_in = sigma_all[keep]
+    # the inliers' and their noise's indices per set of views
+    train_idx = inl.index(train)
+    inl_train = inl.subset(train)
+
+    def solve(order: int | None, which: Sequence[int], pts: _Points, sigma: FloatArray,
+              src: tuple[_Problem, FloatArray], normal: FloatArray | None = None) -> tuple[_Problem, _Fit]:
         prob = problem(order, which)
-        pts = pts_all.subset(which)
-        return prob, _solve(prob, model, pts, x_start(prob))
+        # from the projected start one step leaves about 0.01 sigma (it converges quadratically): enough to
+        # score an order on the held-out views, whose RMS it changes by less than 1e-4
+        return prob, _solve(prob, pts, sigma, start_from(prob, *src, normal), 20 if normal is None else 1)
 
-    # --- held-out pass: each order fitted without the held-out views, judged on them
+    # --- held-out pass: each order fitted without the held-out views (from the robust solution), judged on them
     held_pts = pts_all.subset(held)
     scores: dict[int, float] = {}
     held_eval: dict[int, tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]] = {}
-    for order in orders:
-        prob, fit = solve(order, train)
-        hp = _Problem(**{**prob.__dict__, "flanges": [flanges[i] for i in held]})
+    train_fits: dict[int | None, tuple[_Problem, _Fit]] = {}
+    top: tuple[_Problem, _Fit] | None = None
+    for order in [*reversed(orders), None]:              # the highest from the robust solution, the rest from it
+        if top is None:
+            prob, fit = solve(order, train, inl_train, sigma_in[train_idx], (prob_r, x_r))
+            top = prob, fit
+        else:
+            prob, fit = solve(order, train, inl_train, sigma_in[train_idx], (top[0], top[1].x),
+                              top[1].fisher + np.diag(top[1].prior))
+        train_fits[order] = (prob, fit)
+        hp = dataclasses.replace(prob, flanges=[flanges[i] for i in held])
         resid, sig, to_m = _evaluate(hp, model, fit.x, held_pts, float(np.median(fit.sigma)))
+        if order is None:
+            resid_b, to_m_b = resid, to_m
+            continue
         w = resid / sig
-        keep = np.abs(w) < INLIER_SIGMAS * max(1.4826 * float(np.median(np.abs(w))), 1.0)
-        scores[order] = _rms(resid[keep])
-        held_eval[order] = (resid, sig, to_m, keep)
+        k = np.abs(w) < INLIER_SIGMAS * max(1.4826 * float(np.median(np.abs(w))), 1.0)
+        scores[order] = _rms(resid[k])
+        held_eval[order] = (resid, sig, to_m, k)
     best = min(scores.values())
     n_held = int(np.count_nonzero(held_eval[min(scores, key=lambda k: scores[k])][3]))
     tol = best * max(0.005, 2.0 / math.sqrt(2.0 * max(n_held, 1)))
     order = min(o for o in orders if scores[o] <= best + tol)
     resid_a, sig_a, to_m_a, keep_a = held_eval[order]
-    prob_b, fit_b = solve(None, train)
-    hp_b = _Problem(**{**prob_b.__dict__, "flanges": [flanges[i] for i in held]})
-    resid_b, _, to_m_b = _evaluate(hp_b, model, fit_b.x, held_pts, float(np.median(fit_b.sigma)))
 
-    # --- the final correction on every view, and the uncorrected fit for the training views' "before"
-    prob, fit = solve(order, range(len(views)))
-    prob_0, fit_0 = solve(None, range(len(views)))
-    resid_f, _, to_m_f = _evaluate(prob, model, fit.x, pts_all, float(np.median(fit.sigma)))
+    # --- the final correction on every view, and the uncorrected fit for the training views' "before",
+    #     each from its training fit
+    prob, fit = solve(order, everything, inl, sigma_in, (train_fits[order][0], train_fits[order][1].x))
+    prob_0, fit_0 = solve(None, everything, inl, sigma_in, (train_fits[None][0], train_fits[None][1].x))
+    resid_f, sig_f, to_m_f = _evaluate(prob, model, fit.x, pts_all, float(np.median(fit.sigma)))
     resid_0, _, to_m_0 = _evaluate(prob_0, model, fit_0.x, pts_all, float(np.median(fit_0.sigma)))
-    w_f = resid_f / _noise(prob, model, fit.x, pts_all, float(np.median(fit.sigma)))
+    w_f = resid_f / sig_f
     keep_f = np.abs(w_f) < INLIER_SIGMAS * max(1.4826 * float(np.median(np.abs(w_f))), 1.0)
 
     rows: list[ViewResidual] = []
@@ -499,8 +624,8 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
                                      _rms((resid_f * to_m_f)[s][k])))
 
     # --- covariance: the Jacobian's, scaled by chi-square per dof and the design effect when above 1
-    fisher = np.einsum("ij,ik->jk", fit.jac, fit.jac)       # the data's alone: what the plan sees
-    with_prior = fisher + np.einsum("ij,ik->jk", fit.prior_jac, fit.prior_jac)
+    fisher = fit.fisher                                     # the data's alone: what the plan sees
+    with_prior = fisher + np.diag(fit.prior)
     cov, _, _ = fisher_covariance(with_prior)
     dof = max(fit.resid.size - fisher.shape[0], 1)
     chi2 = float(fit.resid @ fit.resid) / dof
