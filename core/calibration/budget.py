@@ -318,25 +318,40 @@ def handeye_value(key: str, value: Any) -> float | None:
     return math.degrees(v) if key.endswith("_rad") else v * 1000.0
 
 
+def _short(value: float) -> str:
+    """Two significant digits; below 0.0005 (mm or deg) shown as 0."""
+    return "0" if value < 5e-4 else f"{value:.2g}"
+
+
+def _largest(term: Mapping[str, Any]) -> tuple[float, float]:
+    """A hand-eye term's largest translation (mm) and rotation (deg) of the mount."""
+    t = max((abs(handeye_value(k, term.get(k)) or 0.0) for k in ("tx_m", "ty_m", "tz_m")), default=0.0)
+    r = max((abs(handeye_value(k, term.get(k)) or 0.0) for k in ("roll_rad", "pitch_rad", "yaw_rad")), default=0.0)
+    return t, r
+
+
 def handeye_budget_line(document: Mapping[str, Any]) -> str:
     """One line for ``cellcal handeye``: the dominant term of the mount's budget, its largest moves, the next step.
 
-    "" when the document has no ``error_budget``.
+    With ``at_allowance`` (each term at the camera's stated allowance and the arm's stated
+    accuracy, by which ``dominant`` is judged) those figures, largest first, then the per-unit
+    sensitivities; without it the sensitivities alone. "" when the document has no ``error_budget``.
     """
     eb = document.get("error_budget")
     if not isinstance(eb, Mapping) or not eb.get("terms"):
         return ""
     terms = eb["terms"]
+    at = eb.get("at_allowance") if isinstance(eb.get("at_allowance"), Mapping) else None
     dom = str(eb.get("dominant") or "")
-
-    def largest(term: Mapping[str, Any]) -> str:
-        t = max((abs(handeye_value(k, term.get(k)) or 0.0) for k in ("tx_m", "ty_m", "tz_m")), default=0.0)
-        r = max((abs(handeye_value(k, term.get(k)) or 0.0) for k in ("roll_rad", "pitch_rad", "yaw_rad")),
-                default=0.0)
-        return f"{t:.2g} mm, {r:.2g} deg"
-
-    order = ([dom] if dom in terms else []) + [k for k in terms if k != dom]
-    figures = "; ".join(f"{HANDEYE_TERMS.get(k, k)} {largest(terms[k])}" for k in order)
+    shown = at or terms
+    order = ([dom] if dom in shown else []) + sorted((k for k in shown if k != dom),
+                                                      key=lambda k: -_largest(shown[k])[0])
+    figures = "; ".join(f"{HANDEYE_TERMS.get(k, k)} {_short(t)} mm, {_short(r)} deg"
+                        for k in order for t, r in [_largest(shown[k])])
+    if at:
+        per = {"depth_scale_1pct": "per 1 % scale", "depth_offset_1mm": "per 1 mm offset"}
+        figures += "; " + ", ".join(f"{label} {_short(_largest(terms[k])[0])} mm" for k, label in per.items()
+                                    if k in terms)
     head = f"{HANDEYE_TERMS.get(dom, dom)} dominates" if dom else "by term"
     nxt = eb.get("next")
     return f"error budget of the mount: {head} ({figures})" + (f": {nxt}" if nxt else "")

@@ -127,27 +127,40 @@ def _budget_tables(budget: Mapping[str, Any] | None) -> str:
 
 
 def _handeye_budget(doc: Mapping[str, Any]) -> str:
-    """The hand-eye result's ``error_budget`` (when there): per term, how far the mount and the plane move."""
+    """The hand-eye result's ``error_budget`` (when there): per term, how far the mount and the plane move.
+
+    At the camera's stated allowance and the arm's stated accuracy (``at_allowance``, when there:
+    the dominant term judged by it), then per 1 % depth scale and 1 mm depth offset.
+    """
     from cellcal.core.calibration.budget import HANDEYE_TERMS, HANDEYE_VALUES
 
     eb = doc.get("error_budget")
     if not isinstance(eb, Mapping) or not eb.get("terms"):
         return ""
     dom = eb.get("dominant")
-    rows = []
-    for key, term in eb["terms"].items():
-        mark = " dominant" if key == dom else ""
-        cells = "".join(_cell(None if term.get(v) is None else abs(float(term[v])), ".3f" if unit == "mm" else ".4f",
-                              1000.0 if unit == "mm" else _DEG) for v, (_, unit) in HANDEYE_VALUES.items())
-        rows.append(f"<tr class='handeye-budget{mark}' data-term='{_e(key)}'><td class='l'>"
-                    f"{_e(HANDEYE_TERMS.get(key, key))}</td>{cells}</tr>")
     head = ["term"] + [f"{label} ({unit})" for label, unit in HANDEYE_VALUES.values()]
+
+    def table(terms: Mapping[str, Any], kind: str, judged: bool) -> str:
+        rows = []
+        for key, term in terms.items():
+            mark = " dominant" if judged and key == dom else ""
+            cells = "".join(_cell(None if term.get(v) is None else abs(float(term[v])),
+                                  ".3f" if unit == "mm" else ".4f", 1000.0 if unit == "mm" else _DEG)
+                            for v, (_, unit) in HANDEYE_VALUES.items())
+            rows.append(f"<tr class='{kind}{mark}' data-term='{_e(key)}'><td class='l'>"
+                        f"{_e(HANDEYE_TERMS.get(key, key))}</td>{cells}</tr>")
+        return _table(head, rows)
+
     out = ["<h2>Error budget</h2><p>What each systematic error would move the mount and the plane by.</p>"]
     if dom:
         out.append(f"<p class='budget-next'><span class='dominant-term'>{_e(HANDEYE_TERMS.get(dom, dom))}</span>"
                    f" dominates" + (f"; next: <span class='next'>{_e(eb['next'])}</span>" if eb.get("next") else "")
                    + "</p>")
-    out.append(_table(head, rows))
+    at = eb.get("at_allowance")
+    if isinstance(at, Mapping) and at:
+        out += ["<p>At the camera's stated systematic allowance (1-sigma) and the arm's stated accuracy:</p>",
+                table(at, "handeye-budget-allowance", True), "<p>Per 1 % depth scale and per 1 mm depth offset:</p>"]
+    out.append(table(eb["terms"], "handeye-budget", not (isinstance(at, Mapping) and at)))
     return "".join(out)
 
 

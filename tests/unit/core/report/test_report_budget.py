@@ -141,3 +141,29 @@ def test_a_report_of_an_earlier_budget_is_still_drawn(passing: dict[str, Any]) -
     assert marked == ["depth_scale"]
     assert not [r for r in page.rows if _class(r) == "budget-pose"]
     assert budget_line(old).startswith("error budget, height: depth scale (1 %) dominates per unit")
+
+
+def test_the_handeye_report_judged_at_the_allowance() -> None:
+    from cellcal.core.calibration.budget import handeye_budget_line
+
+    budget = copy.deepcopy(HANDEYE_BUDGET)
+    budget["at_allowance"] = {
+        "depth_scale": {k: v * 0.2 for k, v in HANDEYE_BUDGET["terms"]["depth_scale_1pct"].items()},
+        "depth_offset": {k: v * 5.0 for k, v in HANDEYE_BUDGET["terms"]["depth_offset_1mm"].items()},
+        "arm_accuracy": HANDEYE_BUDGET["terms"]["arm_accuracy"]}
+    budget.update(judged="allowance", dominant="depth_offset")
+    arm = copy.deepcopy(budget)
+    arm["dominant"] = "arm_accuracy"                # a key of both tables: highlighted in the judged one only
+    rows = parse(render_html(_handeye(arm), [])).rows
+    assert [_class(r) for r in rows if "dominant" in _class(r)] == ["handeye-budget-allowance dominant"]
+    page = parse(render_html(_handeye(budget), []))
+    judged = {str(r["attrs"]["data-term"]): r for r in page.rows if _class(r).startswith("handeye-budget-allowance")}
+    assert list(judged) == ["depth_scale", "depth_offset", "arm_accuracy"]
+    assert [k for k, r in judged.items() if "dominant" in _class(r)] == ["depth_offset"]
+    assert judged["depth_offset"]["cells"][3]["text"] == "5.000"                       # tz: 5 x 1 mm of offset
+    per_unit = [r for r in page.rows if _class(r).split() and _class(r).split()[0] == "handeye-budget"]
+    assert len(per_unit) == 3 and not any("dominant" in _class(r) for r in per_unit)
+    assert "depth offset dominates" in "".join(page.text)
+    assert handeye_budget_line({"error_budget": budget}) == (
+        "error budget of the mount: depth offset dominates (depth offset 5 mm, 0 deg; depth scale 1.2 mm, 0.0046 deg; "
+        "arm accuracy 0.5 mm, 0.11 deg; per 1 % scale 6.1 mm, per 1 mm offset 1 mm): run cellcal depthcal")
