@@ -197,3 +197,38 @@ def test_a_configured_correction_is_not_applied_to_the_frames_depthcal_fits(tmp_
     assert "the configured [camera.correction] was not applied" in capsys.readouterr().out
     # the same raw frames (same seed): the same correction, not a correction of the corrected frames
     assert json.loads((again / DEPTHCAL_FILENAME).read_text())["correction"] == plain["correction"]
+
+
+def test_a_failed_fit_keeps_every_pose_and_resume_fits_again_without_moving(tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch,
+                                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    import cellcal.core.calibration.calibrator as calibrator_module
+    import cellcal.core.depthcal.run as run_module
+    from cellcal.devices.errors import CalibrationQualityError
+
+    cfg, out = small_config(tmp_path), tmp_path / "out"
+    fit = run_module.fit_plan
+
+    def refused(*_: Any) -> Any:
+        raise CalibrationQualityError("noise_model", 12.0, 10.0, "residuals far beyond the stated noise")
+
+    monkeypatch.setattr(run_module, "fit_plan", refused)
+    assert main(["depthcal", "--config", str(cfg), "--out", str(out), "--no-report"]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith(("pose", "6 poses"))]
+    assert len(err) == 1 and "noise_model" in err[0] and "6 of 6 poses are saved" in err[0] and "--resume" in err[0]
+    assert len(list((out / FRAMES_DIRNAME).iterdir())) == 6 and not (out / DEPTHCAL_FILENAME).exists()
+
+    build = calibrator_module.build_devices
+    moves: list[int] = []
+
+    def counting(config: Any) -> Any:
+        camera, arm = build(config)
+        arm.inner.fault_hook = lambda event, n: moves.append(n) if event == "move" else None
+        return camera, arm
+
+    monkeypatch.setattr(run_module, "fit_plan", fit)
+    monkeypatch.setattr(calibrator_module, "build_devices", counting)
+    assert main(["depthcal", "--config", str(cfg), "--out", str(out), "--resume", "--no-report"]) == 0
+    assert moves == []  # every pose came from the journal and its frames
+    doc = json.loads((out / DEPTHCAL_FILENAME).read_text())
+    assert doc["resumed_poses"] == list(range(6)) and len(doc["views"]) == 6
