@@ -187,6 +187,7 @@ class SimCamera(SimCameraShell):
         self._board: BoardTexture | None = None
         self._systematic_of: SystematicConfig | None = None
         self._systematic_cache: tuple[SystematicError, NDArray[np.float64], NDArray[np.float64]] | None = None
+        self._systematic_parts: tuple[SystematicError, NDArray[np.float64]] | None = None
 
     def systematic_error(self) -> tuple[SystematicError, NDArray[np.float64], NDArray[np.float64]]:
         """The world's systematic error for this camera and every pixel's normalised ``u``, ``v``, (H*W,) each."""
@@ -194,9 +195,30 @@ class SimCamera(SimCameraShell):
         if self._systematic_cache is None or self._systematic_of is not table:
             intr = self._intr
             u, v = normalised_pixels(intr.width, intr.height, intr.cx, intr.cy)
-            self._systematic_cache = (table.tof(intr.width, intr.height), u.ravel(), v.ravel())
+            err = table.tof(intr.width, intr.height)
+            self._systematic_cache = (err, u.ravel(), v.ravel())
+            # scale and offset alone, and the field of every pixel, evaluated once (not per frame)
+            head = dataclasses.replace(err, wiggle_cos_m=0.0, wiggle_sin_m=0.0, wiggle_period_m=0.0, field_order=0,
+                                       field_coeffs=())
+            self._systematic_parts = (head, err.field_at(u.ravel(), v.ravel()))
             self._systematic_of = table
         return self._systematic_cache
+
+    def _distort_range(self, range_m: NDArray[np.float64]) -> NDArray[np.float64]:
+        """:meth:`SystematicError.distort` of the true ranges (H*W,), m, with the field and the wiggle's phase cached.
+
+        ``A cos(2πr/P - φ)`` is the model's ``a cos + b sin`` with ``a = A cos φ``, ``b = A sin φ`` (one cosine
+        instead of two trigonometric passes: the wiggle was most of the systematic error's cost per frame).
+        """
+        self.systematic_error()
+        assert self._systematic_parts is not None
+        head, field_m = self._systematic_parts
+        out = head.distort(range_m, 0.0, 0.0) + field_m
+        table = self.world.systematic
+        if table.wiggle_amplitude_m > 0.0 and table.wiggle_period_m > 0.0:
+            phase = (2.0 * math.pi / table.wiggle_period_m) * range_m - math.radians(table.wiggle_phase_deg)
+            out += table.wiggle_amplitude_m * np.cos(phase)
+        return out
 
     # ------------------------------------------------------------------ rendering
     def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
@@ -303,8 +325,7 @@ class SimCamera(SimCameraShell):
             amp = amp * np.abs(1.0 + z)
         if self.world.systematic.enabled:
             # what the camera measures of the (effective) range, before drift and noise
-            err, u, v = self.systematic_error()
-            rng = err.distort(rng, u, v)
+            rng = self._distort_range(rng)
         offset = drift_offset_m(arte, self.world.clock.elapsed_s)
         return PixelReturns(rng + offset if offset else rng, amp)
 

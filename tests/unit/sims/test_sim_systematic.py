@@ -194,3 +194,12 @@ def test_the_commented_table_in_the_shipped_configs_shows_the_real_defaults(name
     defaults = SystematicConfig()
     for key, value in shown.items():
         assert getattr(defaults, key) == pytest.approx(value, rel=1e-4), key
+
+
+def test_the_tof_sims_cached_path_is_the_models_distort() -> None:
+    table = SystematicConfig(range_scale_error=0.003, range_offset_m=-0.004, wiggle_amplitude_m=0.002,
+                             wiggle_phase_deg=-70.0, range_bow_m=0.0015)
+    cam = tof(table, looking_down(0.5))
+    err, u, v = cam.systematic_error()
+    r = np.random.default_rng(1).uniform(0.1, 3.0, u.size)
+    np.testing.assert_allclose(cam._distort_range(r), err.distort(r, u, v), rtol=0, atol=1e-12)
