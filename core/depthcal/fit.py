@@ -408,7 +408,8 @@ def _gauss_newton(prob: _Problem, pts: _Points, sigma: FloatArray, x: FloatArray
     c = cost(r, x)
     fisher = np.zeros((x.size, x.size))
     for it in range(iterations):
-        jw = cols * inv_sigma                     # d(predicted)/dx whitened (rows): the residual's Jacobian is -jwᵀ
+        jw = cols                                 # d(predicted)/dx whitened (rows): the residual's Jacobian is -jwᵀ
+        jw *= inv_sigma                           # in place: a fresh (p, N) array page-faults on every use
         if robust:
             w = 1.0 / np.sqrt(1.0 + (r / ROBUST_SCALE) ** 2)
             jww = jw * w
@@ -471,7 +472,8 @@ def _extend(prob: _Problem, train: _Fit, pts: _Points, sigma: FloatArray, held: 
     held_prob = dataclasses.replace(prob, flanges=held_flanges)
     cols, pred = held_prob.columns(x, held_pts)
     inv_sigma = 1.0 / sigma[idx]
-    jw = cols * inv_sigma
+    jw = cols
+    jw *= inv_sigma
     r_held = (held_pts.measured - pred) * inv_sigma
     fisher = train.fisher + _gram(jw, jw)
     a = fisher + np.diag(train.prior)
