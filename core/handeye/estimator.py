@@ -11,6 +11,7 @@ check runs before the fit: an unobservable plan raises (ADR 0018, ADR 0030).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,6 +36,15 @@ from cellcal.core.handeye.model import (
 )
 from cellcal.core.handeye.noise import MAX_INTERVAL_SCALE, NOISE_TEST_LEVEL, NoiseCheck, check_noise, scaled_covariance
 from cellcal.core.handeye.observability import Observability, analyse
+from cellcal.core.handeye.systematic import (
+    GROUPS,
+    Linearised,
+    error_budget,
+    pattern,
+    systematic_note,
+    systematic_terms,
+)
+from cellcal.devices.arm_model import UNSTATED_ARM_MODEL
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.pose import Pose
 
@@ -78,6 +88,10 @@ class HandEyeEstimate:
         given_sigma: 1-sigma of the given values fitted with a prior, m or rad.
         absolute_covariance: ``covariance`` with the stated noise as it is (never larger than ``covariance``).
         arm_accuracy: The arm's stated absolute accuracy the weights and intervals include (None: none).
+        systematic_covariance: 9x9 the camera's systematic allowance, common to the poses, adds to
+            ``covariance`` and ``absolute_covariance`` (never scaled; None: no pose stated one).
+        error_budget: The mount's error budget (:func:`~cellcal.core.handeye.systematic.error_budget`).
+        systematic_note: What the allowance widened, in words ("" without it).
     """
 
     mount: Pose
@@ -94,6 +108,9 @@ class HandEyeEstimate:
     given_sigma: Mapping[str, float] = field(default_factory=dict)
     absolute_covariance: FloatArray | None = None
     arm_accuracy: ArmAccuracy | None = None
+    systematic_covariance: FloatArray | None = None
+    error_budget: dict[str, Any] | None = None
+    systematic_note: str = ""
 
     @property
     def z(self) -> float:
@@ -110,7 +127,8 @@ class HandEyeEstimate:
         """What the intervals rest on, in words: the noise test's finding and the given values."""
         note = self.noise.note()
         arm = [] if self.arm_accuracy is None else [self.arm_accuracy.note()]
-        return (*arm, *([note] if note else []), *given_notes(self.given, self.given_sigma))
+        camera = [self.systematic_note] if self.systematic_note else []
+        return (*camera, *arm, *([note] if note else []), *given_notes(self.given, self.given_sigma))
 
     @property
     def translation_sigma_m(self) -> FloatArray:
@@ -141,7 +159,9 @@ class HandEyeEstimate:
                 "parameters": list(PARAMETERS), "covariance": self.covariance.tolist(),
                 "covariance_absolute": absolute.tolist(), "interval_scale": self.interval_scale,
                 "interval_z": self.z, "noise_model": self.noise.to_dict(), "notes": list(self.notes),
-                **({} if self.arm_accuracy is None else {"arm_accuracy": self.arm_accuracy.to_dict()})}
+                **({} if self.arm_accuracy is None else {"arm_accuracy": self.arm_accuracy.to_dict()}),
+                **({} if self.systematic_covariance is None else
+                   {"covariance_systematic": self.systematic_covariance.tolist()})}
 
 
 @dataclass(frozen=True)
@@ -358,12 +378,15 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     data = problem if len(fitted) == len(free) else _Problem(model, observations, fitted, arm_translation_sigma_m,
                                                               arm_rotation_sigma_rad, accuracy)
     prior_info = np.array([0.0 if i in free else sigmas[PARAMETERS[i]] ** -2 for i in fitted])  # 1/sigma²
-    fit = _solve(data, prior_info)
-    jac = jacobian(data, fit.x)
+    fit = _solve(data, prior_info)  # each pose weighed by its fit's noise (and the arm's per-pose part)
+    x = fit.x
+    jac = jacobian(data, x)
     info_data, info_prior = jac.T @ jac, np.diag(prior_info)
-    chi2 = float(fit.fun @ fit.fun)
-    dof = len(fit.fun) - len(fitted)  # each prior adds a residual and a parameter: 3N - free
-    worst = _residuals(data, fit.x)
+    lin = Linearised(fitted, jac, _inverse(info_data + info_prior), data.bases, data.whiten)
+    # the camera's systematic terms: each one coefficient common to the poses (ADR 0059 "Amended")
+    terms = systematic_terms(observations)
+    responses = {key: lin.response(shifts) for key, shifts in terms.items()}  # first order, at the solution
+    chi2, dof, worst = _noise_test_residuals(data, x, fit.fun, prior_info, terms)
     k = int(np.argmax([r.chi2 for r in worst]))
     noise = check_noise(chi2, dof, confidence=confidence, level=noise_test_level,
                         max_interval_scale=max_interval_scale,
@@ -373,11 +396,65 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     if accuracy is not None:  # the arm's error common to the poses: not in the residuals, never scaled
         common = accuracy.common_covariance(model.nominal_mount, free)
         absolute, cov = absolute + common, cov + common
-    params = data.full(fit.x)
+    sys_cov, note = None, ""
+    if responses:  # the camera's allowance: not in the weights, never scaled
+        sys_cov = sum((np.outer(d, d) for d in responses.values()), np.zeros((len(PARAMETERS), len(PARAMETERS))))
+        note = systematic_note(cov, cov + sys_cov, observations, len(responses))
+        absolute, cov = absolute + sys_cov, cov + sys_cov
+    groups = {name: sum((np.outer(d, d) for key, d in responses.items() if member(key)), np.zeros((9, 9)))
+              for name, member in GROUPS.items() if any(member(key) for key in responses)}
+    params = data.full(x)
+    mount = model.mount(params)
+    budget = error_budget(lin, observations, mount, groups, _arm_budget(lin, model, observations, free, accuracy))
     on_free = [fitted.index(i) for i in free]  # the free parameters' columns, for the observability report
-    return HandEyeEstimate(model.mount(params), model.plane(params), params, cov, tuple(given), worst, chi2, dof,
+    return HandEyeEstimate(mount, model.plane(params), params, cov, tuple(given), worst, chi2, dof,
                            analyse(jac[:, on_free], free, normals_flange), confidence, noise, sigmas, absolute,
-                           accuracy)
+                           accuracy, sys_cov, budget, note)
+
+
+def _noise_test_residuals(data: _Problem, x: FloatArray, fun: FloatArray, prior_info: FloatArray,
+                          terms: Mapping[str, Sequence[tuple[FloatArray, float]]]
+                          ) -> tuple[float, int, tuple[PoseResidual, ...]]:
+    """chi2, dof and per-pose residuals of the test of the stated noise.
+
+    Without systematic terms: the fit's own. With them, the residuals are tested after the camera's
+    common terms: the fit re-solved with one coefficient per term, common to the poses, under the
+    prior N(0, 1) (generalised least squares with the allowance's covariance across the poses), so
+    that a systematic pattern the mount and plane cannot absorb is not taken for noise. The per-pose
+    angle and offset are those of the estimate; their chi2 is what is left after the common terms.
+    """
+    if not terms:
+        return float(fun @ fun), len(fun) - len(x), _residuals(data, x)
+    patterns = np.column_stack([pattern(data.bases, data.whiten, s) for s in terms.values()])
+    joint = _solve(data, prior_info, patterns)
+    n_fit = len(x)
+    left = (data(joint.x[:n_fit]) + patterns @ joint.x[n_fit:]).reshape(-1, 3)
+    plain = _residuals(data, x)
+    worst = tuple(dataclasses.replace(r, chi2=float(w @ w)) for r, w in zip(plain, left, strict=True))
+    return float(joint.fun @ joint.fun), len(joint.fun) - len(joint.x), worst
+
+
+def _inverse(h: FloatArray) -> FloatArray:
+    """``h⁻¹`` (the pseudo-inverse when singular)."""
+    try:
+        out = np.linalg.inv(h)
+    except np.linalg.LinAlgError:
+        out = np.linalg.pinv(h)
+    return np.asarray(out, dtype=np.float64)
+
+
+def _arm_budget(lin: Linearised, model: PlaneModel, observations: Sequence[PlaneObservation], free: Sequence[int],
+                accuracy: ArmAccuracy | None) -> FloatArray:
+    """9x9 covariance the arm's stated accuracy (or the unstated default) puts on the parameters.
+
+    Its common part as :meth:`ArmAccuracy.common_covariance`, its varying part propagated from each pose.
+    """
+    arm = accuracy or ArmAccuracy(UNSTATED_ARM_MODEL.accuracy_m, UNSTATED_ARM_MODEL.accuracy_rad, "unstated")
+    mount = model.nominal_mount
+    per_pose = [arm_accuracy_covariance(o, mount, arm.varying * arm.position_m, arm.varying * arm.rotation_rad)
+                for o in observations]
+    out: FloatArray = arm.common_covariance(mount, free) + lin.propagate(per_pose)
+    return out
 
 
 def _accuracy(arm_accuracy: ArmAccuracy | None) -> ArmAccuracy | None:
@@ -390,27 +467,36 @@ def _accuracy(arm_accuracy: ArmAccuracy | None) -> ArmAccuracy | None:
     return arm_accuracy if any(values) else None
 
 
-def _solve(data: _Problem, prior_info: FloatArray) -> Any:
+def _solve(data: _Problem, prior_info: FloatArray, patterns: FloatArray | None = None) -> Any:
     """Levenberg-Marquardt from the configured values: the whitened data residuals and the priors'.
 
     Args:
         data: The residual function of the fitted parameters.
         prior_info: Per fitted parameter, the information ``1/sigma²`` of its prior at the
             configured value (0: no prior, a free parameter).
+        patterns: (3N, K) the whitened residuals' change per unit of each systematic term's common
+            coefficient (fitted after the parameters, each with the prior N(0, 1)); None: none.
 
     Returns:
-        scipy's ``OptimizeResult`` (``x``: the parameter steps, ``fun``: every residual).
+        scipy's ``OptimizeResult`` (``x``: the parameter steps then the coefficients, ``fun``: every residual).
     """
     from scipy.optimize import least_squares
 
-    def residuals(x: FloatArray) -> FloatArray:
-        """Whitened data residuals, then the priors' (value - configured) / sigma."""
-        return np.concatenate([data(x), (x * np.sqrt(prior_info))[prior_info > 0]])
+    s = np.zeros((len(data.observations) * 3, 0)) if patterns is None else patterns
+    k, n_sys = len(prior_info), s.shape[1]
 
-    def residual_jacobian(x: FloatArray) -> FloatArray:
-        return np.vstack([jacobian(data, x), np.diag(np.sqrt(prior_info))[prior_info > 0]])
+    def residuals(z: FloatArray) -> FloatArray:
+        """Whitened data residuals, then the priors' (value - configured) / sigma, then the coefficients'."""
+        x = z[:k]
+        return np.concatenate([data(x) + s @ z[k:], (x * np.sqrt(prior_info))[prior_info > 0], z[k:]])
 
-    return least_squares(residuals, np.zeros(len(prior_info)), jac=residual_jacobian, method="lm", xtol=1e-15,
+    def residual_jacobian(z: FloatArray) -> FloatArray:
+        priors = np.diag(np.sqrt(prior_info))[prior_info > 0]
+        return np.vstack([np.hstack([jacobian(data, z[:k]), s]),
+                          np.hstack([priors, np.zeros((priors.shape[0], n_sys))]),
+                          np.hstack([np.zeros((n_sys, k)), np.eye(n_sys)])])
+
+    return least_squares(residuals, np.zeros(k + n_sys), jac=residual_jacobian, method="lm", xtol=1e-15,
                          ftol=1e-15)
 
 

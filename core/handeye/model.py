@@ -11,8 +11,9 @@ frame), the plane normal's tilts about two base-frame axes across it (rad) and i
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,13 +42,30 @@ class PlaneObservation:
         flange: ``T_base_flange`` as the arm read it back.
         normal: Unit plane normal in the camera frame, toward the camera.
         offset_m: The plane's offset in the camera frame (the camera's distance), metres.
-        covariance: 4x4 covariance of (normal x, y, z, offset), from the full-frame fit.
+        covariance: 4x4 covariance of (normal x, y, z, offset), from the full-frame fit: its total,
+            with the camera's systematic allowance when the fit carried one.
+        noise_covariance: The part of it from the fit's noise alone (None: all of it), what weighs
+            the pose: the allowance is an error common to every pose, not per-pose noise.
+        systematic_shifts: Per term of the camera's systematic allowance (``scale``, ``offset``,
+            ``field:<shape>``), its 1-sigma shift ``(normal_delta, offset_delta_m)`` of this plane in
+            the camera frame: one coefficient common to every pose of the camera (ADR 0059, "Amended").
+        budget_shifts: The plane's shift for depths 1 % long (``depth_scale_1pct``) and 1 mm long
+            (``depth_offset_1mm``), from the fit's error budget (empty: the estimator's approximation,
+            the offset 1 % and 1 mm longer).
     """
 
     flange: Pose
     normal: FloatArray
     offset_m: float
     covariance: FloatArray
+    noise_covariance: FloatArray | None = None
+    systematic_shifts: Mapping[str, tuple[FloatArray, float]] = field(default_factory=dict)
+    budget_shifts: Mapping[str, tuple[FloatArray, float]] = field(default_factory=dict)
+
+    @property
+    def noise(self) -> FloatArray:
+        """The covariance of the fit's noise alone (the total without a stated split)."""
+        return self.covariance if self.noise_covariance is None else self.noise_covariance
 
 
 @dataclass(frozen=True)
@@ -137,8 +155,9 @@ def whitening(obs: PlaneObservation, arm_translation_sigma_m: float, arm_rotatio
     """The measured normal's tangent basis (3x2) and the inverse Cholesky factor (3x3) of its residual.
 
     The residual of a pose is (tangent components of the normal's error, offset error); its
-    covariance is the full-frame fit's, plus the arm's read-back noise: a translation
-    error moves the offset by its component along the normal, a rotation error turns the
+    covariance is the full-frame fit's noise (:attr:`PlaneObservation.noise`: without the camera's
+    systematic allowance, common to the poses and taken apart by the estimator), plus the arm's
+    read-back noise: a translation error moves the offset by its component along the normal, a rotation error turns the
     normal and moves the offset by the rotation times the mount's lever ``lever_m``;
     plus ``extra`` (3x3, e.g. :func:`arm_accuracy_covariance`) when given.
 
@@ -149,7 +168,7 @@ def whitening(obs: PlaneObservation, arm_translation_sigma_m: float, arm_rotatio
     m = np.zeros((3, 4))
     m[:2, :3] = basis.T  # tangent components of the normal
     m[2, 3] = 1.0  # the offset
-    cov = m @ obs.covariance @ m.T
+    cov = m @ obs.noise @ m.T
     cov[:2, :2] += np.eye(2) * arm_rotation_sigma_rad**2
     cov[2, 2] += arm_translation_sigma_m**2 + (arm_rotation_sigma_rad * lever_m) ** 2
     if extra is not None:
@@ -174,8 +193,33 @@ def observation_from_pose(record: dict[str, object]) -> PlaneObservation:
     cov = plane_covariance(np.asarray(ff["normal_covariance"], dtype=np.float64), float(plane["offset_sigma_m"]),
                            # normal-offset correlation (zero when the document lacks it)
                            np.asarray(ff.get("normal_offset_covariance", np.zeros(3)), dtype=np.float64))
+    noise = None
+    if ff.get("noise_normal_covariance") is not None and ff.get("noise_offset_sigma_m") is not None:
+        noise = plane_covariance(np.asarray(ff["noise_normal_covariance"], dtype=np.float64),
+                                 float(ff["noise_offset_sigma_m"]),
+                                 np.asarray(ff.get("noise_normal_offset_covariance", np.zeros(3)), dtype=np.float64))
     flange = Pose.from_dict(record["reported_flange_pose"])  # type: ignore[arg-type]
-    return PlaneObservation(flange, np.asarray(plane["normal"], dtype=np.float64), float(plane["offset_m"]), cov)
+    return PlaneObservation(flange, np.asarray(plane["normal"], dtype=np.float64), float(plane["offset_m"]), cov,
+                            noise, _shifts(ff.get("systematic_shifts"), "normal"), _budget_shifts(ff))
+
+
+def _shifts(table: object, normal_key: str) -> dict[str, tuple[FloatArray, float]]:
+    """``{term: (normal_delta, offset_delta_m)}`` of a document's shifts (``{}`` without them)."""
+    if not isinstance(table, Mapping):
+        return {}
+    out = {}
+    for key, entry in table.items():
+        if isinstance(entry, Mapping) and entry.get(normal_key) is not None and entry.get("offset_m") is not None:
+            out[str(key)] = (np.asarray(entry[normal_key], dtype=np.float64), float(entry["offset_m"]))
+    return out
+
+
+def _budget_shifts(ff: Mapping[str, Any]) -> dict[str, tuple[FloatArray, float]]:
+    """The fit's error budget's 1 % depth scale and 1 mm depth offset as plane shifts (``{}`` without it)."""
+    budget = ff.get("error_budget")
+    if not isinstance(budget, Mapping):
+        return {}
+    return _shifts({k: budget.get(k) for k in ("depth_scale_1pct", "depth_offset_1mm")}, "normal_cam")
 
 
 __all__ = ["MOUNT_ROTATION", "MOUNT_TRANSLATION", "PARAMETERS", "PLANE_OFFSET", "PLANE_TILT", "PlaneModel",

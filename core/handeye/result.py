@@ -74,7 +74,8 @@ def plane_sections(estimate: HandEyeEstimate, flanges: Sequence[Pose]) -> dict[s
         for i, (f, r) in enumerate(zip(flanges, estimate.residuals, strict=True))]
     return {"plane_base": {**estimate.plane.to_dict(), "offset_sigma_m": math.sqrt(cov[8, 8]),
                            "tilt_sigma_deg": np.degrees(np.sqrt(np.diag(cov)[6:8])).tolist()},
-            "fit": estimate.to_dict(), "observability": estimate.observability.to_dict(), "poses": poses}
+            "fit": estimate.to_dict(), "observability": estimate.observability.to_dict(), "poses": poses,
+            **({} if estimate.error_budget is None else {"error_budget": estimate.error_budget})}
 
 
 def handeye_document(mount: Pose, covariance: np.ndarray, confidence: float, configured: Pose, *,

@@ -44,6 +44,10 @@ class Scenario:
         correlation: Correlation of the first normal component with the offset.
         arm_translation_sigma_m: True 1-sigma of the arm's position read-back per axis, m.
         arm_rotation_sigma_rad: True 1-sigma of its orientation read-back per axis, rad.
+        depth_scale_error: The camera's true depth scale error, common to every view (0.01: every
+            measured offset 1 % long), relative.
+        scale_allowance: The camera's stated 1-sigma scale allowance: each observation carries it as its
+            ``scale`` systematic shift (and in its total covariance, as a full-frame fit would), relative.
     """
 
     true_mount: Pose
@@ -56,6 +60,8 @@ class Scenario:
     correlation: float = 0.3
     arm_translation_sigma_m: float = 2.5e-5
     arm_rotation_sigma_rad: float = 0.0
+    depth_scale_error: float = 0.0
+    scale_allowance: float = 0.0
 
     def with_arm_noise(self, translation_sigma_m: float, rotation_sigma_rad: float) -> Scenario:
         """The same views with other (true) arm read-back noise."""
@@ -124,6 +130,7 @@ def observations(scenario: Scenario, rng: np.random.Generator | None) -> list[Pl
         m[:3, :2] = across
         m[3, 2] = 1.0
         cov = m @ c3 @ m.T  # (normal, offset) covariance of the plane fit
+        offset = offset * (1.0 + s.depth_scale_error)  # the camera's common scale error
         read = flange
         if rng is not None:
             # the plane fit's error; the Cholesky factor, unlike the default SVD, is unique: the same draws on any BLAS
@@ -133,7 +140,13 @@ def observations(scenario: Scenario, rng: np.random.Generator | None) -> list[Pl
             offset = offset + step[2]
             turn = Rotation.from_rotvec(rng.normal(0.0, s.arm_rotation_sigma_rad, 3))  # read-back error, base frame
             read = Pose(turn * flange.rotation, flange.translation + rng.normal(0.0, s.arm_translation_sigma_m, 3))
-        out.append(PlaneObservation(read, n, float(offset), cov))
+        if s.scale_allowance > 0:  # the allowance as a full-frame fit states it: total, noise, shift
+            shift = s.scale_allowance * float(offset)
+            total = cov.copy()
+            total[3, 3] += shift * shift
+            out.append(PlaneObservation(read, n, float(offset), total, cov, {"scale": (np.zeros(3), shift)}))
+        else:
+            out.append(PlaneObservation(read, n, float(offset), cov))
     return out
 
 

@@ -68,7 +68,9 @@ def test_the_automatic_plan_finds_the_true_mount_within_its_intervals(run: tuple
     assert abs(reported["distance_m"] - truth["distance_m"]) <= error["distance_m"] + 1e-9
     assert abs(reported["rotation_deg"] - truth["rotation_deg"]) <= error["rotation_deg"] + 1e-9
     assert error["distance_m"] <= math.sqrt(3) * 1e-3 and error["rotation_deg"] <= 0.05  # the targets
-    assert doc["fit"]["p_value"] > 0.001 and all(p["residual"]["normal_deg"] < 0.02 for p in doc["poses"])
+    # the sim camera's systematic field ([sim.systematic], on by default) tilts each view's plane by its own
+    # ~0.02 deg, which no mount absorbs (0.022 deg at most here; 0.02 held for an ideal camera)
+    assert doc["fit"]["p_value"] > 0.001 and all(p["residual"]["normal_deg"] < 0.04 for p in doc["poses"])
     assert abs(doc["plane_base"]["offset_m"]) < 4 * doc["plane_base"]["offset_sigma_m"] + 1e-9
 
 
@@ -91,10 +93,12 @@ def test_the_printed_plane_is_its_height_above_the_base_origin_in_mm(run: tuple[
 
 def test_the_printed_mount_table_pastes_into_a_config(run: tuple[dict[str, Any], str, Path]) -> None:
     doc, stdout, out = run
-    table = tomllib.loads(stdout[stdout.index("\n[mount]\n"):stdout.index("result written")])["mount"]
+    start = stdout.index("\n[mount]\n") + 1
+    table = tomllib.loads("\n".join(stdout[start:].splitlines()[:3]))["mount"]  # the table's three lines
     np.testing.assert_allclose(table["translation_m"], doc["mount"]["translation_m"], atol=1e-6)
     np.testing.assert_allclose(table["rpy_deg"], doc["mount"]["rpy_deg"], atol=1e-5)
-    assert "from the configured [mount]: 5.9" in stdout and "9/9 parameters observable" in stdout
+    # the figure itself (the true 5.83 mm seen through the estimate's error) is checked against the truth above
+    assert "from the configured [mount]: " in stdout and "9/9 parameters observable" in stdout
     assert not journal_path(out / HANDEYE_FILENAME).exists()
 
 
