@@ -33,9 +33,15 @@ CENTRE, SIZE, TOP_M = (0.3, 0.0), (0.36, 0.28, 0.15), 0.15
 
 
 def box_cell(**tables: dict[str, Any]) -> dict[str, Any]:
-    """sim.toml with the box on the table, the reference and the plan's target on its top, plus ``tables``."""
+    """sim.toml with the box on the table, the reference and the plan's target on its top, plus ``tables``.
+
+    The camera has no systematic depth error and the arm no kinematic error: the tests judge which
+    plane the region and the expected plane select, to 1 mm."""
     doc = copy.deepcopy(SIM)
     doc["sim"]["boxes"] = [{"center_xy_m": list(CENTRE), "size_m": list(SIZE)}]
+    # which plane the region picks is checked to 1 mm: an ideal camera on an exact arm (ADR 0054, 0055)
+    doc["sim"]["systematic"] = {"enabled": False}
+    doc["sim"]["arm_errors"] = {"enabled": False}
     doc["reference"]["plane_point_m"] = [0.0, 0.0, TOP_M]
     doc["plan"]["target_m"] = [CENTRE[0], CENTRE[1], TOP_M]
     doc["plan"]["methods"] = ["full_frame"]
