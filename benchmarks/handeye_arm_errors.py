@@ -22,7 +22,12 @@ is (each pose weighed by its fit's noise, the allowance a common term), without 
 (noise weights, the allowance left out), and as before the split (the allowance as per-pose noise).
 The mean 95 % half-widths are printed.
 
+``--wiggle-mm`` sets the ToF wiggle's amplitude (the sim's 1 mm at a period of 0.62 m is a local
+range scale of up to 1 %, five times the scale allowance: outside what the intervals allow for);
+``--ideal-arm`` turns the arm's kinematic errors off, leaving the camera's alone.
+
 Usage: python benchmarks/handeye_arm_errors.py [--seeds N] [--first S] [--camera ideal|default|drawn]
+[--wiggle-mm A] [--ideal-arm]
 """
 
 from __future__ import annotations
@@ -52,28 +57,33 @@ VALUES = ("tx", "ty", "tz", "roll", "pitch", "yaw")
 TARGET = (0.90, 0.98)
 
 
-def camera_errors(camera: str, seed: int) -> dict[str, Any]:
-    """The ``[sim.systematic]`` table of ``camera`` (``ideal``, ``default`` or ``drawn``) for ``seed``."""
+def camera_errors(camera: str, seed: int, wiggle_m: float | None = None) -> dict[str, Any]:
+    """The ``[sim.systematic]`` table of ``camera`` (``ideal``, ``default`` or ``drawn``) for ``seed``.
+
+    ``wiggle_m``: the ToF wiggle's amplitude (None: the sim's default, 1 mm).
+    """
     if camera == "ideal":
         return {"enabled": False}
+    wiggle = {} if wiggle_m is None else {"wiggle_amplitude_m": wiggle_m}
     if camera == "default":
-        return {"enabled": True}
+        return {"enabled": True, **wiggle}
     rng = np.random.default_rng([59, seed])
     scale, offset, bow = DEFAULT_ALLOWANCES["tof"]
     return {"enabled": True, "range_scale_error": float(rng.normal(0.0, scale)),
             "range_offset_m": float(rng.normal(0.0, offset)), "range_bow_m": float(rng.normal(0.0, bow)),
-            "wiggle_phase_deg": float(rng.uniform(-180.0, 180.0))}
+            "wiggle_phase_deg": float(rng.uniform(-180.0, 180.0)), **wiggle}
 
 
-def cell(seed: int, camera: str = "ideal") -> tuple[Any, dict[str, Any]]:
+def cell(seed: int, camera: str = "ideal", wiggle_m: float | None = None, arm: bool = True
+         ) -> tuple[Any, dict[str, Any]]:
     """The hand-eye sim cell of ``seed``: its own arm errors, the camera's errors, one frame per pose."""
     document = tomllib.loads(CONFIG.read_text())
     document["cell"]["seed"] = seed
     document["plan"]["frames_per_pose"] = 1
     errors = random_arm_errors(np.random.default_rng([39, seed]))
     document["sim"]["arm_errors"] = {"enabled": True, "joint_offsets_deg": list(errors.joint_offsets_deg),
-                                     "link_errors_mm": list(errors.link_errors_mm)}
-    document["sim"]["systematic"] = camera_errors(camera, seed)
+                                     "link_errors_mm": list(errors.link_errors_mm)} if arm else {"enabled": False}
+    document["sim"]["systematic"] = camera_errors(camera, seed, wiggle_m)
     return parse_config(document, str(CONFIG)), document
 
 
@@ -116,6 +126,9 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=0, help="first seed")
     parser.add_argument("--camera", choices=("ideal", "default", "drawn"), default="ideal",
                         help="the camera's systematic error: none (default), the sim's defaults, drawn per seed")
+    parser.add_argument("--wiggle-mm", type=float, default=None,
+                        help="with --camera: the ToF wiggle's amplitude, mm (default: the sim's 1 mm)")
+    parser.add_argument("--ideal-arm", action="store_true", help="with --camera: the arm without kinematic errors")
     args = parser.parse_args()
     if args.camera != "ideal":
         camera_benchmark(args)
@@ -161,7 +174,8 @@ def camera_benchmark(args: argparse.Namespace) -> None:
     refused = dict.fromkeys(ways, 0)
     started = time.perf_counter()
     for seed in range(args.first, args.first + args.seeds):
-        config, document = cell(seed, args.camera)
+        wiggle = None if args.wiggle_mm is None else args.wiggle_mm / 1000.0
+        config, document = cell(seed, args.camera, wiggle, arm=not args.ideal_arm)
         truth_table = document["sim"]["mount"]
         truth = Pose.from_xyz_rpy(np.asarray(truth_table["translation_m"]), np.radians(truth_table["rpy_deg"]))
         camera, arm = build_devices(config)
@@ -179,8 +193,10 @@ def camera_benchmark(args: argparse.Namespace) -> None:
             chi2_of[name].append(est.chi2 / est.dof)
             width_of[name].append(half_widths(est))
     wall = time.perf_counter() - started
-    print(f"{args.seeds} seeds ({wall:.0f} s), one arm each, the camera's systematic error {args.camera} "
-          "(ToF allowance 0.2 %, 5 mm, 2 mm):")
+    wiggle = "the sim's" if args.wiggle_mm is None else f"{args.wiggle_mm:g} mm"
+    arm_text = "an ideal arm" if args.ideal_arm else "one arm each"
+    print(f"{args.seeds} seeds ({wall:.0f} s), {arm_text}, the camera's systematic error {args.camera} "
+          f"(ToF allowance 0.2 %, 5 mm, 2 mm; wiggle {wiggle}):")
     for name in ways:
         w = np.mean(inside_of[name], axis=0)
         ok = bool(np.all((w >= TARGET[0]) & (w <= TARGET[1])))
