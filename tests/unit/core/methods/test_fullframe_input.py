@@ -208,7 +208,9 @@ def test_to_dict_is_json_in_degrees_and_only_adds_keys(frame: Frame) -> None:
     honest_keys = {"measurement", "native_space", "residual_expected_m", "residual_floor_m", "multipath_allowance_m",
                    "lock_on", "expected_departure", "interval_factors", "interval_notes"}   # issue 27
     budget_keys = {"error_budget"}                                                    # issue 39, ADR 0059
-    assert set(d) == old_keys | new_keys | honest_keys | budget_keys
+    split_keys = {"noise_normal_covariance", "noise_offset_sigma_m", "noise_normal_offset_covariance",
+                  "systematic_shifts"}                                                # ADR 0059 "Amended"
+    assert set(d) == old_keys | new_keys | honest_keys | budget_keys | split_keys
     assert d["method"] == "full_frame" and d["angle_deg"] == pytest.approx(80.0, abs=0.05)
     assert d["tilt_x_ci_deg"][0] < d["tilt_x_deg"] < d["tilt_x_ci_deg"][1]
     assert set(d["gates"]) == {"valid_fraction", "inlier_fraction", "residual_rms_m", "coverage", "flatness",
