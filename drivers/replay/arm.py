@@ -68,10 +68,11 @@ class ReplayArm(RobotArm):
         self._cursor = 0  # strict: next call; lenient: first call after the last replayed move
         self._moves = 0
         infos = self.recording.arm_infos
-        recorded = infos[0].get("arm_model") if infos else None  # what the recorded arm stated (issue #39)
+        # what the recorded arm stated (issue #39), its source kept: a replay reproduces the run's result
+        recorded = infos[0].get("arm_model") if infos else None
         self._model = UNSTATED_ARM_MODEL if recorded is None else decoded(self.recording, lambda: dataclasses.replace(
             ArmModel.from_dict({k: v for k, v in recorded.items() if k != "source"}, where="arm_info.arm_model"),
-            source=f"recording ({recorded.get('source', 'unstated')})"))
+            source=str(recorded.get("source", "unstated"))[:64]))
 
     @property
     def name(self) -> str:
