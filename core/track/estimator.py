@@ -15,12 +15,20 @@ both ways per residual component on the normalised innovations of a bounded wind
 share of the covariance (a sandwich). A CUSUM on the same innovations detects a change
 (:mod:`.detector`); the changed block is restarted from the frames after it. Memory is
 bounded: 9x9 matrices and fixed-size windows. Its settings and what it reports are :mod:`.state`'s.
+
+The frames are weighed by the fit's noise alone: the camera's systematic error and the arm's
+absolute error do not change from frame to frame (or slowly), so in the weights they would
+deafen the change detector. The reported intervals add them (ADR 0055, "Poses combined"): the
+systematic allowance's terms, each a coefficient common to every frame, move the estimate by
+``Λ⁺ Σ Jᵀ δr`` (accumulated as the information is), and the arm's stated accuracy its common
+part as the hand-eye fit adds it.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import replace
 
 import numpy as np
@@ -39,7 +47,7 @@ from cellcal.core.handeye.model import (
 from cellcal.core.handeye.noise import check_noise
 from cellcal.core.handeye.observability import UNOBSERVABLE_SIGMA, analyse
 from cellcal.core.track.detector import KIND_EITHER, KIND_MOUNT, KIND_PLANE, Cusum, Hypothesis, classify
-from cellcal.core.track.linear import FrameRing, Frames, LinearModel
+from cellcal.core.track.linear import SYSTEMATIC_SLOTS, FrameRing, Frames, LinearModel
 from cellcal.core.track.state import ChangeEvent, TrackSettings, TrackState, TrackStep
 from cellcal.devices.pose import Pose
 
@@ -79,6 +87,10 @@ class Tracker:
         self._window = FrameRing(s.window)  # the latest accepted frames, relinearised in the batch steps
         self._prior_info = np.zeros((9, 9))  # frames pushed out of the window: x'Λx - 2h'x, linearised when they left
         self._prior_h = np.zeros(9)
+        # per systematic term: Σ Jᵀ δr over the frames (the prior's and the window's), as the information is kept
+        self._sys_g = np.zeros((SYSTEMATIC_SLOTS, 9))
+        self._prior_sys_g = np.zeros((SYSTEMATIC_SLOTS, 9))
+        self._sys_keys: list[str] = []  # the allowance's terms in their slots, in order of first appearance
         # the information split by whitened residual component (normal across x2, offset) and a 4th part for
         # a restart's kept block: the noise test scales each part by its own component's measured noise
         self._parts = np.zeros((4, 9, 9))
@@ -99,12 +111,17 @@ class Tracker:
         self.frames_used = 0
 
     # ------------------------------------------------------------------ update
-    def update(self, t_s: float, obs: PlaneObservation) -> TrackStep:
-        """Feed one frame's plane observation (``PlaneObservation`` with the flange pose at the frame time)."""
+    def update(self, t_s: float, obs: PlaneObservation,
+               systematic: Mapping[str, tuple[FloatArray, float]] | None = None) -> TrackStep:
+        """Feed one frame's plane observation (``PlaneObservation`` with the flange pose at the frame time).
+
+        ``systematic``: the fit's ``systematic_shifts`` (camera frame, per allowance term), for the intervals only.
+        """
         s = self.settings
         if self._linear is None:
             self._linear = self._start(obs)
-        frame = Frames.of(t_s, obs, s.arm_translation_sigma_m, s.arm_rotation_sigma_rad, self._lever)
+        frame = Frames.of(t_s, obs, s.arm_translation_sigma_m, s.arm_rotation_sigma_rad, self._lever,
+                          self._slots(systematic))
         nu = self._innovation(frame)
         if float(nu @ nu) > s.detector_reference and self._since_batch and self._after is None:
             self._batch()  # a surprising frame: first relinearise every frame in the window, then judge it
@@ -125,12 +142,31 @@ class Tracker:
         event = self._check_resolved(t_s)
         return TrackStep(t_s, nu, chi2, True, event)
 
+    def _slots(self, systematic: Mapping[str, tuple[FloatArray, float]] | None) -> FloatArray | None:
+        """The shifts as (SYSTEMATIC_SLOTS, 4) in this tracker's slots (a term beyond the slots is left out)."""
+        if not systematic:
+            return None
+        out = np.zeros((SYSTEMATIC_SLOTS, 4))
+        for key, (normal, offset) in systematic.items():
+            if key not in self._sys_keys:
+                if len(self._sys_keys) == SYSTEMATIC_SLOTS:
+                    continue
+                self._sys_keys.append(key)
+            k = self._sys_keys.index(key)
+            out[k, :3] = np.asarray(normal, dtype=np.float64)
+            out[k, 3] = float(offset)
+        return out
+
     def _innovation(self, frame: Frames) -> FloatArray:
         """The frame's whitened residual at the estimate, normalised by its predicted covariance (3,)."""
         assert self._linear is not None
         r, jac = self._linear.linearise(self._x, frame)
         cov_pred = np.linalg.inv(self._info + self._weak * np.eye(9))  # the estimate's covariance with the prior
         innov_cov = np.eye(3) + jac[0] @ cov_pred @ jac[0].T  # predicted covariance of the whitened residual
+        # the camera's systematic allowance: what of each term's shift at this frame the estimate has not taken
+        # up (its differential part: the shift minus what the frames so far moved the estimate by) is no change
+        bias = frame.systematic[0] - (self._sys_g @ cov_pred) @ jac[0].T  # (S, 3): b_k = δr_k - J H⁻¹ g_k
+        innov_cov = innov_cov + bias.T @ bias
         nu: FloatArray = np.linalg.solve(np.linalg.cholesky(innov_cov), r[0])
         return nu
 
@@ -163,6 +199,7 @@ class Tracker:
         self._x = x
         self._info = info_prev + jac.T @ jac
         self._parts = parts_prev + _split(jac[None])
+        self._sys_g = self._sys_g + frame.systematic[0] @ jac
         self.frames_used += 1
         self._keep(frame)
         self._since_batch += 1
@@ -179,6 +216,7 @@ class Tracker:
             self._prior_info += jac.T @ jac  # |r + J (x - x̂)|² = x'J'Jx - 2 x'J'(J x̂ - r) + const
             self._prior_parts += _split(jac3)
             self._prior_h += jac.T @ (jac @ self._x - r[0])
+            self._prior_sys_g += old.systematic[0] @ jac
 
     def _batch(self) -> None:
         """Gauss-Newton over the window and the prior, every frame relinearised about the estimate."""
@@ -187,6 +225,7 @@ class Tracker:
         if not len(self._window):
             self._info = self._prior_info.copy()
             self._parts = self._prior_parts.copy()
+            self._sys_g = self._prior_sys_g.copy()
             return
         frames = self._window.frames()
         x = self._x
@@ -201,6 +240,8 @@ class Tracker:
         self._x = x
         self._info = self._prior_info + j2.T @ j2
         self._parts = self._prior_parts + _split(jac)
+        self._sys_g = self._prior_sys_g + (np.einsum("nsk,nki->si", frames.systematic, jac)
+                                           if len(jac) == len(frames) else 0.0)  # no iteration: no Jacobian
         if self._before_change is not None and self._events and self._after is None:
             old, kind = self._before_change  # the size of the last change, as the estimate now sees it
             self._events[-1] = replace(self._events[-1], size=self._size(old, x, kind))
@@ -311,6 +352,9 @@ class Tracker:
         self._prior_h = held @ old_x
         self._prior_parts = np.zeros((4, 9, 9))
         self._prior_parts[3] = held
+        # the kept block carries the systematic shifts it had: as a prior of information `held` at its shifted value
+        moved = self._sys_g @ np.linalg.inv(self._info + self._weak * np.eye(9))  # (S, 9) each term's shift
+        self._prior_sys_g = moved @ held
         self._window.clear()
         assert self._after is not None
         for frame in self._after:  # the frames after the change only
@@ -393,6 +437,7 @@ class Tracker:
         keep = lam >= max(UNOBSERVABLE_SIGMA ** -2, float(lam[-1]) * 1e-20)
         inv = (vec[:, keep] / lam[keep]) @ vec[:, keep].T  # pseudo-inverse on the seen subspace
         cov = inv @ np.einsum("k,kij->ij", factors, self._parts) @ inv  # the sandwich with the measured noise
+        cov = cov + self._common_covariance(inv, seen)  # what does not change from frame to frame: never scaled
         cov[~seen, :] = np.nan
         cov[:, ~seen] = np.nan
         if withheld or self._after is not None:
@@ -410,6 +455,20 @@ class Tracker:
             mount, model.plane(x), sq[MOUNT_TRANSLATION].copy(), rpy_sigma, np.degrees(sq[PLANE_TILT]),
             float(sq[PLANE_OFFSET]), observable, self._unseen_texts(), self.frames_used, list(self._events),
             any(e.resolved_at_s is None for e in self._events), z, scale, noise, x, cov, s.confidence, withheld)
+
+    def _common_covariance(self, inv: FloatArray, seen: BoolArray) -> FloatArray:
+        """The covariance of the errors common to the frames: the camera's systematic allowance and the arm's accuracy.
+
+        Each allowance term's coefficient is common to every frame: it moves the estimate by ``Λ⁺ Σ Jᵀ δr``
+        (rows of ``_sys_g``); the arm's error common to the frames is a mount and a plane error
+        (:meth:`~cellcal.core.handeye.estimator.ArmAccuracy.common_covariance`). Neither is in the weights.
+        """
+        shifts = self._sys_g @ inv  # (S, 9): each term's 1-sigma shift of the parameters (inv is symmetric)
+        cov: FloatArray = shifts.T @ shifts
+        accuracy = self.settings.arm_accuracy
+        if accuracy is not None and (accuracy.position_m or accuracy.rotation_rad):
+            cov = cov + accuracy.common_covariance(self.nominal_mount, np.flatnonzero(seen).tolist())
+        return cov
 
     def _unseen_texts(self) -> list[str]:
         """What the work has not shown, named as the hand-eye observability report names it."""

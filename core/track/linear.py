@@ -21,6 +21,8 @@ from cellcal.devices.pose import Pose
 FloatArray = NDArray[np.float64]
 #: Central-difference step of the Jacobian (rad or m), as in the hand-eye estimator.
 STEP = 1e-6
+#: Terms of the camera's systematic allowance a frame can carry (scale, offset and six field shapes: ADR 0059).
+SYSTEMATIC_SLOTS = 8
 
 
 def rotvec_matrices(v: FloatArray) -> FloatArray:
@@ -41,6 +43,8 @@ class Frames:
         normals, offsets: Measured camera-frame normals (N, 3) and offsets (N,), m.
         bases: Tangent bases of the measured normals (N, 3, 2).
         whiten: Inverse Cholesky factors of the residuals' covariance (N, 3, 3).
+        systematic: Per frame and term of the camera's systematic allowance (a coefficient common to
+            every frame), the whitened residual's 1-sigma change (N, SYSTEMATIC_SLOTS, 3); zeros: none.
     """
 
     t_s: FloatArray
@@ -50,25 +54,33 @@ class Frames:
     offsets: FloatArray
     bases: FloatArray
     whiten: FloatArray
+    systematic: FloatArray
 
     def __len__(self) -> int:
         return len(self.t_s)
 
     @staticmethod
     def of(t_s: float, obs: PlaneObservation, arm_translation_sigma_m: float, arm_rotation_sigma_rad: float,
-           lever_m: float) -> Frames:
-        """One observation as a stack of one (whitened as the hand-eye fit whitens it)."""
+           lever_m: float, shifts: FloatArray | None = None) -> Frames:
+        """One observation as a stack of one (whitened as the hand-eye fit whitens it).
+
+        ``shifts``: (SYSTEMATIC_SLOTS, 4) the camera-frame plane's 1-sigma shift per allowance term
+        (normal delta, offset delta), or None.
+        """
         basis, white = whitening(obs, arm_translation_sigma_m, arm_rotation_sigma_rad, lever_m)
         flange = obs.flange
+        sys = np.zeros((1, SYSTEMATIC_SLOTS, 3))
+        if shifts is not None:
+            raw = np.concatenate([shifts[:, :3] @ basis, shifts[:, 3:4]], axis=1)  # (S, 3): across the normal, offset
+            sys[0] = -raw @ white.T  # the measured plane moves: the residual (predicted - measured) the other way
         return Frames(np.array([t_s]), flange.rotation_matrix[None].copy(), np.asarray(flange.translation)[None],
                       np.asarray(obs.normal, dtype=np.float64)[None], np.array([obs.offset_m]), basis[None],
-                      white[None])
+                      white[None], sys)
 
     @staticmethod
     def stack(frames: Sequence[Frames]) -> Frames:
         """Several stacks as one."""
-        return Frames(*(np.concatenate([getattr(f, name) for f in frames]) for name in
-                        ("t_s", "rot_a", "t_a", "normals", "offsets", "bases", "whiten")))
+        return Frames(*(np.concatenate([getattr(f, name) for f in frames]) for name in FrameRing._FIELDS))
 
 
 class FrameRing:
@@ -78,8 +90,8 @@ class FrameRing:
         capacity: Frames kept.
     """
 
-    _FIELDS = ("t_s", "rot_a", "t_a", "normals", "offsets", "bases", "whiten")
-    _SHAPES = ((), (3, 3), (3,), (3,), (), (3, 2), (3, 3))
+    _FIELDS = ("t_s", "rot_a", "t_a", "normals", "offsets", "bases", "whiten", "systematic")
+    _SHAPES = ((), (3, 3), (3,), (3,), (), (3, 2), (3, 3), (SYSTEMATIC_SLOTS, 3))
 
     def __init__(self, capacity: int) -> None:
         if capacity < 1:
@@ -164,4 +176,4 @@ class LinearModel:
         return res[0], jac
 
 
-__all__ = ["FrameRing", "Frames", "LinearModel", "rotvec_matrices"]
+__all__ = ["SYSTEMATIC_SLOTS", "FrameRing", "Frames", "LinearModel", "rotvec_matrices"]

@@ -20,8 +20,10 @@ from typing import IO, Any
 import numpy as np
 
 from cellcal.core.calibration.config import CellConfig
+from cellcal.core.geometry.consistency import noise_plane_covariance, noise_shifts
 from cellcal.core.geometry.view_follows import ViewFollowsArm, ViewSample
-from cellcal.core.handeye.model import PlaneObservation, plane_covariance
+from cellcal.core.handeye.estimator import ArmAccuracy
+from cellcal.core.handeye.model import PlaneObservation
 from cellcal.core.handeye.run import reference_plane
 from cellcal.core.methods.fullframe import FullFrameResult, check_gates, fit_full_frame
 from cellcal.core.track.decimate import auto_decimation, decimated
@@ -80,16 +82,27 @@ class TrackOutcome:
     interrupted: bool = False
 
 
-def track_settings(config: CellConfig) -> TrackSettings:
-    """The tracker's settings: the arm's read-back noise from ``[handeye]``, the rest as documented."""
+def track_settings(config: CellConfig, arm: RobotArm | None = None) -> TrackSettings:
+    """The tracker's settings: the arm's read-back noise from ``[handeye]`` and stated accuracy, the rest as documented.
+
+    ``arm``: its :meth:`~cellcal.devices.arm.RobotArm.arm_model` gives the accuracy the intervals carry (None: none).
+    """
     he = config.handeye
+    model = getattr(arm, "arm_model", None)
+    stated = model() if callable(model) else None
+    accuracy = None if stated is None else ArmAccuracy(stated.accuracy_m, stated.accuracy_rad, stated.source)
     return TrackSettings(arm_translation_sigma_m=he.arm_translation_sigma_m,
-                         arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence)
+                         arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence,
+                         arm_accuracy=accuracy)
 
 
 def observation(fit: FullFrameResult, flange: Pose) -> PlaneObservation:
-    """The tracker's observation of a plane fit (camera frame) made at ``flange`` (base frame)."""
-    cov = plane_covariance(fit.normal_covariance, fit.offset_sigma_m, fit.normal_offset_covariance)
+    """The tracker's observation of a plane fit (camera frame) made at ``flange`` (base frame).
+
+    Its covariance is the fit's noise alone (ADR 0055, "Poses combined"): the camera's systematic error is
+    common to the frames, so it weighs no frame and does not deafen the change detector.
+    """
+    cov = noise_plane_covariance(fit)
     return PlaneObservation(flange, np.asarray(fit.plane.normal, dtype=np.float64), float(fit.plane.offset_m), cov)
 
 
@@ -168,7 +181,7 @@ class TrackRun:
         self.now = now
         self.on_progress = on_progress
         self.decimation = decimation
-        settings = settings or track_settings(config)
+        settings = settings or track_settings(config, arm)
         self.tracker = Tracker(config.mount.pose(), reference_plane(config, "cellcal track"), settings)
         #: Whether the camera's view follows the arm's work, until a pair of frames decides it (ADR 0045).
         self.view_check = ViewFollowsArm(config.mount.pose(), arm_translation_sigma_m=settings.arm_translation_sigma_m,
@@ -232,7 +245,7 @@ class TrackRun:
         seen = observation(fit, paired)
         # a camera whose view does not follow the arm ends the run (CalibrationQualityError, view_follows_arm)
         self.view_check.add(ViewSample(f"{t_s:.1f} s", paired, seen.normal, seen.offset_m, seen.covariance))
-        step = self.tracker.update(t_s, seen)
+        step = self.tracker.update(t_s, seen, noise_shifts(fit))
         outcome = "accepted" if step.accepted else "held out"
         self._row(frame_row(step, t_s, index=index, fit_ms=round((time.perf_counter() - started) * 1e3, 2)), outcome)
         if self.on_progress is not None:

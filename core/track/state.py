@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.handeye.estimator import ArmAccuracy
 from cellcal.core.handeye.noise import NoiseCheck
 from cellcal.devices.pose import Pose
 
@@ -47,6 +48,8 @@ class TrackSettings:
         window: Latest accepted frames kept and relinearised about the estimate in each batch step;
             older ones are held as a quadratic prior linearised when they left.
         relinearise_every: Accepted frames between batch steps.
+        arm_accuracy: The arm's stated absolute accuracy: its part common to the frames is added to the
+            reported intervals as the hand-eye fit adds it (None: not counted; never in the weights, ADR 0055).
     """
 
     arm_translation_sigma_m: float = 2.5e-5
@@ -67,6 +70,7 @@ class TrackSettings:
     iterations: int = 2
     window: int = 900
     relinearise_every: int = 30
+    arm_accuracy: ArmAccuracy | None = None
 
 
 @dataclass(frozen=True)

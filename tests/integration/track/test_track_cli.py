@@ -38,18 +38,30 @@ def _run(tmp_path: Path, capsys: pytest.CaptureFixture[str], *args: str) -> tupl
     return code, printed, json.loads((out / "track.json").read_text())
 
 
-@pytest.fixture(scope="module")
-def knocked(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, str, dict[str, Any], list[dict[str, Any]]]:
-    """The built-in run (no --config): 90 s of work, the knock at 45 s."""
+def _knock_run(out: Path, *config: str) -> tuple[int, str, dict[str, Any], list[dict[str, Any]]]:
     import contextlib
     import io
 
-    out = tmp_path_factory.mktemp("knocked")
     buffer = io.StringIO()
     with contextlib.redirect_stdout(buffer):
-        code = main(["track", "--out", str(out)])
+        code = main(["track", "--out", str(out), *config])
     rows = [json.loads(line) for line in (out / "track.jsonl").read_text().splitlines()]
     return code, buffer.getvalue(), json.loads((out / "track.json").read_text()), rows
+
+
+@pytest.fixture(scope="module")
+def knocked(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, str, dict[str, Any], list[dict[str, Any]]]:
+    """The built-in run (no --config): 90 s of work, the knock at 45 s; the sims' systematic errors on (defaults)."""
+    return _knock_run(tmp_path_factory.mktemp("knocked"))
+
+
+@pytest.fixture(scope="module")
+def knocked_ideal(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, str, dict[str, Any], list[dict[str, Any]]]:
+    """The same run with an ideal camera on an exact arm: the noise-level targets (issue #32) are its figures."""
+    out = tmp_path_factory.mktemp("knocked_ideal")
+    config = out / "ideal.toml"
+    config.write_text(CONFIG.read_text() + "\n[sim.systematic]\nenabled = false\n\n[sim.arm_errors]\nenabled = false\n")
+    return _knock_run(out, "--config", str(config), "--duration", "90")
 
 
 def test_the_knock_is_detected_within_a_second_of_frames_and_told_mount(knocked: Any) -> None:
@@ -61,11 +73,29 @@ def test_the_knock_is_detected_within_a_second_of_frames_and_told_mount(knocked:
     assert abs(event["size"]["rotation_deg"] - 0.5) < 0.02           # a 0.5 deg knock
     assert event["size"]["translation_m"] < 1e-3                      # about the bracket: no shift
     assert f"t={event['detected_at_s']:.1f} s: change detected (mount or plane: cannot tell yet)" in printed
-    assert "the mount moved: 0.4" in printed and "(its size is refined as the work shows more)" in printed
+    # the first size comes from the few frames after the knock (0.4-0.5 deg), refined as the work shows more
+    assert re.search(r"the mount moved: 0\.[45]\d\d deg", printed), printed
+    assert "(its size is refined as the work shows more)" in printed
 
 
-def test_after_the_knock_the_mount_is_the_new_truth_within_its_intervals(knocked: Any) -> None:
+def test_the_knock_run_with_the_sims_errors_is_covered_by_its_intervals(knocked: Any) -> None:
+    """The mount's intervals carry the camera's systematic allowance and the arm's accuracy (ADR 0055): they cover.
+
+    The plane's offset is not covered: the sim arm's smooth pose-dependent error, amplified along the direction
+    the work barely shows (the mount's z with the plane's offset: 3 mm), is beyond the arm's common part.
+    """
     _code, _printed, doc, _rows = knocked
+    iv = doc["intervals"]
+    for i in range(3):
+        lo, hi = iv["mount_translation_m"][i]
+        assert lo <= TRUE_MOUNT_MM[i] / 1e3 <= hi
+        lo, hi = iv["mount_rpy_deg"][i]
+        assert lo <= TRUE_RPY_AFTER[i] <= hi
+    assert 2e-3 < iv["mount_translation_m"][2][1] - iv["mount_translation_m"][2][0] < 30e-3  # wider than noise
+
+
+def test_after_the_knock_the_mount_is_the_new_truth_within_its_intervals(knocked_ideal: Any) -> None:
+    _code, _printed, doc, _rows = knocked_ideal
     mount, iv = doc["mount"], doc["intervals"]
     assert doc["schema"] == "cellcal.track/1" and not doc["change_unresolved"] and doc["unseen"] == []
     assert all(doc["observable"].values()) and iv["confidence"] == 0.95 and iv["withheld"] is None
@@ -116,11 +146,13 @@ def test_a_table_shift_is_told_apart_from_a_mount_change(tmp_path: Path, capsys:
     code, printed, doc = _run(tmp_path, capsys, "--config", str(_variant(tmp_path, events)), "--duration", "70")
     (event,) = doc["events"]
     assert event["kind"] == "plane" and abs(event["size"]["plane_shift_m"] - 0.005) < 5e-4
-    assert code == 0 and abs(doc["plane"]["offset_m"] + 0.005) < 5e-4             # n.x + offset = 0 at z = 5 mm
+    # n.x + offset = 0 at z = 5 mm, within the 2-3 mm the sim arm's smooth error puts on the plane's offset (the
+    # direction the work barely shows; test_the_knock_run_with_the_sims_errors_is_covered_by_its_intervals)
+    assert code == 0 and abs(doc["plane"]["offset_m"] + 0.005) < 4e-3
     # printed as the table's height above the base origin: + 5 mm, not the offset's -5
     found = re.search(r"^plane \(base frame\): normal \[.*\], ([+-]\d+\.\d{3}) mm above the base origin$", printed,
                       re.M)
-    assert found is not None and abs(float(found[1]) - 5.0) < 0.5, printed
+    assert found is not None and abs(float(found[1]) - 5.0) < 4.0, printed
 
 
 def test_a_change_left_open_at_the_end_is_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
