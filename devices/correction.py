@@ -31,12 +31,12 @@ from .camera import Camera3D
 from .config import parse_section
 from .errors import CalibrationError, CellcalError, ConfigError
 from .forwarding import ForwardingCamera
-from .measurement import UNKNOWN_MODEL, MeasurementModel
+from .measurement import DEFAULT_WIGGLE, UNKNOWN_MODEL, MeasurementModel
 from .systematic import SystematicError, field_basis, normalised_pixels
 from .types import Frame, Intrinsics
 
 __all__ = ["CORRECTION_KEY", "MAX_CORRECTION_BYTES", "CorrectedCamera", "CorrectionSection", "camera_with_correction",
-           "correct_frame", "corrected_model", "leftover_allowance", "load_correction_file", "wiggle_passes"]
+           "correct_frame", "corrected_model", "leftover_allowance", "leftover_wiggle_m", "load_correction_file", "wiggle_passes"]
 
 #: The dotted key every problem with the correction file is reported under.
 CORRECTION_KEY = "camera.correction.file"
@@ -164,8 +164,7 @@ def leftover_allowance(correction: SystematicError) -> tuple[float, float, float
     """``(scale, offset, field)`` 1-sigma the correction leaves, from its covariance; None without one.
 
     scale: of ``fb_error`` / ``scale_error``; offset: of the disparity offset (px) or of the range
-    offset (m) with the wiggle's largest 1-sigma amplitude (the covariance's largest eigenvalue of
-    its cos/sin block) added in quadrature; field: the largest 1-sigma of the field over the four
+    offset (m) (the wiggle's is :func:`leftover_wiggle_m`); field: the largest 1-sigma of the field over the four
     image corners ``u, v = ±1`` (``b^T Σ b``, ``b`` the field's monomials there; 0 without a field).
     """
     if correction.covariance is None:
@@ -177,9 +176,6 @@ def leftover_allowance(correction: SystematicError) -> tuple[float, float, float
                                else ("scale_error", "offset_m"))
     scale = math.sqrt(max(cov[index[scale_name], index[scale_name]], 0.0))
     offset_var = max(cov[index[offset_name], index[offset_name]], 0.0)
-    if correction.kind == "tof":
-        w = [index["wiggle_cos_m"], index["wiggle_sin_m"]]
-        offset_var += max(float(np.linalg.eigvalsh(cov[np.ix_(w, w)])[-1]), 0.0)
     field = 0.0
     if correction.field_order > 0:
         f = [i for i, n in enumerate(names) if n.startswith("field_")]
@@ -208,7 +204,25 @@ def corrected_model(model: MeasurementModel, correction: SystematicError) -> Mea
     left = leftover_allowance(correction)
     if left is None:
         return model
-    return dataclasses.replace(model, scale_allowance=left[0], offset_allowance=left[1], field_allowance=left[2])
+    out = dataclasses.replace(model, scale_allowance=left[0], offset_allowance=left[1], field_allowance=left[2])
+    if correction.kind == "tof":
+        out = dataclasses.replace(out, wiggle_allowance_m=leftover_wiggle_m(correction),
+                                  wiggle_period_m=correction.wiggle_period_m or model.wiggle[1])
+    return out
+
+
+def leftover_wiggle_m(correction: SystematicError) -> float:
+    """ToF: the wiggle's 1-sigma amplitude the correction leaves (largest eigenvalue of its cos/sin block), m.
+
+    A correction that fitted no wiggle (period 0) or has no covariance leaves it unknown: the
+    default allowance (:data:`~cellcal.devices.measurement.DEFAULT_WIGGLE`), never 0.
+    """
+    if correction.covariance is None or correction.wiggle_period_m <= 0.0:
+        return DEFAULT_WIGGLE[0]
+    cov = np.asarray(correction.covariance, dtype=np.float64)
+    index = {n: i for i, n in enumerate(correction.names)}
+    w = [index["wiggle_cos_m"], index["wiggle_sin_m"]]
+    return math.sqrt(max(float(np.linalg.eigvalsh(cov[np.ix_(w, w)])[-1]), 0.0))
 
 
 # ---------------------------------------------------------------------------------------------- the frame

@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 from .config import check_value, parse_section
 from .errors import ConfigError
 
-__all__ = ["DEFAULT_ALLOWANCES", "KINDS", "TRIANGULATING_KINDS", "UNKNOWN_MODEL", "MeasurementModel"]
+__all__ = ["DEFAULT_ALLOWANCES", "DEFAULT_WIGGLE", "KINDS", "TRIANGULATING_KINDS", "UNKNOWN_MODEL", "MeasurementModel"]
 
 Kind = Literal["tof", "stereo", "structured_light", "unknown"]
 #: The kinds of measurement a camera can state.
@@ -38,6 +38,9 @@ DEFAULT_ALLOWANCES: dict[str, tuple[float, float, float]] = {
     "stereo": (0.01, 0.1, 0.5),
     "tof": (0.002, 0.005, 0.002),
 }
+#: A ToF camera's wiggling allowance when it states none: 1 mm (1-sigma amplitude) with the period
+#: ``c / (8 · 60 MHz)`` = 0.6246 m (ADR 0053).
+DEFAULT_WIGGLE: tuple[float, float] = (0.001, 299_792_458.0 / (8.0 * 60e6))
 
 
 @dataclass(frozen=True)
@@ -70,6 +73,12 @@ class MeasurementModel:
         offset_allowance: 1-sigma of the uncorrected constant offset, px (stereo) or m (ToF); None: default.
         field_allowance: 1-sigma of the uncorrected smooth image field at the image corner, px (stereo)
             or m (ToF); None: default. After ``cellcal depthcal`` the three are what the correction leaves.
+        wiggle_allowance_m: ToF: 1-sigma amplitude of the uncorrected range-periodic error (wiggling), m;
+            None: the default (:data:`DEFAULT_WIGGLE`). Its slope ``2π·A/P`` is a local range scale
+            (1 mm at 0.62 m is 1 %), so it is carried apart from the scale.
+        wiggle_period_m: ToF: the wiggling's period in range, m; None: :data:`DEFAULT_WIGGLE`'s
+            (``c / (8 f)`` at 60 MHz: the correlation's 3rd and 5th harmonics alias four times per
+            unambiguous range).
         source: Who stated the model (:data:`SOURCES`), for reports.
         settings: Device settings that shaped the model (e.g. the OAK's filters), JSON data.
     """
@@ -86,6 +95,8 @@ class MeasurementModel:
     scale_allowance: float | None = field(default=None, metadata={"ge": 0.0, "le": 0.2})
     offset_allowance: float | None = field(default=None, metadata={"ge": 0.0, "le": 100.0})
     field_allowance: float | None = field(default=None, metadata={"ge": 0.0, "le": 100.0})
+    wiggle_allowance_m: float | None = field(default=None, metadata={"ge": 0.0, "le": 0.1})
+    wiggle_period_m: float | None = field(default=None, metadata={"gt": 0.0, "le": 100.0})
     source: str = "unstated"
     settings: dict[str, Any] = field(default_factory=dict, compare=False)
 
@@ -135,6 +146,14 @@ class MeasurementModel:
         return (stated[0] if stated[0] is not None else default[0],
                 stated[1] if stated[1] is not None else default[1],
                 stated[2] if stated[2] is not None else default[2])
+
+    @property
+    def wiggle(self) -> tuple[float, float]:
+        """ToF: the wiggling allowance ``(amplitude_m, period_m)``, stated or the default; ``(0, 0)`` otherwise."""
+        if self.kind != "tof":
+            return (0.0, 0.0)
+        amp = self.wiggle_allowance_m if self.wiggle_allowance_m is not None else DEFAULT_WIGGLE[0]
+        return (amp, self.wiggle_period_m if self.wiggle_period_m is not None else DEFAULT_WIGGLE[1])
 
     @property
     def disparity_step_px(self) -> float:

@@ -249,7 +249,8 @@ def stated_tof_model(config: ArtefactsConfig, *, noise: bool = True, noise_scale
         systematic: Whether ``[sim.systematic]`` is enabled.
     """
     value = None if systematic else 0.0
-    allowance: dict[str, Any] = {"scale_allowance": value, "offset_allowance": value, "field_allowance": value}
+    allowance: dict[str, Any] = {"scale_allowance": value, "offset_allowance": value, "field_allowance": value,
+                                 "wiggle_allowance_m": value}
     settings: dict[str, Any] = {"noise_law": "amplitude" if config.amplitude_noise else "datasheet",
                                 "noise_scale": noise_scale}
     if not noise or noise_scale <= 0.0:

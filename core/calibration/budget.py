@@ -38,16 +38,19 @@ TERMS: dict[str, str] = {"depth_scale_1pct": "depth scale (1 %)", "depth_offset_
                          "arm_accuracy": "arm accuracy"}
 #: Terms judged at the camera's stated allowance and the arm's stated accuracy, their names for people.
 ALLOWANCE_TERMS: dict[str, str] = {"depth_scale": "depth scale", "depth_offset": "depth offset",
-                                   "depth_field": "depth field", "arm_accuracy": "arm accuracy"}
+                                   "depth_field": "depth field", "depth_wiggle": "depth wiggle",
+                                   "arm_accuracy": "arm accuracy"}
 #: The sensitivity standing for each judged term when there is no allowance to judge at.
 _PER_UNIT: dict[str, str] = {"depth_scale": "depth_scale_1pct", "depth_offset": "depth_offset_1mm",
                              "arm_accuracy": "arm_accuracy"}
 #: What to calibrate when a term dominates.
 NEXT_STEP: dict[str, str] = {"depth_scale": "run cellcal depthcal", "depth_offset": "run cellcal depthcal",
                              "depth_field": "run cellcal depthcal",
+                             "depth_wiggle": "run cellcal depthcal with [depthcal] wiggle_period_m",
                              "arm_accuracy": "calibrate the arm's kinematics (or state its accuracy in [arm.model])"}
 #: The allowance's keys in ``full_frame.error_budget.allowance_shifts`` and ``allowance``.
-_SHIFT_KEY: dict[str, str] = {"depth_scale": "scale", "depth_offset": "offset", "depth_field": "field"}
+_SHIFT_KEY: dict[str, str] = {"depth_scale": "scale", "depth_offset": "offset", "depth_field": "field",
+                               "depth_wiggle": "wiggle"}
 
 
 def term_label(key: str) -> str:
@@ -75,6 +78,8 @@ def _dominant(block: Mapping[str, Any]) -> tuple[dict[str, str], str]:
 
 def _allowance_label(key: str, allowance: Mapping[str, Any]) -> str:
     """What the term's stated size is, for people: ``0.2 %``, ``5 mm``, ``0.1 px``, ``2 mm at the corner``."""
+    if key == "depth_wiggle":
+        return f"{float(allowance.get('wiggle_m') or 0.0) * 1000:.3g} mm"
     value = float(allowance.get(_SHIFT_KEY[key]) or 0.0)
     if key == "depth_scale":
         return f"{value * 100:.3g} %"
@@ -107,9 +112,13 @@ def _at_allowance(eb: Mapping[str, Any], arm_term: Mapping[str, float]) -> dict[
     shifts = eb.get("allowance_shifts") or {}
     out: dict[str, Any] = {}
     for key, sk in _SHIFT_KEY.items():
-        keys = _field_keys(shifts) if key == "depth_field" else [sk]
+        keys = (_field_keys(shifts) if key == "depth_field"
+                else [k for k in shifts if k.startswith("wiggle:")] if key == "depth_wiggle" else [sk])
+        if key == "depth_wiggle" and not keys:
+            continue                                  # no wiggle stated (stereo, or a document before it)
         size = _rss((_size(shifts.get(k), "tilt_rad"), _size(shifts.get(k), "height_m")) for k in keys)
-        entry: dict[str, Any] = {**size, "allowance": float(allowance.get(sk) or 0.0),
+        stated = allowance.get("wiggle_m") if key == "depth_wiggle" else allowance.get(sk)
+        entry: dict[str, Any] = {**size, "allowance": float(stated or 0.0),
                                  "stated": _allowance_label(key, allowance)}
         if key == "depth_field":
             entry["shape"] = allowance.get("field_shape")
@@ -208,11 +217,14 @@ def _consensus_at_allowance(rows: list[dict[str, Any]], at_shifts: list[dict[str
     mean = {k: _consensus_term([s.get(k, zero) for s in at_shifts]) for k in keys}
     at: dict[str, Any] = {}
     for key, sk in _SHIFT_KEY.items():
+        if key not in first:
+            continue                                  # no wiggle stated (stereo, or a document before it)
         if key == "depth_field" and "field" in keys and len(shapes) > 1:
             size = {w: float(np.mean([_size(r["at_allowance"][key], w) for r in rows]))
                     for w in ("tilt_rad", "height_m")}
         else:
-            fkeys = _field_keys(mean) if key == "depth_field" else [sk]
+            fkeys = (_field_keys(mean) if key == "depth_field"
+                     else [k for k in mean if k.startswith("wiggle:")] if key == "depth_wiggle" else [sk])
             size = _rss((_size(mean.get(k), "tilt_rad"), _size(mean.get(k), "height_m")) for k in fkeys)
         at[key] = {**size, "allowance": first[key]["allowance"], "stated": first[key]["stated"]}
     at["depth_field"]["shape"] = first["depth_field"].get("shape") if len(shapes) == 1 else "per pose"

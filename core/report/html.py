@@ -83,7 +83,7 @@ def _budget_tables(budget: Mapping[str, Any] | None) -> str:
     for key, label in ALLOWANCE_TERMS.items():
         a = at.get(key)
         unit = c.get(per_unit.get(key, "")) or {}
-        if a is None and key == "depth_field":
+        if a is None and key in ("depth_field", "depth_wiggle"):
             continue
         if key == "arm_accuracy":
             arm = budget.get("arm_model") or {}

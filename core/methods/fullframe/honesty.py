@@ -286,7 +286,8 @@ def honest_intervals(fit: SpaceFit, space: MeasurementSpace, points: Points, exp
         spatial = deff if deff > 1.0 + DEFF_SIGNIFICANCE * se else 1.0
     uv = np.stack([fit.e1 @ sample.p, fit.e2 @ sample.p])     # in-plane coordinates, m
     cov, held = quantisation_floor(fit.cov * spatial, floors.floor_m, uv, int(np.count_nonzero(fit.inliers)))
-    budget = systematic_budget(space.response(fit, points, sample), cov, points.measurement.allowance)
+    budget = systematic_budget(space.response(fit, points, sample), cov, points.measurement.allowance,
+                               points.measurement.wiggle)
     noise_cov = cov
     if budget.widened:                                         # the camera's uncorrected systematic error (ADR 0059)
         cov = cov + budget.covariance

@@ -199,6 +199,7 @@ class ErrorBudget:
     field_shape: str = ""
     sigma_before: tuple[float, float, float, float] = (math.nan,) * 4
     sigma_after: tuple[float, float, float, float] = (math.nan,) * 4
+    wiggle: tuple[float, float] = (0.0, 0.0)
 
     @property
     def covariance(self) -> FloatArray:
@@ -211,7 +212,7 @@ class ErrorBudget:
     @property
     def widened(self) -> bool:
         """Whether the allowance added anything to the intervals."""
-        return bool(self.allowance_shifts) and any(a > 0 for a in self.allowance)
+        return bool(self.allowance_shifts) and (any(a > 0 for a in self.allowance) or self.wiggle[0] > 0)
 
     def note(self) -> str:
         """One sentence for ``interval_notes``: the allowance and how much it widened tilt and height."""
@@ -223,6 +224,8 @@ class ErrorBudget:
         if fld > 0 and self.field_shape:
             what += (f", field {fld * k:.3g} {unit} at the image corner as {len(FIELD_SHAPES)} independent smooth "
                      f"shapes, largest here: {self.field_shape}")
+        if self.wiggle[0] > 0:
+            what += f", wiggle {self.wiggle[0] * 1000:.3g} mm with a {self.wiggle[1]:.3g} m period"
         b, a = self.sigma_before, self.sigma_after
 
         def ratio(i: int) -> str:
@@ -241,7 +244,8 @@ class ErrorBudget:
             "depth_offset_1mm": self.depth_offset.to_dict(),
             "allowance": {"scale": self.allowance[0], "offset": self.allowance[1], "field": self.allowance[2],
                           "offset_unit": "px" if self.kind == "stereo" else "m",
-                          "field_shape": self.field_shape or None},
+                          "field_shape": self.field_shape or None,
+                          "wiggle_m": self.wiggle[0], "wiggle_period_m": self.wiggle[1]},
             "allowance_shifts": {k: s.to_dict() for k, s in self.allowance_shifts.items()},
             "sigma_without_allowance": dict(zip(("angle_rad", "tilt_x_rad", "tilt_y_rad", "height_m"),
                                                 map(_num, self.sigma_before), strict=True)),
@@ -256,7 +260,8 @@ def _sigmas(geo: FloatArray, cov: FloatArray) -> tuple[float, float, float, floa
     return float(s[0]), float(s[1]), float(s[2]), float(s[3])
 
 
-def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, float, float]) -> ErrorBudget:
+def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, float, float],
+                      wiggle: tuple[float, float] = (0.0, 0.0)) -> ErrorBudget:
     """The budget of a fit (1 % depth scale, 1 mm depth offset) and its allowance's shifts.
 
     Args:
@@ -264,6 +269,8 @@ def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, f
         cov: The fit's covariance of the steps before the allowance (the field shape named is
             the one largest in its sigmas).
         allowance: ``(scale, offset, field)`` 1-sigma (relative; px or m; px or m at the corner).
+        wiggle: ToF: ``(amplitude_m, period_m)`` of the wiggling allowance, taken as independent cos and
+            sin terms of ``amplitude / sqrt(2)`` each (RMS amplitude ``amplitude``); ``(0, 0)``: none.
     """
     geo = derived_jacobian(resp.plane, resp.e1, resp.e2)
     stereo = resp.kind == "stereo"
@@ -277,11 +284,19 @@ def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, f
     if f_all > 0 and resp.u is not None and resp.v is not None:
         shapes = field_shapes(resp.u, resp.v) * f_all
         cols += list(shapes.T)
+    amp, period = wiggle
+    wiggled = not stereo and amp > 0 and period > 0
+    if wiggled:                               # range-periodic: cos and sin of 2π r / P (r: the range, m)
+        phase = 2.0 * math.pi * m / period
+        cols += [amp / math.sqrt(2.0) * np.cos(phase), amp / math.sqrt(2.0) * np.sin(phase)]
     steps = resp.shift(np.stack(cols, axis=1))
     shifts = {"scale": _plane_shift(steps[2], resp, geo), "offset": _plane_shift(steps[3], resp, geo)}
+    if wiggled:
+        shifts["wiggle:cos"] = _plane_shift(steps[-2], resp, geo)
+        shifts["wiggle:sin"] = _plane_shift(steps[-1], resp, geo)
     worst = ""
     if shapes is not None:                    # the field: K independent shapes at field / sqrt(K) each
-        fsteps = steps[4:] / math.sqrt(len(FIELD_SHAPES))
+        fsteps = steps[4:4 + len(FIELD_SHAPES)] / math.sqrt(len(FIELD_SHAPES))
         try:
             whiten = np.linalg.pinv(cov)
         except np.linalg.LinAlgError:
@@ -296,4 +311,4 @@ def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, f
         add += np.outer(s.step, s.step)
     return ErrorBudget(resp.kind, _plane_shift(steps[0], resp, geo), _plane_shift(steps[1], resp, geo),
                        (float(s_all), float(o_all), float(f_all)), shifts, worst,
-                       _sigmas(geo, cov), _sigmas(geo, cov + add))
+                       _sigmas(geo, cov), _sigmas(geo, cov + add), (float(amp), float(period)) if wiggled else (0.0, 0.0))

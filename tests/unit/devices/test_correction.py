@@ -122,13 +122,15 @@ def test_the_allowance_after_correction_is_the_covariances() -> None:
     out = correct_frame(frame, err)
     assert out.measurement.allowance == pytest.approx(want)
     assert (out.measurement.scale_allowance, out.measurement.offset_allowance) == pytest.approx(want[:2])
-    # ToF: the wiggle's largest 1-sigma amplitude folded into the offset
+    # ToF: the wiggle's largest 1-sigma amplitude is its own allowance, apart from the offset
     terr = tof_error()
     tcov = np.asarray(terr.covariance)
     wig = np.linalg.eigvalsh(tcov[2:4, 2:4])[-1]
     tb = field_basis([1, -1, 1, -1], [1, 1, -1, -1], 2)
     tfield = math.sqrt(max(float(row @ tcov[4:, 4:] @ row) for row in tb))
-    assert leftover_allowance(terr) == pytest.approx((math.sqrt(tcov[0, 0]), math.sqrt(tcov[1, 1] + wig), tfield))
+    assert leftover_allowance(terr) == pytest.approx((math.sqrt(tcov[0, 0]), math.sqrt(tcov[1, 1]), tfield))
+    tmodel = corrected_model(MeasurementModel(kind="tof", sigma_at_1m_m=0.003), terr)
+    assert tmodel.wiggle == pytest.approx((math.sqrt(wig), terr.wiggle_period_m))
     # no covariance: the model's allowance is kept
     plain = stereo_error(cov=False)
     assert leftover_allowance(plain) is None

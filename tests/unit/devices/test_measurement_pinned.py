@@ -278,7 +278,8 @@ def test_from_dict_names_the_key_where_it_is(where: str, source: str | None) -> 
          "expected one of 'tof', 'stereo', 'structured_light', 'unknown', got str 'lidar'"),
         ({"focal": 440.0}, "focal", "unknown key; did you mean 'focal_px'? (expected one of: baseline_m, "
          "disparity_sigma_px, distance_exponent, field_allowance, focal_px, kind, multipath_m, offset_allowance, "
-         "range_step_m, scale_allowance, settings, sigma_at_1m_m, source, subpixel_bits)"),
+         "range_step_m, scale_allowance, settings, sigma_at_1m_m, source, subpixel_bits, wiggle_allowance_m, "
+         "wiggle_period_m)"),
     ]
     for data, key, why in cases:
         with pytest.raises(ConfigError) as err:

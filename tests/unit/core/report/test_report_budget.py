@@ -78,9 +78,10 @@ def test_the_calibrate_report_has_the_budget_of_the_run(passing: dict[str, Any])
     assert len(pose_rows) == len(budget["poses"]) == 3
     for row, pose in zip(pose_rows, budget["poses"], strict=True):
         cells = row["cells"][1:]
-        heights = [float(c["value"]) for c in cells[:4]]
+        n = len(ALLOWANCE_TERMS)                       # the ToF sim states every term, its wiggle too
+        heights = [float(c["value"]) for c in cells[:n]]
         assert heights == [abs(pose["at_allowance"][k]["height_m"]) for k in ALLOWANCE_TERMS]
-        marked = [k for k, c in zip(ALLOWANCE_TERMS, cells[:4], strict=True) if "dominant" in c["class"]]
+        marked = [k for k, c in zip(ALLOWANCE_TERMS, cells[:n], strict=True) if "dominant" in c["class"]]
         assert marked == [pose["dominant"]["height"]]
 
 

@@ -45,7 +45,9 @@ def test_a_refused_pose_is_fitted_again_and_shows_why(refused: dict[str, Any]) -
     assert pose["failed"] and pose["index"] == 0 and "note" in pose
     gates = pose["full_frame"]["gates"]
     assert gates["expected_plane"]["passed"] is False
-    assert gates["expected_plane"]["value"] > gates["expected_plane"]["threshold"]
+    # the gate's value is the angle from the expected table (14-16 deg against 15); the box top's 150 mm
+    # offset (tolerance 50 mm) fails it either way, so only the verdict is pinned
+    assert gates["expected_plane"]["value"] > 0.2
     classes = decode_array(pose["pictures"]["classes"]) & 3
     # the box top is the plane the image gives; the table around it is a large set of outliers
     assert np.count_nonzero(classes == CLASS_OUTLIER) > 0.03 * classes.size
