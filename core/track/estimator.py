@@ -454,7 +454,21 @@ class Tracker:
         return TrackState(
             mount, model.plane(x), sq[MOUNT_TRANSLATION].copy(), rpy_sigma, np.degrees(sq[PLANE_TILT]),
             float(sq[PLANE_OFFSET]), observable, self._unseen_texts(), self.frames_used, list(self._events),
-            any(e.resolved_at_s is None for e in self._events), z, scale, noise, x, cov, s.confidence, withheld)
+            any(e.resolved_at_s is None for e in self._events), z, scale, noise, x, cov, s.confidence, withheld,
+            self._interval_notes())
+
+    def _interval_notes(self) -> tuple[str, ...]:
+        """What the reported covariance carries besides the noise, in words."""
+        notes = []
+        if self._sys_keys:
+            notes.append(f"the camera's systematic allowance ({', '.join(self._sys_keys)}) is common to the frames: "
+                         "its shift of the estimate is in the intervals, not in the frames' weights")
+        accuracy = self.settings.arm_accuracy
+        if accuracy is not None and (accuracy.position_m or accuracy.rotation_rad):
+            notes.append(f"the arm's absolute accuracy ({1000 * accuracy.position_m:.3g} mm, "
+                         f"{math.degrees(accuracy.rotation_rad):.3g} deg RMS, stated by {accuracy.source}) is in the "
+                         "intervals as an error common to the frames (mount and plane), not in the weights")
+        return tuple(notes)
 
     def _common_covariance(self, inv: FloatArray, seen: BoolArray) -> FloatArray:
         """The covariance of the errors common to the frames: the camera's systematic allowance and the arm's accuracy.

@@ -64,6 +64,7 @@ def track_document(state: TrackState, counters: Mapping[str, int], meta: Mapping
             "mount_rpy_deg": _intervals(rpy, state.mount_rpy_sigma_deg, z),
             "plane_offset_m": _intervals(np.array([plane.offset_m]), offset_sigma, z)[0],
             "noise_model": state.noise.to_dict() if state.noise else None,
+            "notes": list(state.interval_notes),
         },
         "observable": dict(state.observable),
         "unseen": list(state.unseen),

@@ -143,6 +143,8 @@ class TrackState:
         covariance: 9x9 covariance of ``parameters`` as the intervals use it (NaN rows/columns unseen).
         confidence: Level of the intervals.
         intervals_withheld: Why no intervals are given ("" when they are).
+        interval_notes: What the intervals carry besides the noise (the camera's systematic allowance and the
+            arm's accuracy, common to the frames: ADR 0055), in words.
     """
 
     mount: Pose
@@ -163,6 +165,7 @@ class TrackState:
     covariance: FloatArray
     confidence: float
     intervals_withheld: str = ""
+    interval_notes: tuple[str, ...] = ()
 
     @property
     def mount_rpy_deg(self) -> FloatArray:

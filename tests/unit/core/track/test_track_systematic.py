@@ -1,9 +1,10 @@
 """The tracker with the camera's systematic allowance and the arm's accuracy (ADR 0055, "Poses combined").
 
 The pinned knock of test_track_pinned_changes.py (0.4 deg and 2 mm, detected at the 4th frame after it) is run
-with each frame stating a 1 % depth-scale allowance (and a 0.29 deg tilt-like field term), with the frames actually 1 % long,
-and with the arm's accuracy: the detector alarms at the same frame; the reported intervals widen by the common
-errors. With the allowance in each frame's covariance as if independent (the fit's total) the knock is seen later.
+with each frame stating a 1 % depth-scale allowance (and a 0.29 deg tilt-like field term), with the frames
+actually 1 % long, and with the arm's accuracy: the detector alarms at the same frame; the reported intervals
+widen by the common errors. With the allowance in each frame's covariance as if independent (the fit's total)
+the knock is not seen.
 """
 
 from __future__ import annotations
@@ -77,6 +78,9 @@ def test_the_allowance_does_not_change_the_detection_frame() -> None:
     assert exact.state.mount_translation_sigma_m[2] < 1e-4
     assert 3e-3 < widened.state.mount_translation_sigma_m[2] < 6e-3
     assert exact.state.plane_offset_sigma_m < 1e-4 < 0.25e-3 < widened.state.plane_offset_sigma_m < 0.35e-3
+    assert exact.state.interval_notes == ()
+    sys_note, arm_note = widened.state.interval_notes
+    assert "allowance (scale, field:u)" in sys_note and "0.5 mm, 0.05 deg RMS, stated by test" in arm_note
 
 
 def test_the_allowance_as_independent_noise_would_deafen_the_detector() -> None:
