@@ -61,9 +61,9 @@ def test_default_cli_run_writes_a_complete_result(tmp_path: Path, capsys: pytest
 
 
 def test_noise_free_accuracy_and_nominal_model_bias() -> None:
-    # an ideal camera: noise-free and without systematic error (ADR 0054)
+    # an ideal camera and arm: noise-free, without systematic error (ADR 0054) or kinematic error (ADR 0055)
     result = run_doc(sim_document(camera={"noise": False, "quantisation_m": 0.0}, arm={"repeatability_m": 0.0},
-                                  sim={"systematic": {"enabled": False}}))
+                                  sim={"systematic": {"enabled": False}, "arm_errors": {"enabled": False}}))
     for m in rows(result, "plane_fit"):
         assert abs(m["angle_deg"] - 80.0) < 0.01, m
         assert abs(m["tilt_x_deg"] - 10.0) < 0.01 and abs(m["tilt_y_deg"]) < 0.01

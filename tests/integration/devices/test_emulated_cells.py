@@ -57,9 +57,15 @@ def test_cli_runs_the_emulated_cells(config_name: str, tmp_path: Path) -> None:
     assert {k: result["config"][k]["backend"] for k in ("camera", "arm")} == {
         k: emulated[k]["backend"] for k in ("camera", "arm")}
     # the file holds the run's measurements: the pure sim's angles, pose by pose, and the full frame
-    sim = angles(run("sim.toml"))
+    pure = run("sim.toml")
+    sim = angles(pure)
     written = angles(result)
     assert [a[:3] for a in written] == [a[:3] for a in sim] and len(result["poses"]) == 3
     assert max(abs(w[3] - s[3]) for w, s in zip(written, sim, strict=True)) < 0.01
-    assert all(p["full_frame"]["angle_deg"] == pytest.approx(80.0, abs=0.05) for p in result["poses"])
+    # the full frame: the pure sim's angle to 0.005 deg (on the shipped sims' systematic and arm errors,
+    # ADR 0054/0055, the truth 80 deg lies inside its interval, not within 0.05 deg of the estimate)
+    for p, s in zip(result["poses"], pure["poses"], strict=True):
+        assert p["full_frame"]["angle_deg"] == pytest.approx(s["full_frame"]["angle_deg"], abs=0.005)
+        lo, hi = p["full_frame"]["angle_ci_deg"]
+        assert lo < 80.0 < hi
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == ["result.json"]

@@ -41,7 +41,8 @@ def test_an_absurd_model_is_one_line_naming_the_key(tmp_path: Path, capsys: pyte
     assert err.startswith(f"cellcal: error: {path}: key '{key}': ") and expected in err
     with pytest.raises(ConfigError) as exc:                          # the same error from the library
         build_devices(load_config(path))
-    assert exc.value.key == key and str(exc.value) in err
+    # the same message; a long one (an unknown key's list of the known ones) shortened in its middle
+    assert exc.value.key == key and str(exc.value)[:150] in err and str(exc.value)[-60:] in err
 
 
 def test_a_valid_model_reaches_the_frames_of_a_cell_built_from_the_config(tmp_path: Path) -> None:

@@ -20,7 +20,8 @@ DOCUMENT: dict[str, Any] = {
     "mount": {"translation_m": [0.0, 0.04, 0.06], "rpy_deg": [0.0, 0.0, 90.0]},
     "sim": {"boxes": [{"center_xy_m": [0.3, 0.02], "size_m": [0.08, 0.06, 0.05], "yaw_deg": 20.0}],
             "artefacts": {"mixed_pixels": False, "multipath": False, "amplitude_noise": False,
-                          "temperature_drift": False}},
+                          "temperature_drift": False},
+            "systematic": {"enabled": False}},   # an ideal camera: the range is the geometry's (ADR 0054)
 }
 
 

@@ -19,6 +19,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.types import Intrinsics
 from cellcal.sims.camera import SimCamera, SimCameraConfig, o3r222_intrinsics
 from cellcal.sims.scene import Box, Scene
+from cellcal.sims.systematic import SystematicConfig
 from cellcal.sims.world import SimWorld
 
 # ~23-27 px shift at the image corners: strong for a 224 x 172 ToF lens
@@ -93,7 +94,7 @@ def test_pixel_to_base_equals_the_sim_ray_cast(lens: str) -> None:
 def test_pixel_to_camera_matches_a_rendered_noise_free_sim_frame() -> None:
     cfg = SimCameraConfig(noise=False, quantisation_m=0.0)  # the sim's default distorted lens
     scene = Scene(np.zeros(3), np.array([0.0, 0.0, 1.0]), (Box((0.5, 0.3), (0.05, 0.05, 0.05)),))
-    cam = SimCamera(cfg, world=SimWorld(scene, Pose.identity()))
+    cam = SimCamera(cfg, world=SimWorld(scene, Pose.identity(), systematic=SystematicConfig.off()))  # ideal range
     camera_in_base = look_at_pose(np.array([0.3, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), 0.46,
                                   math.radians(80.0), "x")
     frame = cam.render(camera_in_base)

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from ideal_camera import IDEAL_CAMERA_TOML, ideal_config
+from ideal_camera import IDEAL_CELL_TOML, ideal_config
 
 from cellcal.core.calibration.config import CellConfig, load_config, parse_config
 from cellcal.core.calibration.sections import MonitorSection
@@ -212,7 +212,7 @@ def collect(statuses: list[MonitorStatus]) -> Any:
 
 
 def test_baseline_from_the_plane_in_the_base_frame_matches_the_measured_one() -> None:
-    config = ideal_config()  # the measured baseline against the true geometry to 0.1 mm
+    config = ideal_config(ideal_arm=True)  # the measured baseline against the planned geometry to 0.1 mm
     camera, world = make_camera(config)
     expected = Baseline.from_plane_in_base(Plane.from_point_normal((0, 0, 0), (0, 0, 1)), world.camera_pose())
     summary = Monitor([MonitoredCamera("sim", camera, FAST, config.full_frame)]).run(max_frames=25)
@@ -273,7 +273,7 @@ def test_sim_noise_does_not_flag_over_200_real_frames() -> None:
 
 def test_o3r_emulator_stays_quiet_and_leaves_no_thread() -> None:
     before = set(threading.enumerate())
-    config = ideal_config(CONFIGS / "o3r_emulated.toml")  # the baseline height to 0.1 mm of the truth
+    config = ideal_config(CONFIGS / "o3r_emulated.toml", ideal_arm=True)  # the height to 0.1 mm of the plan's
     camera, _ = make_camera(config)
     assert camera.backend_name == "o3r-emulated"
     summary = Monitor([MonitoredCamera("o3r", camera, FAST, config.full_frame)]).run(max_frames=40)
@@ -383,7 +383,7 @@ def fast_config(tmp_path: Path) -> Path:
     """sim.toml with a fast [monitor] table and an ideal camera (baselines against the true geometry to 0.1 mm)."""
     path = tmp_path / "fast.toml"
     path.write_text((CONFIGS / "sim.toml").read_text()
-                    + "\n[monitor]\nperiod_s = 0.0\nbaseline_frames = 10\nstatus_every_s = 0.01\n" + IDEAL_CAMERA_TOML)
+                    + "\n[monitor]\nperiod_s = 0.0\nbaseline_frames = 10\nstatus_every_s = 0.01\n" + IDEAL_CELL_TOML)
     return path
 
 
