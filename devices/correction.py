@@ -36,7 +36,8 @@ from .systematic import SystematicError, field_basis, normalised_pixels
 from .types import Frame, Intrinsics
 
 __all__ = ["CORRECTION_KEY", "MAX_CORRECTION_BYTES", "CorrectedCamera", "CorrectionSection", "camera_with_correction",
-           "correct_frame", "corrected_model", "leftover_allowance", "leftover_wiggle_m", "load_correction_file", "wiggle_passes"]
+           "correct_frame", "corrected_model", "leftover_allowance", "leftover_wiggle_m", "load_correction_file",
+           "wiggle_passes"]
 
 #: The dotted key every problem with the correction file is reported under.
 CORRECTION_KEY = "camera.correction.file"

@@ -311,4 +311,5 @@ def systematic_budget(resp: Response, cov: FloatArray, allowance: tuple[float, f
         add += np.outer(s.step, s.step)
     return ErrorBudget(resp.kind, _plane_shift(steps[0], resp, geo), _plane_shift(steps[1], resp, geo),
                        (float(s_all), float(o_all), float(f_all)), shifts, worst,
-                       _sigmas(geo, cov), _sigmas(geo, cov + add), (float(amp), float(period)) if wiggled else (0.0, 0.0))
+                       _sigmas(geo, cov), _sigmas(geo, cov + add),
+                       (float(amp), float(period)) if wiggled else (0.0, 0.0))
