@@ -318,7 +318,14 @@ class Calibrator:
         ref = self.config.reference
         return None if ref is None else Plane.from_point_normal(ref.plane_point_m, ref.plane_normal)
 
-    def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
+    def _move_and_capture(self, index: int, target: Pose, n_frames: int
+                          ) -> tuple[list[Frame], Pose, dict[str, float]]:
+        """Move to plan pose ``index`` (the safety wrapper confirms the arrival), settle, capture, read back.
+
+        Returns:
+            The ``n_frames`` frames, the flange pose the arm reports after them (base frame) and the
+            seconds each step took (``move``, ``settle``, ``capture``).
+        """
         plan = self.config.plan
         t0 = time.perf_counter()
         try:
@@ -335,8 +342,13 @@ class Calibrator:
         t2 = time.perf_counter()
         t_cap = plan.capture_timeout_s
         frames = [self.guards["camera"].call(lambda: self.camera.capture(t_cap), t_cap,
-                                             f"capture(timeout={t_cap:g} s)") for _ in range(plan.frames_per_pose)]
+                                             f"capture(timeout={t_cap:g} s)") for _ in range(n_frames)]
         reported = self._flange_pose()
+        return frames, reported, {"move": t1 - t0, "settle": t2 - t1, "capture": time.perf_counter() - t2}
+
+    def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
+        plan = self.config.plan
+        frames, reported, timings = self._move_and_capture(index, target, plan.frames_per_pose)
         t3 = time.perf_counter()
         camera_pose = reported @ self.config.mount.pose()
         expected = None
@@ -372,8 +384,7 @@ class Calibrator:
         self._check_view(index, reported, frames, result)
         t4 = time.perf_counter()
         record = PoseRecord(index, target, reported, camera_pose, expected, measurements,
-                            {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2, "compute": t4 - t3,
-                             "compute_full_frame": t4 - t_ff},
+                            {**timings, "compute": t4 - t3, "compute_full_frame": t4 - t_ff},
                             frames[0].intrinsics, full_frame)
         if self.observer is not None:
             self.observer(record, frames, result)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import io
 import json
 import shutil
-import time
 from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
@@ -30,10 +29,10 @@ from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.report import write_bytes_atomic, write_json_atomic
 from cellcal.core.depthcal.plan import PlanView, plan_coverage
 from cellcal.devices.camera import Camera3D
-from cellcal.devices.errors import CalibrationError, VendorError
+from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 from cellcal.devices.recording.codec import decode_model, encode_model
-from cellcal.devices.safety import SafeArm, format_pose
+from cellcal.devices.safety import SafeArm
 from cellcal.devices.types import Frame, Intrinsics
 from cellcal.devices.version import cellcal_version
 
@@ -139,29 +138,10 @@ class DepthcalCalibrator(Calibrator):
 
     def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
         """Move (the safety wrapper confirms the arrival), settle, capture the frames, read the flange back."""
-        plan = self.config.plan
-        n_frames = self.config.depthcal.frames_per_pose
-        t0 = time.perf_counter()
-        try:
-            self.guards["arm"].call(lambda: self.arm.move_linear(target, speed=plan.speed_m_s,
-                                                                 acceleration=plan.acceleration_m_s2,
-                                                                 timeout=plan.move_timeout_s),
-                                    plan.move_timeout_s, f"move_linear(timeout={plan.move_timeout_s:g} s)")
-        except VendorError as exc:
-            raise VendorError(exc.vendor, exc.code, f"{exc.meaning} at plan pose {index + 1} "
-                              f"({format_pose(target)})") from None
-        t1 = time.perf_counter()
-        if plan.settle_s > 0:
-            time.sleep(plan.settle_s)
-        t2 = time.perf_counter()
-        t_cap = plan.capture_timeout_s
-        frames = [self.guards["camera"].call(lambda: self.camera.capture(t_cap), t_cap,
-                                             f"capture(timeout={t_cap:g} s)") for _ in range(n_frames)]
-        reported = self._flange_pose()
-        t3 = time.perf_counter()
+        frames, reported, timings = self._move_and_capture(index, target, self.config.depthcal.frames_per_pose)
         self.frames[index] = frames
         return PoseRecord(index, target, reported, reported @ self.config.mount.pose(), None, [],
-                          {"move": t1 - t0, "settle": t2 - t1, "capture": t3 - t2}, frames[0].intrinsics, None)
+                          timings, frames[0].intrinsics, None)
 
 
 def _views(calibrator: DepthcalCalibrator, measured: dict[str, Any]) -> list[Any]:
