@@ -49,11 +49,13 @@ def register(sub: Any) -> None:
 
 
 def _plan(config: Any) -> tuple[list[Any], Any]:
-    """The checked plan and what it covers."""
+    """The checked plan and what it covers; a plan that cannot see a term is refused here (gate ``observability``)."""
     from cellcal.core.depthcal.plan import depthcal_plan, plan_coverage
 
     views = depthcal_plan(config)
-    return views, plan_coverage(config, views)
+    coverage = plan_coverage(config, views)
+    coverage.check(len(views))
+    return views, coverage
 
 
 def _dry_run(config: Any, views: list[Any], coverage: Any) -> int:

@@ -20,7 +20,7 @@ import numpy as np
 
 from cellcal.core.calibration.config import CellConfig
 from cellcal.core.handeye.plan import MAX_ITERATIONS, YAW_TOLERANCE_RAD, check_plan
-from cellcal.devices.errors import ConfigError
+from cellcal.devices.errors import CalibrationQualityError, ConfigError
 from cellcal.devices.pose import Pose
 
 __all__ = ["MIN_HEIGHT_SPAN_M", "Coverage", "PlanView", "depthcal_heights", "depthcal_plan", "plan_coverage",
@@ -168,6 +168,17 @@ class Coverage:
     slope_directions: tuple[float, ...]
     notes: tuple[str, ...]
 
+    def check(self, n_poses: int) -> None:
+        """Refuse a plan that cannot see a term of the correction, before anything connects or moves.
+
+        Raises:
+            CalibrationQualityError: Gate ``observability`` (the number of unseen terms against 0),
+                naming each and what would show it.
+        """
+        if self.notes:
+            raise CalibrationQualityError("observability", len(self.notes), 0,
+                                          f"{n_poses} poses cannot calibrate the depth: {'; '.join(self.notes)}")
+
     def message(self) -> str:
         """One line: what the plan spans and what it cannot see."""
         lo, hi = 1000 * min(self.heights_m), 1000 * max(self.heights_m)
@@ -178,7 +189,11 @@ class Coverage:
 
 
 def plan_coverage(config: CellConfig, views: Sequence[PlanView]) -> Coverage:
-    """What the plan spans: its heights, inclinations and the image directions of the plane's slope."""
+    """What the plan spans: its heights, inclinations and the image directions of the plane's slope.
+
+    The notes name what it cannot see: the depth scale with one height; the image field (when
+    ``[depthcal] field_max_order`` > 0) without a tilted view or with the slope one way only.
+    """
     mount = config.mount.pose()
     ref = config.reference
     normal = np.asarray(ref.plane_normal if ref is not None else (0.0, 0.0, 1.0), dtype=np.float64)
@@ -194,7 +209,9 @@ def plan_coverage(config: CellConfig, views: Sequence[PlanView]) -> Coverage:
     notes = []
     if len(heights) < 2:
         notes.append("one height: the depth scale cannot be told from the offset (add heights_m)")
-    if not directions:
+    if config.depthcal.field_max_order == 0:
+        pass  # no image field fitted: the slope's directions decide nothing
+    elif not directions:
         notes.append("no tilted view: the image field cannot be told from the plane's height (add inclinations < 90)")
     elif len(directions) < 2:
         notes.append("the slope crosses the image one way only: the field across it is not seen (add rolls_deg)")

@@ -80,6 +80,31 @@ def test_a_plan_with_one_height_and_no_tilt_says_what_it_cannot_see(tmp_path: Pa
     assert any("one height" in n for n in notes) and any("no tilted view" in n for n in notes)
 
 
+@pytest.mark.parametrize(("extra", "named"), [
+    ("heights_m = [0.5]\n", ["one height"]),
+    ("inclinations_deg = [90.0]\n", ["no tilted view"]),
+    ("heights_m = [0.5]\ninclinations_deg = [90.0]\n", ["one height", "no tilted view"]),
+    ("inclinations_deg = [90.0]\nfield_max_order = 0\n", []),   # no field fitted: nothing to see across
+])
+def test_a_plan_that_cannot_see_a_term_is_refused_before_anything_connects(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], extra: str,
+        named: list[str]) -> None:
+    no_devices(monkeypatch)
+    cfg = tmp_path / "cell.toml"
+    cfg.write_text((REPO_ROOT / "configs" / "sim.toml").read_text() + "\n[depthcal]\n" + extra)
+    for mode in ("--dry-run", "--check", "--out"):
+        args = ["depthcal", "--config", str(cfg), mode] + ([str(tmp_path / "o")] if mode == "--out" else [])
+        if not named:
+            if mode == "--dry-run":
+                assert main(args) == 0 and "dry run OK" in capsys.readouterr().out
+            continue
+        assert main(args) == 1, mode
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "quality gate 'observability' failed" in err and "Traceback" not in err
+        assert all(n in err for n in named) and f"{len(named)} vs threshold 0" in err
+    assert not (tmp_path / "o").exists()
+
+
 def test_dry_run_draws_the_plan_and_moves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     no_devices(monkeypatch)
