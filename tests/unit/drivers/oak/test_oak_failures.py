@@ -106,17 +106,19 @@ def test_wrong_frame_size_is_a_protocol_error(camera: OakCamera, oak: FakeOak) -
 
 # ---------------------------------------------------------------- connecting
 def test_connect_timeout_bounded_and_late_device_closed(oak: FakeOak, mocker: Any) -> None:
-    release = threading.Event()
+    release, entered = threading.Event(), threading.Event()
 
     def slow_open(*args: Any) -> Any:
-        release.wait(5.0)
+        entered.set()
+        release.wait(30.0)
         return oak.device
 
     mocker.patch.object(dai, "Device", side_effect=slow_open)
     cam = OakCamera.from_config({"device_id": DEVICE_ID})
     cam._caller.join = lambda timeout: None
     with pytest.raises(DeviceTimeoutError, match="did not finish within"):
-        cam.connect(timeout=0.2)
+        cam.connect(timeout=1.0)   # room for a loaded machine to reach the open before the budget ends
+    assert entered.is_set()
     release.set()
     for t in threading.enumerate():
         if t.name.startswith("oak "):

@@ -372,11 +372,12 @@ def test_remote_control_off_is_reported(vendor: FakeController, mocker: Any) -> 
 
 
 def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeController, mocker: Any) -> None:
-    release = threading.Event()
+    release, entered = threading.Event(), threading.Event()
     late: list[Any] = []
 
     def slow_control(hostname: str, *args: Any, **kwargs: Any) -> Any:
-        release.wait(5.0)
+        entered.set()
+        release.wait(30.0)
         c = vendor.make_control(hostname, *args, **kwargs)
         late.append(c)
         return c
@@ -385,8 +386,11 @@ def test_connect_timeout_is_bounded_and_late_connection_released(vendor: FakeCon
     arm = URArm.from_config({"host": HOST, "isolate": False})
     arm._probe = vendor.probe                            # connect asks the stream first
     arm._host.caller.join = lambda timeout: None          # close() must not wait for the worker here
+    # 2 s: the fake steps before the control's constructor (probe, receive, stream) are done long before
+    # on a loaded machine (a 0.2 s budget could run out there, and the control was then never asked for)
     with pytest.raises(DeviceTimeoutError, match="did not finish within"):
-        arm.connect(timeout=0.2)
+        arm.connect(timeout=2.0)
+    assert entered.is_set()                               # the budget ran out inside the constructor
     release.set()
     for t in threading.enumerate():
         if t.name.startswith(f"ur {HOST}"):
