@@ -52,7 +52,11 @@ def test_calibrate_with_the_camera_following_the_arm_is_consistent(tmp_path: Pat
     assert cons["verdict"] == "consistent" and cons["n_poses"] == 8
     assert cons["orientation_span_deg"] == pytest.approx(180.0, abs=1.0)  # four sides: a real check on the mount
     assert cons["normal_spread_deg"] < cons["normal_tolerance_deg"]
-    assert cons["reference"]["angle_deg"] < 0.01 and abs(cons["reference"]["height_m"]) < 1e-4
+    # the consensus holds [reference] within its 95 % interval: the sim arm's kinematic errors (about
+    # 0.05 deg, [sim.arm_errors]) tilt it by hundredths of a degree, and the interval says so
+    interval = cons["consensus_interval"]
+    assert cons["reference"]["angle_deg"] < interval["normal_halfwidth_deg"] < 0.2
+    assert abs(cons["reference"]["height_m"]) < interval["height_halfwidth_m"]
 
 
 def test_a_camera_that_ignores_the_arm_is_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
