@@ -8,11 +8,22 @@ enabled = false``) so that the arm is the only systematic error. The poses are m
 the mount estimated twice from the same planes:
 
 * **with the arm term**: the arm's stated accuracy (the sim arm states the RMS of its errors over the
-  workspace, :meth:`cellcal.sims.arm.SimArm.arm_model`) in the weights and intervals (ADR 0055);
+  workspace, :meth:`cellcal.sims.arm.SimArm.arm_model`) in the weights and intervals (ADR 0055):
+  common to the poses, half of it in step with the pose (``ArmAccuracy.trend``), a quarter at random;
+* **random only**: the same accuracy without the trend, half of it at random per pose (as before the
+  trend);
 * **without**: the read-back noise of ``[handeye]`` alone, as before issue #39.
 
 It prints how often each ``[mount]`` value's 95 % interval holds the true mount ``[sim.mount]``,
 pooled, and chi2/dof. Target (issue #39): 90-98 % with the arm term, every value.
+
+It also prints where the sim arms' errors lie, per flange axis, over each run's poses, against
+the stated per-axis accuracy (RMS / sqrt 3): the part common to the poses in the flange frame
+(what the mount absorbs) and the part that varies. A stated accuracy is isotropic, as vendors
+state it; the sim's five-axis chain errs in common only along and about the flange's z axis, so
+the common part the intervals allow for tx, ty, roll and pitch is not there, and those values are
+covered more often than 98 %: the bound of an isotropic statement, which only a kinematic model
+of the arm (its joint zeros and link lengths as parameters) would lift.
 
 ``--camera`` puts the camera's systematic error on as well (ADR 0059 "Amended"): ``default``, the
 sim's default errors (the same for every seed); ``drawn``, per seed a ToF range scale, offset and
@@ -133,7 +144,8 @@ def main() -> None:
     if args.camera != "ideal":
         camera_benchmark(args)
         return
-    with_arm, without, chi2_with, chi2_without, arm_errors = [], [], [], [], []
+    with_arm, random_only, without, chi2_with, chi2_without, arm_errors = [], [], [], [], [], []
+    common_f, varying_f = [], []
     started = time.perf_counter()
     for seed in range(args.first, args.first + args.seeds):
         config, document = cell(seed)
@@ -146,6 +158,10 @@ def main() -> None:
         arm_errors.append((model.accuracy_m, model.accuracy_rad))
         est = estimate_from_document(config, measured, model)
         before = estimate_from_document(config, measured, None)
+        random_only.append(inside(estimate_with(config, measured, model, trend=0.0, varying=0.5), truth))
+        common, varying = flange_error_parts(measured, arm.inner.world.arm_errors, model)
+        common_f.append(common)
+        varying_f.append(varying)
         with_arm.append(inside(est, truth))
         without.append(inside(before, truth))
         chi2_with.append(est.chi2 / est.dof)
@@ -160,8 +176,53 @@ def main() -> None:
     print(f"  with the arm term:    {percent(w)} %  (pooled {100 * w.mean():.1f} %); chi2/dof median "
           f"{np.median(chi2_with):.2f}  target {100 * TARGET[0]:.0f}-{100 * TARGET[1]:.0f} %: "
           f"{'PASS' if ok else 'FAIL'}")
+    ro = np.mean(random_only, axis=0)
+    print(f"  random only (no trend): {percent(ro)} %  (pooled {100 * ro.mean():.1f} %)")
     print(f"  without (as before):  {percent(wo)} %  (pooled {100 * wo.mean():.1f} %); chi2/dof median "
           f"{np.median(chi2_without):.2f}")
+    rms = lambda a: np.sqrt(np.mean(np.square(a), axis=0))  # noqa: E731
+    axes = ("x", "y", "z", "rx", "ry", "rz")
+    print("  the sim arms' flange errors over the poses, RMS over the seeds in units of the stated per-axis accuracy:")
+    print("    common (flange frame): " + " ".join(f"{a} {v:.2f}" for a, v in zip(axes, rms(common_f), strict=True)))
+    print("    varying:               " + " ".join(f"{a} {v:.2f}" for a, v in zip(axes, rms(varying_f), strict=True)))
+
+
+def estimate_with(config: Any, measured: dict[str, Any], model: Any, *, trend: float, varying: float
+                  ) -> HandEyeEstimate:
+    """The plane estimate with the arm's accuracy split otherwise than the default (``ArmAccuracy``)."""
+    import dataclasses
+    import math
+
+    from cellcal.core.handeye.estimator import estimate_mount
+    from cellcal.core.handeye.model import observation_from_pose
+    from cellcal.core.handeye.run import arm_accuracy, reference_plane
+
+    he = config.handeye
+    accuracy = arm_accuracy(model)
+    accuracy = None if accuracy is None else dataclasses.replace(accuracy, trend=trend, varying=varying)
+    return estimate_mount([observation_from_pose(p) for p in measured["poses"]], config.mount.pose(),
+                          reference_plane(config), given=he.given, given_sigma=he.given_sigma,
+                          arm_translation_sigma_m=he.arm_translation_sigma_m,
+                          arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence,
+                          noise_test_level=he.noise_test_level, max_interval_scale=he.max_interval_scale,
+                          arm_accuracy=accuracy)
+
+
+def flange_error_parts(measured: dict[str, Any], errors: Any, model: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(6,) each: the flange-frame error's mean over the poses and its spread (x, y, z, rx, ry, rz), per-axis units.
+
+    The unit is the stated accuracy per axis (``accuracy / sqrt 3``, position and rotation apart).
+    """
+    from scipy.spatial.transform import Rotation
+
+    parts = []
+    for pose in measured["poses"]:
+        reported = Pose.from_dict(pose["reported_flange_pose"])
+        d = reported.inv() @ errors.true_pose(reported)  # the true flange seen from the reported one
+        parts.append(np.concatenate([np.asarray(d.translation), Rotation.from_matrix(d.rotation_matrix).as_rotvec()]))
+    e = np.array(parts)
+    unit = np.array([model.accuracy_m] * 3 + [model.accuracy_rad] * 3) / np.sqrt(3.0)
+    return np.abs(e.mean(axis=0)) / unit, e.std(axis=0) / unit
 
 
 def camera_benchmark(args: argparse.Namespace) -> None:

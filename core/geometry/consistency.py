@@ -45,7 +45,8 @@ NOISE_FACTOR = 3.0
 #: Below this span of camera orientations (rad) the check cannot see a mount error.
 MIN_ORIENTATION_SPAN_RAD = math.radians(5.0)
 #: The part of the arm's stated accuracy that varies from pose to pose (the rest is common to them): the
-#: hand-eye fit's reading (``ArmAccuracy.varying``, ADR 0055).
+#: hand-eye fit's random and in-step parts together (``ArmAccuracy.varying`` 0.25 and ``.trend`` 0.5 add to
+#: about 0.56 in quadrature; ADR 0055).
 ARM_VARYING = 0.5
 #: Two-sided normal quantile of the consensus's 95 % interval.
 Z95 = 1.959963984540054

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.handeye.arm_trend import arm_trend_terms
 from cellcal.core.handeye.given import check_given_sigma, given_notes
 from cellcal.core.handeye.model import (
     MOUNT_ROTATION,
@@ -169,26 +170,32 @@ class ArmAccuracy:
     """The arm's stated absolute accuracy as the hand-eye fit takes it (issue #39, ADR 0055).
 
     A real arm's error is smooth with the pose: over a plan it is mostly common to the poses, and
-    varies from pose to pose by part of it. Both parts are isotropic with RMS length ``position_m``
-    and ``rotation_rad`` (1-sigma per axis: those over sqrt(3)). The varying part, ``varying``
-    times that, is each pose's random flange error, propagated into its plane residual
-    (:func:`~cellcal.core.handeye.model.arm_accuracy_covariance`): it weighs the poses and is
-    in the chi2 test. The common part is not in the residuals at all: in the flange frame it is
-    a mount error, in the base frame a plane error, added to their covariance
-    (:meth:`common_covariance`) and never scaled by chi2/dof. ``varying = 0.5`` is what the sim's
-    kinematic errors show on the hand-eye plan (ADR 0055; ``benchmarks/handeye_arm_errors.py``).
+    varies from pose to pose by part of it, in step with the pose. All parts are isotropic with
+    RMS length ``position_m`` and ``rotation_rad`` (1-sigma per axis: those over sqrt(3)). The
+    common part is not in the residuals at all: in the flange frame it is a mount error, in the
+    base frame a plane error, added to their covariance (:meth:`common_covariance`) and never
+    scaled by chi2/dof. The part in step with the pose, ``trend`` times the accuracy, is a
+    flange error linear in the pose (:mod:`cellcal.core.handeye.arm_trend`): common
+    coefficients whose answers enter the intervals, never scaled, and which the chi2 test takes
+    out. The rest, ``varying`` times it, is each pose's random flange error, propagated into its
+    plane residual (:func:`~cellcal.core.handeye.model.arm_accuracy_covariance`): it weighs the
+    poses and is in the chi2 test. ``trend = 0.5``, ``varying = 0.25``: what the sim's kinematic
+    errors need on the hand-eye plan (ADR 0055 "The arm's error in step with the pose";
+    ``benchmarks/handeye_arm_errors.py``).
 
     Attributes:
         position_m: RMS position error of a reported flange pose, m.
         rotation_rad: RMS orientation error, rad.
         source: Who stated it (``backend``, ``config``, ``sim``, ``recording ...``).
-        varying: The part of it that varies from pose to pose (the rest is common to the poses).
+        varying: The part of it that varies at random from pose to pose, in the weights.
+        trend: The part of it that varies in step with the pose (linear in it), common coefficients.
     """
 
     position_m: float
     rotation_rad: float
     source: str = "unstated"
-    varying: float = 0.5
+    varying: float = 0.25
+    trend: float = 0.5
 
     def common_covariance(self, mount: Pose, free: Sequence[int]) -> FloatArray:
         """9x9 covariance the error common to every pose puts on the estimated parameters (rows of ``free`` only).
@@ -217,7 +224,8 @@ class ArmAccuracy:
         """One line for the intervals' notes."""
         return (f"the arm's absolute accuracy ({1000 * self.position_m:.3g} mm, "
                 f"{math.degrees(self.rotation_rad):.3g} deg RMS, stated by {self.source}) is in the weights and the "
-                "intervals: common to the poses in the mount and plane, half of it at random per pose in the weights")
+                "intervals: common to the poses in the mount and plane, half of it in step with the pose (a trend "
+                "over the plan), a quarter at random per pose in the weights")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form (SI units)."""
@@ -386,7 +394,9 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     # the camera's systematic terms: each one coefficient common to the poses (ADR 0059 "Amended")
     terms = systematic_terms(observations)
     responses = {key: lin.response(shifts) for key, shifts in terms.items()}  # first order, at the solution
-    chi2, dof, worst = _noise_test_residuals(data, x, fit.fun, prior_info, terms)
+    trend = {} if accuracy is None or accuracy.trend <= 0.0 else arm_trend_terms(
+        observations, model.nominal_mount, accuracy.trend * accuracy.position_m, accuracy.trend * accuracy.rotation_rad)
+    chi2, dof, worst = _noise_test_residuals(data, x, fit.fun, prior_info, {**terms, **trend})
     k = int(np.argmax([r.chi2 for r in worst]))
     noise = check_noise(chi2, dof, confidence=confidence, level=noise_test_level,
                         max_interval_scale=max_interval_scale,
@@ -396,6 +406,10 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     if accuracy is not None:  # the arm's error common to the poses: not in the residuals, never scaled
         common = accuracy.common_covariance(model.nominal_mount, free)
         absolute, cov = absolute + common, cov + common
+    if trend:  # the arm's error in step with the pose: common coefficients too, never scaled
+        trend_cov = sum((np.outer(d, d) for d in (lin.response(s) for s in trend.values())),
+                        np.zeros((len(PARAMETERS), len(PARAMETERS))))
+        absolute, cov = absolute + trend_cov, cov + trend_cov
     sys_cov, note = None, ""
     if responses:  # the camera's allowance: not in the weights, never scaled
         sys_cov = sum((np.outer(d, d) for d in responses.values()), np.zeros((len(PARAMETERS), len(PARAMETERS))))
@@ -447,13 +461,18 @@ def _arm_budget(lin: Linearised, model: PlaneModel, observations: Sequence[Plane
                 accuracy: ArmAccuracy | None) -> FloatArray:
     """9x9 covariance the arm's stated accuracy (or the unstated default) puts on the parameters.
 
-    Its common part as :meth:`ArmAccuracy.common_covariance`, its varying part propagated from each pose.
+    Its common part as :meth:`ArmAccuracy.common_covariance`, its trend's coefficients' answers, its
+    random part propagated from each pose.
     """
     arm = accuracy or ArmAccuracy(UNSTATED_ARM_MODEL.accuracy_m, UNSTATED_ARM_MODEL.accuracy_rad, "unstated")
     mount = model.nominal_mount
     per_pose = [arm_accuracy_covariance(o, mount, arm.varying * arm.position_m, arm.varying * arm.rotation_rad)
                 for o in observations]
     out: FloatArray = arm.common_covariance(mount, free) + lin.propagate(per_pose)
+    trend = arm_trend_terms(observations, mount, arm.trend * arm.position_m, arm.trend * arm.rotation_rad)
+    for shifts in trend.values():
+        d = lin.response(shifts)
+        out = out + np.outer(d, d)
     return out
 
 

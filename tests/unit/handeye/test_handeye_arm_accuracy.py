@@ -38,7 +38,7 @@ def test_an_arm_erring_at_1_mm_is_covered_when_stated() -> None:
     for _ in range(30):
         views = observations(scenario, rng)
         est = estimate_mount(views, scenario.nominal_mount, scenario.nominal_plane,
-                             arm_accuracy=ArmAccuracy(ERR_M, ERR_RAD, "config", varying=1.0))
+                             arm_accuracy=ArmAccuracy(ERR_M, ERR_RAD, "config", varying=1.0, trend=0.0))
         inside_told.append(np.abs(est.mount.translation - truth_t) <= est.z * est.translation_sigma_m)
         try:
             plain = estimate_mount(views, scenario.nominal_mount, scenario.nominal_plane)
