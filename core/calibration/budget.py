@@ -46,7 +46,7 @@ _PER_UNIT: dict[str, str] = {"depth_scale": "depth_scale_1pct", "depth_offset": 
 #: What to calibrate when a term dominates.
 NEXT_STEP: dict[str, str] = {"depth_scale": "run cellcal depthcal", "depth_offset": "run cellcal depthcal",
                              "depth_field": "run cellcal depthcal",
-                             "depth_wiggle": "run cellcal depthcal with [depthcal] wiggle_period_m",
+                             "depth_wiggle": "run cellcal depthcal (a ToF wiggle is fitted at its stated period)",
                              "arm_accuracy": "calibrate the arm's kinematics (or state its accuracy in [arm.model])"}
 #: The allowance's keys in ``full_frame.error_budget.allowance_shifts`` and ``allowance``.
 _SHIFT_KEY: dict[str, str] = {"depth_scale": "scale", "depth_offset": "offset", "depth_field": "field",

@@ -400,7 +400,8 @@ class DepthcalSection:
         holdout_every: Every this-many-th view is held out of the fit.
         frames_per_pose: Frames captured at each pose (each frame a view of its own).
         max_points_per_view: Pixels of a view the fit uses at most (a seeded sample).
-        wiggle_period_m: A ToF camera's wiggling period in range, metres (unset: no wiggling term fitted).
+        wiggle_period_m: A ToF camera's wiggling period in range, metres (unset: the measurement model's when it
+            allows for a wiggle, else none).
     """
 
     heights_m: tuple[float, ...] | None = field(default=None, metadata={"ge": 0.05, "le": 10.0, "min_items": 1,

@@ -31,6 +31,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +44,9 @@ from cellcal.devices.errors import ConfigError
 from cellcal.devices.measurement import DEFAULT_ALLOWANCES, MeasurementModel
 from cellcal.devices.pose import Pose
 from cellcal.devices.systematic import SystematicError, field_terms
+
+if TYPE_CHECKING:
+    from cellcal.core.handeye.estimator import ArmAccuracy
 
 __all__ = ["DEFAULT_POINTS_PER_VIEW", "INLIER_SIGMAS", "MIN_VIEWS", "fit_depthcal"]
 
@@ -528,7 +532,8 @@ def _limits(names: Sequence[str], model: MeasurementModel, stereo: bool) -> list
 def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: MeasurementModel,
                  field_orders: Sequence[int] = (0, 1, 2, 3), holdout_every: int = 4,
                  wiggle_period_m: float | None = None, estimate_mount: bool = False,
-                 max_points_per_view: int = DEFAULT_POINTS_PER_VIEW, seed: int = 0) -> DepthcalResult:
+                 max_points_per_view: int = DEFAULT_POINTS_PER_VIEW, seed: int = 0,
+                 arm_accuracy: ArmAccuracy | None = None) -> DepthcalResult:
     """Fit the camera's systematic depth error jointly with the plane in the base frame (module docstring).
 
     Args:
@@ -543,6 +548,8 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
         estimate_mount: Refine the mount in the same fit (6 more parameters).
         max_points_per_view: Valid pixels sampled per view (seeded).
         seed: Seed of the sampling.
+        arm_accuracy: The arm's stated accuracy: what it does to the fit enters the intervals
+            (:func:`~cellcal.core.depthcal.arm.arm_covariance`); None: the reported flanges taken as exact.
 
     Raises:
         ConfigError: Too few views, an unknown camera kind, no view to hold out, a view without the plane.
@@ -710,6 +717,20 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
         notes.append(f"residuals correlated across neighbouring pixels (design effect {deff:.2f}): "
                      f"intervals widened by {math.sqrt(deff):.2f}x")
     cov = cov * factor
+    if order < 2:  # a field the held-out error could not tell from the noise is not gone: its allowance stays
+        from cellcal.core.depthcal.leftover import leftover_field_covariance
+
+        cov = cov + leftover_field_covariance(prob, fit, model, order)
+        if model.allowance[2] > 0.0:
+            notes.append(f"the image field of order > {order} was not fitted: the camera's field allowance is in "
+                         "the intervals")
+    if arm_accuracy is not None and (arm_accuracy.position_m > 0.0 or arm_accuracy.rotation_rad > 0.0):
+        from cellcal.core.depthcal.arm import arm_covariance
+
+        cov = cov + arm_covariance(prob, fit, arm_accuracy)   # unscaled: the data cannot tell it apart
+        notes.append(f"the arm's stated accuracy ({1000 * arm_accuracy.position_m:.3g} mm, "
+                     f"{math.degrees(arm_accuracy.rotation_rad):.3g} deg RMS, {arm_accuracy.source}) is in the "
+                     "intervals: the reported flange poses are the camera's motion")
     ng = prob.n_geometry
     names = prob.template.names
     full_cov = np.zeros((len(names), len(names)))

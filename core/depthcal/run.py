@@ -28,6 +28,7 @@ from cellcal.core.calibration.outlock import OutputLock
 from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.report import write_bytes_atomic, write_json_atomic
 from cellcal.core.depthcal.plan import PlanView, plan_coverage
+from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
@@ -161,16 +162,26 @@ def _views(calibrator: DepthcalCalibrator, measured: dict[str, Any]) -> list[Any
     return views
 
 
-def fit_plan(config: CellConfig, views: Sequence[Any]) -> Any:
-    """The fit of the measured views (:func:`cellcal.core.depthcal.fit.fit_depthcal`) with ``[depthcal]``'s settings."""
+def fit_plan(config: CellConfig, views: Sequence[Any], arm_model: ArmModel | None = None) -> Any:
+    """The fit of the measured views (:func:`cellcal.core.depthcal.fit.fit_depthcal`) with ``[depthcal]``'s settings.
+
+    ``arm_model``: the arm's stated accuracy, in the intervals (None: the reported flanges as exact). A
+    ToF camera's wiggling is fitted at ``[depthcal] wiggle_period_m``, else at the period its
+    measurement model states when it allows for a wiggle (the default 1 mm at c/(8 * 60 MHz)).
+    """
     from cellcal.core.depthcal.fit import fit_depthcal
+    from cellcal.core.handeye.run import arm_accuracy
 
     dc = config.depthcal
-    return fit_depthcal(views, mount=config.mount.pose(), model=views[0].frame.measurement,
+    model = views[0].frame.measurement
+    period = dc.wiggle_period_m
+    if period is None and model.kind == "tof" and model.wiggle[0] > 0.0:
+        period = model.wiggle[1]
+    return fit_depthcal(views, mount=config.mount.pose(), model=model,
                         field_orders=tuple(range(dc.field_max_order + 1)),
                         holdout_every=dc.holdout_every * dc.frames_per_pose,
-                        max_points_per_view=dc.max_points_per_view, wiggle_period_m=dc.wiggle_period_m,
-                        seed=config.cell.seed)
+                        max_points_per_view=dc.max_points_per_view, wiggle_period_m=period,
+                        seed=config.cell.seed, arm_accuracy=arm_accuracy(arm_model))
 
 
 def run_depthcal(calibrator: DepthcalCalibrator, out_dir: str | Path, *, resume: bool = False
@@ -193,7 +204,7 @@ def run_depthcal(calibrator: DepthcalCalibrator, out_dir: str | Path, *, resume:
         calibrator.frames_dir.mkdir(parents=True, exist_ok=True)
         measured = calibrator.run(journal=journal, resume=resume)
         views = _views(calibrator, measured)
-        result = fit_plan(config, views)
+        result = fit_plan(config, views, calibrator.arm.arm_model())
         document = {**{k: v for k, v in result.to_dict().items() if k != "elapsed_s"},
                     "timings_s": {"fit": result.elapsed_s},  # what a replay does not reproduce
                     "cellcal_version": cellcal_version(),
