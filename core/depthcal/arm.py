@@ -9,7 +9,7 @@ ADR 0055): common to the poses in the flange frame (a mount error: the camera sh
 axis is a depth offset) and in the base frame (a plane error), in step with the pose (linear in
 the plan's pose coordinates, :func:`~cellcal.core.handeye.arm_trend.pose_coordinates`) and at
 random per pose. Each part is propagated to first order through the fit at its solution,
-``dx = H⁻¹ Jᵀ W dpredicted``, from one evaluation of the predictions per unit flange error and
+``dx = H⁻¹ Jᵀ W dpredicted``, from one evaluation of the true values per unit flange error and
 frame (twelve in all), and enters the intervals unscaled (the data cannot tell it from the truth).
 """
 
@@ -45,21 +45,30 @@ def _turned(flange: Pose, axis: int, step: float, in_flange: bool) -> Pose:
     if in_flange:
         return flange @ d  # a mount error: the camera moves with the flange's axes
     # about the base axes, at the flange's origin (as the hand-eye fit's arm_error_jacobian)
-    return Pose(d.rotation * flange.rotation, np.asarray(flange.translation) + delta[3:])
+    return Pose.from_rotation_matrix(d.rotation_matrix @ flange.rotation_matrix,
+                                     np.asarray(flange.translation) + delta[3:])
 
 
-def arm_covariance(prob: Any, fit: Any, accuracy: ArmAccuracy) -> FloatArray:
+def arm_covariance(prob: Any, fit: Any, accuracy: ArmAccuracy,
+                   columns: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:
     """(p, p) covariance the arm's stated accuracy puts on the fit's parameters (geometry, then the free terms).
 
     Args:
         prob: The final fit's problem (its views' reported flanges, the mount, the terms fitted).
         fit: Its solution (``x``, the inlier points, their noise, the normal matrix and the priors).
         accuracy: The arm's stated accuracy and its split (common, ``trend``, ``varying``).
+        columns: ``prob.columns(fit.x, fit.pts)`` when already computed (its derivatives and predictions).
     """
     x, pts = fit.x, fit.pts
     inv_sigma = 1.0 / fit.sigma
-    cols, pred = prob.columns(x, pts)
+    cols, pred = columns if columns is not None else prob.columns(x, pts)
     jw = cols * inv_sigma                                   # (p, N) whitened d(predicted)/dx
+    # a flange error changes the true values only: d(predicted) = slope * d(true), the slope once
+    # (1 + scale, plus the wiggle's derivative), so that no evaluation below recomputes the wiggle
+    ng = prob.n_geometry
+    true0 = prob.true_values(x[:ng], pts)[0]
+    step_true = 1e-6 * max(1.0, float(np.max(np.abs(true0))))
+    slope = (prob.predicted(x, pts, true0 + step_true) - pred) / step_true
     h_inv = np.linalg.pinv(fit.fisher + np.diag(fit.prior))  # the fit's normal matrix, priors included
     unit = np.array([accuracy.rotation_rad] * 3 + [accuracy.position_m] * 3) / math.sqrt(3.0)  # per axis
 
@@ -68,7 +77,7 @@ def arm_covariance(prob: Any, fit: Any, accuracy: ArmAccuracy) -> FloatArray:
         out = np.zeros((len(prob.flanges), 6, jw.shape[0]))
         for c in range(6):
             moved = dataclasses.replace(prob, flanges=[move(f, c) for f in prob.flanges])
-            dpred = (moved.predicted(x, pts) - pred) * inv_sigma / _STEP
+            dpred = slope * (moved.true_values(x[:ng], pts)[0] - true0) * inv_sigma / _STEP
             for k, s in enumerate(pts.slices):
                 out[k, c] = jw[:, s] @ dpred[s]
         return out

@@ -717,17 +717,20 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
         notes.append(f"residuals correlated across neighbouring pixels (design effect {deff:.2f}): "
                      f"intervals widened by {math.sqrt(deff):.2f}x")
     cov = cov * factor
-    if order < 2:  # a field the held-out error could not tell from the noise is not gone: its allowance stays
+    arm_on = arm_accuracy is not None and (arm_accuracy.position_m > 0.0 or arm_accuracy.rotation_rad > 0.0)
+    leftover = order < 2 and model.allowance[2] > 0.0
+    columns = prob.columns(fit.x, fit.pts) if arm_on or leftover else None  # shared by both propagations
+    if leftover:  # a field the held-out error could not tell from the noise is not gone: its allowance stays
         from cellcal.core.depthcal.leftover import leftover_field_covariance
 
-        cov = cov + leftover_field_covariance(prob, fit, model, order)
-        if model.allowance[2] > 0.0:
-            notes.append(f"the image field of order > {order} was not fitted: the camera's field allowance is in "
-                         "the intervals")
-    if arm_accuracy is not None and (arm_accuracy.position_m > 0.0 or arm_accuracy.rotation_rad > 0.0):
+        cov = cov + leftover_field_covariance(prob, fit, model, order, columns)
+        notes.append(f"the image field of order > {order} was not fitted: the camera's field allowance is in "
+                     "the intervals")
+    if arm_on:
         from cellcal.core.depthcal.arm import arm_covariance
 
-        cov = cov + arm_covariance(prob, fit, arm_accuracy)   # unscaled: the data cannot tell it apart
+        assert arm_accuracy is not None
+        cov = cov + arm_covariance(prob, fit, arm_accuracy, columns)   # unscaled: the data cannot tell it apart
         notes.append(f"the arm's stated accuracy ({1000 * arm_accuracy.position_m:.3g} mm, "
                      f"{math.degrees(arm_accuracy.rotation_rad):.3g} deg RMS, {arm_accuracy.source}) is in the "
                      "intervals: the reported flange poses are the camera's motion")

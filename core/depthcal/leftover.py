@@ -28,7 +28,8 @@ FloatArray = NDArray[np.float64]
 SHAPE_DEGREES: dict[str, int] = {"radial bow": 2, "u^2": 2, "v^2": 2, "uv": 2, "u": 1, "v": 1}
 
 
-def leftover_field_covariance(prob: Any, fit: Any, model: MeasurementModel, order: int) -> FloatArray:
+def leftover_field_covariance(prob: Any, fit: Any, model: MeasurementModel, order: int,
+                              columns: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:
     """(p, p) covariance of the fit's parameters from the field shapes a fit of ``order`` leaves (zeros: none).
 
     Args:
@@ -36,6 +37,7 @@ def leftover_field_covariance(prob: Any, fit: Any, model: MeasurementModel, orde
         fit: Its solution (``x``, the inlier points with their normalised pixel coordinates, noise, normal matrix).
         model: The camera's measurement model: its field allowance (native unit at the image corner).
         order: The field order fitted (0: none).
+        columns: ``prob.columns(fit.x, fit.pts)`` when already computed.
     """
     field = model.allowance[2]
     left = [k for k, name in enumerate(FIELD_SHAPES) if SHAPE_DEGREES[name] > order]
@@ -43,7 +45,7 @@ def leftover_field_covariance(prob: Any, fit: Any, model: MeasurementModel, orde
     if field <= 0.0 or not left:
         return np.zeros((p, p))
     inv_sigma = 1.0 / fit.sigma
-    cols, _ = prob.columns(fit.x, fit.pts)
+    cols, _ = columns if columns is not None else prob.columns(fit.x, fit.pts)
     h_inv = np.linalg.pinv(fit.fisher + np.diag(fit.prior))
     shapes = field_shapes(fit.pts.u, fit.pts.v)                   # (N, 6), each 1 at the corner
     sigma = field / math.sqrt(len(FIELD_SHAPES))                  # the allowance shared as the full frame shares it

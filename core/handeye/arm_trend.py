@@ -9,8 +9,8 @@ follows the tilt, and the mount's translation along the optical axis, which only
 show, takes it amplified (20-30x on the hand-eye plans: 0.1-0.3 mm of flange error, 2-7 mm of
 mount). So the part of the stated accuracy that varies over the plan is modelled as a flange
 error linear in the pose: each of its six components (a turn about the base axes, a shift)
-times each of the plan's six pose coordinates (the flange's position and its rotation vector
-about the plan's mean pose, each scaled to unit RMS over the plan), one coefficient each,
+times each of the plan's pose coordinates (the entries of the flange's rotation matrix and its
+position, about their means over the plan, each scaled to unit RMS), one coefficient each,
 common to the poses, with a Gaussian prior. The estimate's answer to each coefficient goes
 into the intervals as the camera's systematic terms do (ADR 0059); the noise test takes them
 out before it judges the residuals.
@@ -36,32 +36,32 @@ Shift = tuple[FloatArray, float]
 #: Keys of the trend terms start with this (``arm_trend_<component>_<coordinate>``).
 TREND_PREFIX = "arm_trend_"
 _COMPONENTS = ("rx", "ry", "rz", "x", "y", "z")
-#: Pose coordinates whose spread over the plan is below these (rad, m) carry no trend.
+#: Pose coordinates whose spread over the plan is below these (rotation-matrix entries, m) carry no trend.
 _MIN_SPREAD = (1e-4, 1e-4)
 
 
 def pose_coordinates(flanges: Sequence[Pose]) -> tuple[FloatArray, list[str]]:
     """(N, k) the flange poses' coordinates about the plan's mean, each scaled to unit RMS, and their names.
 
-    The coordinates are the rotation vector of each flange relative to the mean orientation (rad)
-    and the flange's position relative to the mean position (m); one whose RMS over the plan is
-    below :data:`_MIN_SPREAD` is dropped (a plan that does not move along it shows no trend there).
+    The coordinates are the entries of each flange's rotation matrix (base frame; ``r<row><col>``)
+    and its position (m; ``p<axis>``), each minus its mean over the plan: smooth in the pose and
+    unique, however far the plan turns the tool (a rotation vector about a mean orientation wraps
+    at 180 degrees and the mean of orientations a full turn apart is not defined). One whose RMS
+    over the plan is below :data:`_MIN_SPREAD` is dropped (a plan that does not move along it
+    shows no trend there).
     """
-    from scipy.spatial.transform import Rotation
-
-    rot = Rotation.from_matrix(np.stack([f.rotation_matrix for f in flanges]))
-    mean = rot.mean()
-    turns = (rot * mean.inv()).as_rotvec()  # about the base axes, from the mean orientation
+    mats = np.stack([f.rotation_matrix for f in flanges]).reshape(len(flanges), 9)
     shifts = np.stack([np.asarray(f.translation, dtype=np.float64) for f in flanges])
-    shifts = shifts - shifts.mean(axis=0)
     coords, names = [], []
-    for block, label, floor in ((turns, "w", _MIN_SPREAD[0]), (shifts, "p", _MIN_SPREAD[1])):
-        for j, axis in enumerate("xyz"):
-            column = block[:, j] - block[:, j].mean()
+    blocks = ((mats, [f"r{i}{j}" for i in range(1, 4) for j in range(1, 4)], _MIN_SPREAD[0]),
+              (shifts, ["px", "py", "pz"], _MIN_SPREAD[1]))
+    for block, labels, floor in blocks:
+        for k, label in enumerate(labels):
+            column = block[:, k] - block[:, k].mean()
             rms = float(np.sqrt(np.mean(column**2)))
             if rms > floor:
                 coords.append(column / rms)
-                names.append(f"{label}{axis}")
+                names.append(label)
     out = np.column_stack(coords) if coords else np.zeros((len(flanges), 0))
     return out, names
 

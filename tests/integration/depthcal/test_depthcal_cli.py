@@ -9,6 +9,9 @@ from typing import Any
 import pytest
 from repo_paths import REPO_ROOT
 
+# imported before any test patches calibrator.build_devices: replay binds the function at its import, and a
+# first import inside a patched test (the CLI's resume path imports it) kept the patch for later tests
+import cellcal.core.calibration.replay  # noqa: F401
 from cellcal.core.calibration.config import load_config
 from cellcal.core.calibration.journal import journal_path, read_journal
 from cellcal.core.cli import main

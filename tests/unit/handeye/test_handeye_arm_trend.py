@@ -20,7 +20,8 @@ ACCURACY_M, ACCURACY_RAD = 0.6e-3, math.radians(0.05)
 def test_pose_coordinates_are_centred_unit_rms_and_skip_what_the_plan_does_not_move() -> None:
     views = observations(sim_scenario(), None)
     coords, names = pose_coordinates([v.flange for v in views])
-    assert names == ["wx", "wy", "wz", "px", "py", "pz"] and coords.shape == (8, 6)
+    assert names[-3:] == ["px", "py", "pz"] and all(n.startswith("r") for n in names[:-3])
+    assert coords.shape == (8, len(names)) and len(names) >= 9
     np.testing.assert_allclose(coords.mean(axis=0), 0.0, atol=1e-12)
     np.testing.assert_allclose(np.sqrt(np.mean(coords**2, axis=0)), 1.0, rtol=1e-12)
     # a plan that only slides the flange along x and y: no turn, no height change, no trend there
@@ -34,17 +35,16 @@ def test_trend_terms_share_the_stated_accuracy_among_the_coordinates() -> None:
     scenario = sim_scenario()
     views = observations(scenario, None)
     terms = arm_trend_terms(views, scenario.nominal_mount, 0.3e-3, 0.0)   # position only
-    assert len(terms) == 3 * 6 and all(k.startswith(TREND_PREFIX + c) for k, c in
-                                       zip(sorted(terms), ["x"] * 6 + ["y"] * 6 + ["z"] * 6, strict=True))
+    coords, names = pose_coordinates([v.flange for v in views])
+    assert len(terms) == 3 * len(names) and {k.split("_")[2] for k in terms} == {"x", "y", "z"}
     # a shift along the base z moves each measured offset by its share times the coordinate, along the normal
     # (here the base z seen from the camera), and turns no normal
-    coords, names = pose_coordinates([v.flange for v in views])
-    sigma = 0.3e-3 / math.sqrt(3 * 6)
-    shifts = terms[f"{TREND_PREFIX}z_wy"]
+    sigma = 0.3e-3 / math.sqrt(3 * len(names))
+    shifts = terms[f"{TREND_PREFIX}z_r33"]
     for k, (dn, dc) in enumerate(shifts):
         n_base = (views[k].flange @ scenario.nominal_mount).rotation_matrix @ views[k].normal
         assert np.linalg.norm(dn) == pytest.approx(0.0, abs=1e-15)
-        assert dc == pytest.approx(sigma * coords[k, names.index("wy")] * n_base[2], rel=1e-9)
+        assert dc == pytest.approx(sigma * coords[k, names.index("r33")] * n_base[2], rel=1e-9)
     assert arm_trend_terms(views, scenario.nominal_mount, 0.0, 0.0) == {}
 
 
@@ -60,13 +60,13 @@ def test_a_flange_error_in_step_with_the_tilt_is_inside_the_intervals_only_with_
     scenario = sim_scenario()
     views = observations(scenario, np.random.default_rng(1))
     coords, names = pose_coordinates([v.flange for v in views])
-    tilt = coords[:, names.index("wy")]
-    # the reported flange 0.2 mm RMS too high, in step with the tilt (as a wrist joint's zero error puts it)
-    bad = [dataclasses.replace(v, flange=Pose(v.flange.rotation, v.flange.translation - [0.0, 0.0, 2e-4 * t]))
+    tilt = coords[:, names.index("r33")]   # the tool axis' z component: the cosine of its tilt
+    # the reported flange 0.15 mm RMS too high, in step with the tilt (as a wrist joint's zero error puts it)
+    bad = [dataclasses.replace(v, flange=Pose(v.flange.rotation, v.flange.translation - [0.0, 0.0, 1.5e-4 * t]))
            for v, t in zip(views, tilt, strict=True)]
     random_only, tz_error = _estimate(bad, trend=0.0, varying=0.5)
-    assert tz_error == pytest.approx(4.5e-3, abs=0.3e-3)   # 0.2 mm of flange, 4.5 mm of mount along the axis
-    assert abs(random_only[2]) > 1.3              # 1.42 half-widths: the random per-pose model misses it
+    assert tz_error == pytest.approx(3.94e-3, abs=0.3e-3)  # 0.15 mm of flange, 3.9 mm of mount along the axis
+    assert abs(random_only[2]) > 1.15             # 1.23 half-widths: the random per-pose model misses it
     with_trend, _ = _estimate(bad, trend=0.5, varying=0.25)   # the defaults
-    assert np.all(np.abs(with_trend) < 0.85)      # tz at 0.78 half-widths
+    assert np.all(np.abs(with_trend) < 0.85)      # tz at 0.77 half-widths
     assert ArmAccuracy(ACCURACY_M, ACCURACY_RAD) == ArmAccuracy(ACCURACY_M, ACCURACY_RAD, varying=0.25, trend=0.5)
