@@ -49,27 +49,26 @@ def _turned(flange: Pose, axis: int, step: float, in_flange: bool) -> Pose:
                                      np.asarray(flange.translation) + delta[3:])
 
 
-def arm_covariance(prob: Any, fit: Any, accuracy: ArmAccuracy,
-                   columns: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:
+def arm_covariance(prob: Any, fit: Any, accuracy: ArmAccuracy, jw: FloatArray, pred: FloatArray,
+                   h_inv: FloatArray) -> FloatArray:
     """(p, p) covariance the arm's stated accuracy puts on the fit's parameters (geometry, then the free terms).
 
     Args:
         prob: The final fit's problem (its views' reported flanges, the mount, the terms fitted).
-        fit: Its solution (``x``, the inlier points, their noise, the normal matrix and the priors).
+        fit: Its solution (``x``, the inlier points and their noise).
         accuracy: The arm's stated accuracy and its split (common, ``trend``, ``varying``).
-        columns: ``prob.columns(fit.x, fit.pts)`` when already computed (its derivatives and predictions).
+        jw: (p, N) the whitened d(predicted)/d(parameters) at the solution.
+        pred: (N,) the predicted values at the solution.
+        h_inv: (p, p) the inverse of the fit's normal matrix, priors included.
     """
     x, pts = fit.x, fit.pts
     inv_sigma = 1.0 / fit.sigma
-    cols, pred = columns if columns is not None else prob.columns(x, pts)
-    jw = cols * inv_sigma                                   # (p, N) whitened d(predicted)/dx
     # a flange error changes the true values only: d(predicted) = slope * d(true), the slope once
     # (1 + scale, plus the wiggle's derivative), so that no evaluation below recomputes the wiggle
     ng = prob.n_geometry
     true0 = prob.true_values(x[:ng], pts)[0]
     step_true = 1e-6 * max(1.0, float(np.max(np.abs(true0))))
     slope = (prob.predicted(x, pts, true0 + step_true) - pred) / step_true
-    h_inv = np.linalg.pinv(fit.fisher + np.diag(fit.prior))  # the fit's normal matrix, priors included
     unit = np.array([accuracy.rotation_rad] * 3 + [accuracy.position_m] * 3) / math.sqrt(3.0)  # per axis
 
     def per_view(move: Callable[[Pose, int], Pose]) -> FloatArray:

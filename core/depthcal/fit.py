@@ -529,6 +529,40 @@ def _limits(names: Sequence[str], model: MeasurementModel, stereo: bool) -> list
     return out
 
 
+def _unmodelled(prob: _Problem, fit: _Fit, model: MeasurementModel, order: int, arm: ArmAccuracy | None,
+                h_inv: FloatArray) -> tuple[FloatArray, list[str]]:
+    """What the fit does not model, as covariance of its parameters, and the notes that say so.
+
+    A field the held-out error could not tell from the noise (order < 2) is not gone: the camera's
+    field allowance for the shapes left out (:mod:`cellcal.core.depthcal.leftover`); the arm's stated
+    accuracy, the reported flanges being the camera's motion (:mod:`cellcal.core.depthcal.arm`).
+    Both from one linearisation at the solution; ``h_inv`` is the normal matrix's inverse.
+    """
+    p = h_inv.shape[0]
+    if arm is not None and arm.position_m <= 0.0 and arm.rotation_rad <= 0.0:
+        arm = None
+    leftover = order < 2 and model.allowance[2] > 0.0
+    if arm is None and not leftover:
+        return np.zeros((p, p)), []
+    cols, pred = prob.columns(fit.x, fit.pts)
+    jw = cols / fit.sigma                                  # (p, N) whitened d(predicted)/dx
+    out, notes = np.zeros((p, p)), []
+    if leftover:
+        from cellcal.core.depthcal.leftover import leftover_field_covariance
+
+        out += leftover_field_covariance(fit, model, order, jw, h_inv)
+        notes.append(f"the image field of order > {order} was not fitted: the camera's field allowance is in "
+                     "the intervals")
+    if arm is not None:
+        from cellcal.core.depthcal.arm import arm_covariance
+
+        out += arm_covariance(prob, fit, arm, jw, pred, h_inv)
+        notes.append(f"the arm's stated accuracy ({1000 * arm.position_m:.3g} mm, "
+                     f"{math.degrees(arm.rotation_rad):.3g} deg RMS, {arm.source}) is in the "
+                     "intervals: the reported flange poses are the camera's motion")
+    return out, notes
+
+
 def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: MeasurementModel,
                  field_orders: Sequence[int] = (0, 1, 2, 3), holdout_every: int = 4,
                  wiggle_period_m: float | None = None, estimate_mount: bool = False,
@@ -716,24 +750,9 @@ def fit_depthcal(views: Sequence[DepthcalView], *, mount: Pose, model: Measureme
         factor *= deff
         notes.append(f"residuals correlated across neighbouring pixels (design effect {deff:.2f}): "
                      f"intervals widened by {math.sqrt(deff):.2f}x")
-    cov = cov * factor
-    arm_on = arm_accuracy is not None and (arm_accuracy.position_m > 0.0 or arm_accuracy.rotation_rad > 0.0)
-    leftover = order < 2 and model.allowance[2] > 0.0
-    columns = prob.columns(fit.x, fit.pts) if arm_on or leftover else None  # shared by both propagations
-    if leftover:  # a field the held-out error could not tell from the noise is not gone: its allowance stays
-        from cellcal.core.depthcal.leftover import leftover_field_covariance
-
-        cov = cov + leftover_field_covariance(prob, fit, model, order, columns)
-        notes.append(f"the image field of order > {order} was not fitted: the camera's field allowance is in "
-                     "the intervals")
-    if arm_on:
-        from cellcal.core.depthcal.arm import arm_covariance
-
-        assert arm_accuracy is not None
-        cov = cov + arm_covariance(prob, fit, arm_accuracy, columns)   # unscaled: the data cannot tell it apart
-        notes.append(f"the arm's stated accuracy ({1000 * arm_accuracy.position_m:.3g} mm, "
-                     f"{math.degrees(arm_accuracy.rotation_rad):.3g} deg RMS, {arm_accuracy.source}) is in the "
-                     "intervals: the reported flange poses are the camera's motion")
+    unmodelled, said = _unmodelled(prob, fit, model, order, arm_accuracy, h_inv=cov)
+    cov = cov * factor + unmodelled   # unscaled: the data cannot tell them from the truth
+    notes += said
     ng = prob.n_geometry
     names = prob.template.names
     full_cov = np.zeros((len(names), len(names)))

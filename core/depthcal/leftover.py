@@ -17,40 +17,34 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cellcal.core.methods.fullframe.systematic import FIELD_SHAPES, field_shapes
+from cellcal.core.methods.fullframe.systematic import FIELD_SHAPE_DEGREES, FIELD_SHAPES, field_shapes
 from cellcal.devices.measurement import MeasurementModel
 
-__all__ = ["SHAPE_DEGREES", "leftover_field_covariance"]
+__all__ = ["leftover_field_covariance"]
 
 FloatArray = NDArray[np.float64]
 
-#: The polynomial degree of each field shape (a fit of that order or higher spans it).
-SHAPE_DEGREES: dict[str, int] = {"radial bow": 2, "u^2": 2, "v^2": 2, "uv": 2, "u": 1, "v": 1}
 
-
-def leftover_field_covariance(prob: Any, fit: Any, model: MeasurementModel, order: int,
-                              columns: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:
+def leftover_field_covariance(fit: Any, model: MeasurementModel, order: int, jw: FloatArray, h_inv: FloatArray
+                              ) -> FloatArray:
     """(p, p) covariance of the fit's parameters from the field shapes a fit of ``order`` leaves (zeros: none).
 
     Args:
-        prob: The final fit's problem.
-        fit: Its solution (``x``, the inlier points with their normalised pixel coordinates, noise, normal matrix).
+        fit: The final fit's solution (its inlier points' normalised pixel coordinates and noise).
         model: The camera's measurement model: its field allowance (native unit at the image corner).
         order: The field order fitted (0: none).
-        columns: ``prob.columns(fit.x, fit.pts)`` when already computed.
+        jw: (p, N) the whitened d(predicted)/d(parameters) at the solution.
+        h_inv: (p, p) the inverse of the fit's normal matrix, priors included.
     """
     field = model.allowance[2]
-    left = [k for k, name in enumerate(FIELD_SHAPES) if SHAPE_DEGREES[name] > order]
-    p = fit.fisher.shape[0]
+    left = [k for k, degree in enumerate(FIELD_SHAPE_DEGREES) if degree > order]
+    p = h_inv.shape[0]
     if field <= 0.0 or not left:
         return np.zeros((p, p))
-    inv_sigma = 1.0 / fit.sigma
-    cols, _ = columns if columns is not None else prob.columns(fit.x, fit.pts)
-    h_inv = np.linalg.pinv(fit.fisher + np.diag(fit.prior))
     shapes = field_shapes(fit.pts.u, fit.pts.v)                   # (N, 6), each 1 at the corner
     sigma = field / math.sqrt(len(FIELD_SHAPES))                  # the allowance shared as the full frame shares it
     cov = np.zeros((p, p))
     for k in left:
-        d = h_inv @ ((cols * inv_sigma) @ (shapes[:, k] * sigma * inv_sigma))  # the fit's answer to that shape
+        d = h_inv @ (jw @ (shapes[:, k] * (sigma / fit.sigma)))   # the fit's answer to that shape
         cov += np.outer(d, d)
     return cov

@@ -209,10 +209,9 @@ def plan_coverage(config: CellConfig, views: Sequence[PlanView]) -> Coverage:
     notes = []
     if len(heights) < 2:
         notes.append("one height: the depth scale cannot be told from the offset (add heights_m)")
-    if config.depthcal.field_max_order == 0:
-        pass  # no image field fitted: the slope's directions decide nothing
-    elif not directions:
+    fits_field = config.depthcal.field_max_order > 0  # without a field the slope's directions decide nothing
+    if fits_field and not directions:
         notes.append("no tilted view: the image field cannot be told from the plane's height (add inclinations < 90)")
-    elif len(directions) < 2:
+    elif fits_field and len(directions) < 2:
         notes.append("the slope crosses the image one way only: the field across it is not seen (add rolls_deg)")
     return Coverage(heights, incl, tuple(sorted(directions)), tuple(notes))

@@ -40,6 +40,7 @@ from cellcal.core.handeye.observability import Observability, analyse
 from cellcal.core.handeye.systematic import (
     GROUPS,
     Linearised,
+    Shift,
     error_budget,
     pattern,
     systematic_note,
@@ -406,9 +407,8 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
     if accuracy is not None:  # the arm's error common to the poses: not in the residuals, never scaled
         common = accuracy.common_covariance(model.nominal_mount, free)
         absolute, cov = absolute + common, cov + common
-    if trend:  # the arm's error in step with the pose: common coefficients too, never scaled
-        trend_cov = sum((np.outer(d, d) for d in (lin.response(s) for s in trend.values())),
-                        np.zeros((len(PARAMETERS), len(PARAMETERS))))
+    trend_cov = None if accuracy is None else _trend_covariance(lin, trend)
+    if trend_cov is not None:  # the arm's error in step with the pose: common coefficients too, never scaled
         absolute, cov = absolute + trend_cov, cov + trend_cov
     sys_cov, note = None, ""
     if responses:  # the camera's allowance: not in the weights, never scaled
@@ -419,7 +419,8 @@ def estimate_mount(observations: Sequence[PlaneObservation], nominal_mount: Pose
               for name, member in GROUPS.items() if any(member(key) for key in responses)}
     params = data.full(x)
     mount = model.mount(params)
-    budget = error_budget(lin, observations, mount, groups, _arm_budget(lin, model, observations, free, accuracy))
+    budget = error_budget(lin, observations, mount, groups, _arm_budget(lin, model, observations, free, accuracy,
+                                                                                trend_cov))
     on_free = [fitted.index(i) for i in free]  # the free parameters' columns, for the observability report
     return HandEyeEstimate(mount, model.plane(params), params, cov, tuple(given), worst, chi2, dof,
                            analyse(jac[:, on_free], free, normals_flange), confidence, noise, sigmas, absolute,
@@ -457,22 +458,30 @@ def _inverse(h: FloatArray) -> FloatArray:
     return np.asarray(out, dtype=np.float64)
 
 
+def _trend_covariance(lin: Linearised, trend: Mapping[str, Sequence[Shift]]) -> FloatArray:
+    """9x9 covariance of the parameters from the arm's trend coefficients (:func:`arm_trend_terms`), unscaled."""
+    out = np.zeros((len(PARAMETERS), len(PARAMETERS)))
+    for shifts in trend.values():
+        d = lin.response(shifts)
+        out += np.outer(d, d)
+    return out
+
+
 def _arm_budget(lin: Linearised, model: PlaneModel, observations: Sequence[PlaneObservation], free: Sequence[int],
-                accuracy: ArmAccuracy | None) -> FloatArray:
+                accuracy: ArmAccuracy | None, trend_cov: FloatArray | None = None) -> FloatArray:
     """9x9 covariance the arm's stated accuracy (or the unstated default) puts on the parameters.
 
-    Its common part as :meth:`ArmAccuracy.common_covariance`, its trend's coefficients' answers, its
-    random part propagated from each pose.
+    Its common part as :meth:`ArmAccuracy.common_covariance`, its trend's coefficients' answers
+    (``trend_cov`` when the estimate has them already), its random part propagated from each pose.
     """
     arm = accuracy or ArmAccuracy(UNSTATED_ARM_MODEL.accuracy_m, UNSTATED_ARM_MODEL.accuracy_rad, "unstated")
     mount = model.nominal_mount
     per_pose = [arm_accuracy_covariance(o, mount, arm.varying * arm.position_m, arm.varying * arm.rotation_rad)
                 for o in observations]
-    out: FloatArray = arm.common_covariance(mount, free) + lin.propagate(per_pose)
-    trend = arm_trend_terms(observations, mount, arm.trend * arm.position_m, arm.trend * arm.rotation_rad)
-    for shifts in trend.values():
-        d = lin.response(shifts)
-        out = out + np.outer(d, d)
+    if trend_cov is None:
+        trend_cov = _trend_covariance(lin, arm_trend_terms(observations, mount, arm.trend * arm.position_m,
+                                                           arm.trend * arm.rotation_rad))
+    out: FloatArray = arm.common_covariance(mount, free) + lin.propagate(per_pose) + trend_cov
     return out
 
 

@@ -38,11 +38,14 @@ from cellcal.core.geometry.planes import Plane
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["FIELD_SHAPES", "ErrorBudget", "PlaneShift", "Response", "field_shapes", "pixel_uv", "systematic_budget"]
+__all__ = ["FIELD_SHAPES", "FIELD_SHAPE_DEGREES", "ErrorBudget", "PlaneShift", "Response", "field_shapes", "pixel_uv",
+           "systematic_budget"]
 
 #: The smooth field shapes (each 1 at the image corner ``u = v = 1``); the field's prior is their sum with
 #: independent coefficients of variance ``field² / K`` (``K`` shapes), each shape its own term ``field:<shape>``.
 FIELD_SHAPES: tuple[str, ...] = ("radial bow", "u^2", "v^2", "uv", "u", "v")
+#: The polynomial degree of each of :data:`FIELD_SHAPES` (a field of that order or higher spans it).
+FIELD_SHAPE_DEGREES: tuple[int, ...] = (2, 2, 2, 2, 1, 1)
 #: Depth scale of the budget (relative) and depth offset (m).
 BUDGET_SCALE = 0.01
 BUDGET_OFFSET_M = 0.001
