@@ -1,7 +1,8 @@
 """Cell configuration: a TOML document validated into typed objects (ADR 0004).
 
 Tables: ``[cell]``, ``[camera]``/``[arm]`` (``backend = "name"``, the rest validated by
-the backend), ``[mount]``, ``[reference]``, ``[region]``, ``[safety]``, ``[plan]``, ``[monitor]``,
+the backend) or ``[[cameras]]`` (several cameras: :mod:`cellcal.core.calibration.cameras`), ``[mount]``,
+``[reference]``, ``[region]``, ``[safety]``, ``[plan]``, ``[monitor]``,
 ``[full_frame]`` and ``[sim]``; see ``configs/sim.toml``. This module reads the file and the
 document as a whole into a :class:`CellConfig` and generates the plan's poses; each table's
 dataclass is in :mod:`cellcal.core.calibration.sections`. Any problem raises
@@ -24,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from cellcal.core.calibration.cameras import CameraEntry, parse_cameras, select_camera, single_camera_document
 from cellcal.core.calibration.sections import (
     CellSection,
     DepthcalSection,
@@ -42,8 +44,8 @@ from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 from cellcal.devices.safety import SafetyLimits
 
-TOP_LEVEL_TABLES = ("cell", "camera", "arm", "mount", "reference", "region", "safety", "plan", "sim", "monitor",
-                    "full_frame", "handeye", "depthcal")
+TOP_LEVEL_TABLES = ("cell", "camera", "cameras", "arm", "mount", "reference", "region", "safety", "plan", "sim",
+                    "monitor", "full_frame", "handeye", "depthcal")
 #: Backends built on the simulated world, the only readers of ``[sim]`` (tests/unit/core/calibration/test_config.py
 #: checks this against the registered backends that live in ``cellcal.sims``).
 SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated", "ur-emulated"})
@@ -75,6 +77,10 @@ class CellConfig:
     handeye: HandEyeSection = field(default_factory=HandEyeSection)
     region: RegionSection = field(default_factory=RegionSection)
     depthcal: DepthcalSection = field(default_factory=DepthcalSection)
+    #: Every camera of the cell (``[[cameras]]``, or the one ``[camera]``); ``document`` holds the one this
+    #: configuration runs (:attr:`camera_name`) as ``[camera]`` and ``[mount]``.
+    cameras: tuple[CameraEntry, ...] = ()
+    camera_name: str = "camera"
 
     @property
     def search_reference(self) -> ReferenceSection | None:
@@ -114,11 +120,16 @@ class CellConfig:
         )
 
 
-def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
+def parse_config(document: Mapping[str, Any], source: str, camera: str | None = None) -> CellConfig:
     """Validate a parsed TOML document.
 
     A ``[sim]`` table next to backends that are all real is logged as a one-line warning
     (logger ``cellcal.core.calibration.config``): it is valid but has no effect.
+
+    Args:
+        document: The parsed TOML.
+        source: Where it came from, for messages.
+        camera: With ``[[cameras]]``: the camera on the flange the configuration runs (None: the first).
 
     Raises:
         ConfigError: Naming ``source``, the key and the expectation.
@@ -126,8 +137,15 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
     for key, value in document.items():
         if key not in TOP_LEVEL_TABLES:
             raise ConfigError(f"unknown table; expected one of: {', '.join(TOP_LEVEL_TABLES)}", source=source, key=key)
-        if not isinstance(value, Mapping):
+        if not isinstance(value, Mapping) and key != "cameras":
             raise ConfigError(f"expected a table, got {type(value).__name__}", source=source, key=key)
+    cameras = parse_cameras(document, source)
+    chosen = select_camera(cameras, camera, source) if "cameras" in document else cameras[0]
+    if camera is not None and "cameras" not in document and camera != chosen.name:
+        raise ConfigError(f"no camera named {camera!r}; the cell has one, {chosen.name!r} ([camera])",
+                          source=source, key="camera")
+    if "cameras" in document:
+        document = single_camera_document(document, chosen)
     for required in ("camera", "arm"):
         if required not in document:
             raise ConfigError("missing table (it needs at least backend = \"...\")", source=source, key=required)
@@ -156,6 +174,8 @@ def parse_config(document: Mapping[str, Any], source: str) -> CellConfig:
         handeye=parse_section(HandEyeSection, document.get("handeye"), where="handeye", source=source),
         region=parse_section(RegionSection, document.get("region"), where="region", source=source),
         depthcal=parse_section(DepthcalSection, document.get("depthcal"), where="depthcal", source=source),
+        cameras=cameras,
+        camera_name=chosen.name,
     )
 
 
@@ -251,8 +271,10 @@ def _read_at_most(fd: int, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def load_config(path: str | Path | None = None) -> CellConfig:
+def load_config(path: str | Path | None = None, camera: str | None = None) -> CellConfig:
     """Read and validate a configuration file; None loads the packaged ``sim.toml``.
+
+    ``camera`` picks one of ``[[cameras]]`` (a camera on the flange; None: the first).
 
     Raises:
         ConfigError: If the file is missing, unreadable (:func:`read_config_text`), not
@@ -265,7 +287,7 @@ def load_config(path: str | Path | None = None) -> CellConfig:
         raise ConfigError(f"invalid TOML: {exc}", source=source) from None
     except RecursionError:  # tomllib parses nested arrays and inline tables recursively
         raise ConfigError("invalid TOML: arrays or inline tables nested too deeply", source=source) from None
-    return parse_config(document, source)
+    return parse_config(document, source, camera)
 
 
 def look_at_pose(target_m: np.ndarray, normal: np.ndarray, height_m: float, inclination_rad: float,

@@ -8,7 +8,7 @@ from typing import Any
 
 from cellcal.core.cli.argtypes import path_arg, real
 from cellcal.core.cli.exits import EXIT_OK
-from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.options import add_config_option, load_cell
 
 #: The resolution asked for by default, dots per inch.
 DEFAULT_DPI = 300.0
@@ -45,14 +45,13 @@ def _targets(out: Path) -> list[Path]:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal board``; returns the exit status."""
-    from cellcal.core.calibration.config import load_config
     from cellcal.core.calibration.report import write_bytes_atomic
     from cellcal.core.handeye.board_config import board_spec
     from cellcal.core.handeye.board_print import pdf_bytes, png_bytes, render_page
     from cellcal.devices.errors import MissingDependencyError
 
     targets = _targets(Path(args.out))
-    page = render_page(board_spec(load_config(args.config)), args.dpi)
+    page = render_page(board_spec(load_cell(args)), args.dpi)
     print(page.describe())
     for path in targets:
         if path.suffix.lower() == ".png":

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_INTERRUPTED, EXIT_OK
-from cellcal.core.cli.options import add_config_option, add_viz_port_option, check_viz_options
+from cellcal.core.cli.options import add_config_option, add_viz_port_option, check_viz_options, load_cell
 from cellcal.core.cli.progress import progress_factory
 from cellcal.core.cli.report import add_no_report_option
 from cellcal.core.cli.resumable import resume_command, run_resumable
@@ -56,7 +56,6 @@ def register(sub: Any) -> None:
 def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
     """The configuration and devices: from ``--config``, or from a recording with ``--replay``."""
     from cellcal.core.calibration.calibrator import build_devices
-    from cellcal.core.calibration.config import load_config
 
     if getattr(args, "replay", None):
         if args.config:
@@ -64,7 +63,7 @@ def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
         from cellcal.core.calibration.replay import replay_session  # the recording's reader, only here
 
         return replay_session(args.replay)
-    config = load_config(args.config)
+    config = load_cell(args)
     return (config, *build_devices(config))
 
 
@@ -146,10 +145,9 @@ def run(args: argparse.Namespace) -> int:
     if args.check:
         return _check(args)
     if getattr(args, "dry_run", False):
-        from cellcal.core.calibration.config import load_config
         from cellcal.core.calibration.dryrun import dry_run
 
-        dry_run(load_config(args.config))
+        dry_run(load_cell(args))
         return EXIT_OK
     config, camera, arm = _session(args)
     if getattr(args, "viz_port", None) is None:  # the live view's imports only when it is asked for

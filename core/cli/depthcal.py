@@ -10,7 +10,7 @@ from typing import Any
 
 from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_OK
-from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.options import add_config_option, load_cell
 from cellcal.core.cli.report import add_no_report_option
 from cellcal.core.cli.resumable import resume_command, run_resumable
 
@@ -106,7 +106,6 @@ def _check(args: argparse.Namespace, config: Any, views: list[Any], coverage: An
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal depthcal``; returns the exit status."""
-    from cellcal.core.calibration.config import load_config
     from cellcal.devices.errors import ConfigError
 
     if args.replay and args.config:
@@ -117,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
 
         config, camera, arm = replay_session(args.replay)
     else:
-        config = load_config(args.config)
+        config = load_cell(args)
     views, coverage = _plan(config)  # every pose checked before anything connects
     if args.dry_run:
         return _dry_run(config, views, coverage)

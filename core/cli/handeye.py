@@ -9,7 +9,7 @@ from typing import Any
 
 from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_OK
-from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.options import add_config_option, load_cell
 from cellcal.core.cli.report import add_no_report_option
 from cellcal.core.cli.resumable import resume_command, run_resumable
 from cellcal.core.cli.text import one_line
@@ -65,7 +65,6 @@ def _dry_run(config: Any, poses: list[Any], seen: Any) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal handeye``; returns the exit status."""
-    from cellcal.core.calibration.config import load_config
     from cellcal.core.handeye.plan import plan_poses
     from cellcal.core.handeye.run import check_observability
     from cellcal.devices.errors import CellcalError, ConfigError, OutputError
@@ -77,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
 
         config, camera, arm = replay_session(args.replay)
     else:
-        config, camera, arm = load_config(args.config), None, None
+        config, camera, arm = load_cell(args), None, None
     poses = plan_poses(config, args.plan)
     # an unobservable plan is refused before anything moves (the board method has no such limit)
     seen = None if args.method == "charuco" else check_observability(config, poses)

@@ -5,14 +5,19 @@ from __future__ import annotations
 import argparse
 import os
 import stat
+from typing import TYPE_CHECKING
 
 from cellcal.core.cli.argtypes import integer, path_arg, real
 from cellcal.devices.errors import ConfigError
 
-__all__ = ["CONFIG_HELP", "DEFAULT_VIZ_WAIT_S", "add_config_option", "add_viz_port_option", "check_input_file",
-           "check_viz_options"]
+if TYPE_CHECKING:
+    from cellcal.core.calibration.config import CellConfig
+
+__all__ = ["CAMERA_HELP", "CONFIG_HELP", "DEFAULT_VIZ_WAIT_S", "add_config_option", "add_viz_port_option",
+           "check_input_file", "check_viz_options", "load_cell"]
 
 CONFIG_HELP = "cell configuration (TOML); default: packaged sim.toml"
+CAMERA_HELP = "with [[cameras]]: the camera on the flange to run (default: the first on the flange)"
 #: ``--viz-wait`` without a number: the longest wait for a viewer, s.
 DEFAULT_VIZ_WAIT_S = 60.0
 #: Longest ``--viz-wait`` and ``--viz-linger`` accepted, s (one day: every wait is bounded).
@@ -20,8 +25,26 @@ MAX_VIZ_S = 86400.0
 
 
 def add_config_option(parser: argparse.ArgumentParser) -> None:
-    """Add ``--config PATH`` (one cell configuration; None means the packaged ``sim.toml``)."""
+    """Add ``--config PATH`` (one cell configuration; None means the packaged ``sim.toml``) and ``--camera NAME``."""
     parser.add_argument("--config", metavar="PATH", type=path_arg, help=CONFIG_HELP)
+    # checked against the configuration's [[cameras]] (one line naming the cell's cameras when absent)
+    parser.add_argument("--camera", metavar="NAME", help=CAMERA_HELP)
+
+
+def load_cell(args: argparse.Namespace) -> CellConfig:
+    """``--config`` for the camera of ``--camera``; says which camera runs when the cell has several.
+
+    Raises:
+        ConfigError: As :func:`~cellcal.core.calibration.config.load_config`.
+    """
+    from cellcal.core.calibration.config import load_config
+    from cellcal.core.console import say
+
+    config = load_config(args.config, args.camera)
+    if len(config.cameras) > 1 and args.camera is None:
+        say(f"note: the cell has {len(config.cameras)} cameras ({', '.join(c.name for c in config.cameras)}); "
+            f"this runs {config.camera_name!r} (--camera NAME runs another on the flange)")
+    return config
 
 
 def add_viz_port_option(parser: argparse.ArgumentParser) -> None:

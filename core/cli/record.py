@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from cellcal.core.cli.argtypes import path_arg
 from cellcal.core.cli.exits import EXIT_INTERRUPTED, EXIT_OK
-from cellcal.core.cli.options import add_config_option
+from cellcal.core.cli.options import add_config_option, load_cell
 from cellcal.core.cli.progress import progress_factory
 from cellcal.core.console import say
 from cellcal.devices.errors import CellcalError, ConfigError, OutputError
@@ -155,11 +155,10 @@ def _run_ros2(args: argparse.Namespace, config: CellConfig, camera: Camera3D, sa
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal record``; returns the exit status."""
     from cellcal.core.calibration.calibrator import build_devices
-    from cellcal.core.calibration.config import load_config
     from cellcal.core.calibration.replay import run_recorded
     from cellcal.devices.recording import SessionRecorder
 
-    config = load_config(args.config)
+    config = load_cell(args)
     camera, safe_arm = build_devices(config)
     if getattr(args, "format", "mcap") == "ros2":
         return _run_ros2(args, config, camera, safe_arm)

@@ -142,6 +142,7 @@ def config_tables() -> dict[str, tuple[type, bool]]:
     IDs are dotted TOML keys (``plan``, ``plan.poses``, ``sim.artefacts``, ``camera.model``); a
     backend's ``[camera]`` or ``[arm]`` table is ``camera:NAME`` / ``arm:NAME``.
     """
+    from cellcal.core.calibration.cameras import CamerasSection
     from cellcal.core.calibration.config import CellConfig
     from cellcal.devices.correction import CorrectionSection
     from cellcal.devices.measurement import MeasurementModel
@@ -153,6 +154,7 @@ def config_tables() -> dict[str, tuple[type, bool]]:
     for f in dataclasses.fields(CellConfig):
         if _is_dataclass(_unwrap(hints[f.name])):
             tables.update((i, (c, a)) for i, c, a in _nested(f.name, _unwrap(hints[f.name])))
+    tables.update((i, (c, a)) for i, c, a in _nested("cameras", CamerasSection, True))
     tables.update((i, (c, a)) for i, c, a in _nested("sim", SimConfig))
     tables.update((i, (c, a)) for i, c, a in _nested("camera.model", MeasurementModel))
     tables.update((i, (c, a)) for i, c, a in _nested("camera.correction", CorrectionSection))

@@ -1,0 +1,199 @@
+"""The cell's cameras: ``[[cameras]]`` (several, each on the flange or fixed in the base frame) or ``[camera]`` (one).
+
+A cell with one camera keeps its ``[camera]`` table and ``[mount]`` (the camera is named ``camera`` and
+stands on the flange). A cell with several lists them as ``[[cameras]]``, each with a ``name``, where it
+is (``on = "flange"`` with a ``[cameras.mount]``, or ``on = "base"`` with a ``[cameras.pose]``: its pose
+in the robot's base frame) and its backend's keys as ``[camera]`` has them (issue #40, ADR 0061).
+:func:`parse_cameras` validates the list; :func:`single_camera_document` gives the document a
+single-camera command reads for one of them.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from cellcal.core.calibration.sections import MountSection, Vec3
+from cellcal.devices.config import parse_section
+from cellcal.devices.errors import ConfigError
+from cellcal.devices.pose import Pose
+
+__all__ = ["CAMERA_NAME", "CAMERA_PLACES", "DEFAULT_CAMERA_NAME", "MAX_CAMERAS", "CameraEntry", "CameraPoseSection",
+           "CamerasSection",
+           "parse_cameras", "select_camera", "single_camera_document"]
+
+#: Where a camera can stand.
+CAMERA_PLACES = ("flange", "base")
+#: The name of the camera of a ``[camera]`` table.
+DEFAULT_CAMERA_NAME = "camera"
+#: Most cameras in one cell (an O3R VPU drives six heads; a cell rarely has more than a few cameras).
+MAX_CAMERAS = 16
+#: A camera's name: it names files, frames (``/tf``) and metrics, so letters, digits, ``_`` and ``-`` only.
+CAMERA_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
+#: Keys of a ``[[cameras]]`` entry that are cellcal's, not the backend's.
+_PLACE_KEYS = ("name", "on", "mount", "pose")
+
+
+@dataclass(frozen=True)
+class CameraPoseSection:
+    """``[cameras.pose]``: a fixed camera's frame in the robot's base frame (``T_base_camera``).
+
+    Attributes:
+        translation_m: The camera frame's origin in the base frame, metres.
+        rpy_deg: The camera frame's roll, pitch, yaw about the base's x, y, z axes, degrees.
+    """
+
+    translation_m: Vec3 = field(metadata={"ge": -20.0, "le": 20.0})
+    rpy_deg: Vec3 = field(metadata={"ge": -360.0, "le": 360.0})
+
+    def pose(self) -> Pose:
+        """The base -> camera transform (``T_base_camera``)."""
+        return Pose.from_xyz_rpy(self.translation_m, np.radians(self.rpy_deg))
+
+
+@dataclass(frozen=True)
+class CamerasSection:
+    """``[[cameras]]``: one camera of a cell of several (cellcal's keys; the rest are its backend's).
+
+    Attributes:
+        name: Its name: files, frames and messages carry it (a letter, then letters, digits, ``_``, ``-``).
+        on: ``"flange"`` (carried by the arm, with ``[cameras.mount]``) or ``"base"`` (fixed in the cell,
+            with ``[cameras.pose]``).
+        mount: A camera on the flange: its mount, as ``[mount]``.
+        pose: A fixed camera: its pose in the base frame (where it is roughly).
+    """
+
+    name: str = field(metadata={"max_len": 32, "doc": "the camera's name (letters, digits, _ and -)"})
+    on: Literal["flange", "base"] = field(metadata={"doc": "where it is: carried by the arm, or fixed in the cell"})
+    mount: MountSection | None = None
+    pose: CameraPoseSection | None = None
+
+
+@dataclass(frozen=True)
+class CameraEntry:
+    """One camera of the cell.
+
+    Attributes:
+        name: Its name (``camera`` for a ``[camera]`` table).
+        on: ``"flange"`` (moves with the arm; ``mount`` is ``T_flange_camera``) or ``"base"`` (fixed;
+            ``pose_base`` is ``T_base_camera``, the configured start of its calibration).
+        table: Its backend table as ``[camera]`` is: ``backend`` and the backend's own keys.
+        mount: The ``[cameras.mount]`` table (flange cameras; None: the identity), raw as ``[mount]`` is.
+        pose_base: A fixed camera's configured pose in the base frame (None for flange cameras).
+    """
+
+    name: str
+    on: Literal["flange", "base"]
+    table: Mapping[str, Any]
+    mount: Mapping[str, Any] | None = None
+    pose_base: Pose | None = None
+
+
+def _entry(raw: object, index: int, source: str) -> CameraEntry:
+    """One ``[[cameras]]`` entry validated (``cameras[index]`` in messages)."""
+    where = f"cameras[{index}]"
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"expected a table, got {type(raw).__name__}", source=source, key=where)
+    name = raw.get("name")
+    if not isinstance(name, str) or not CAMERA_NAME.match(name):
+        raise ConfigError("needs a name: a letter, then up to 31 letters, digits, '_' or '-' "
+                          f"(got {name!r})", source=source, key=f"{where}.name")
+    where = f"cameras.{name}"
+    on = raw.get("on")
+    if on not in CAMERA_PLACES:
+        raise ConfigError(f"says where the camera is: on = \"flange\" (with [cameras.mount]) or on = \"base\" "
+                          f"(with [cameras.pose], its pose in the base frame); got {on!r}",
+                          source=source, key=f"{where}.on")
+    if not isinstance(raw.get("backend"), str):
+        raise ConfigError("missing or non-string 'backend'", source=source, key=f"{where}.backend")
+    mount, pose = raw.get("mount"), raw.get("pose")
+    if on == "flange" and pose is not None:
+        raise ConfigError("a camera on the flange has a [cameras.mount], not a pose in the base frame",
+                          source=source, key=f"{where}.pose")
+    if on == "base" and mount is not None:
+        raise ConfigError("a fixed camera (on = \"base\") has a [cameras.pose] in the base frame, not a mount",
+                          source=source, key=f"{where}.mount")
+    if on == "base" and pose is None:
+        raise ConfigError("a fixed camera needs its [cameras.pose] (translation_m, rpy_deg in the base frame: "
+                          "where it is roughly, the start of its calibration)", source=source, key=f"{where}.pose")
+    pose_base = None
+    if on == "base":
+        pose_base = parse_section(CameraPoseSection, pose, where=f"{where}.pose", source=source).pose()
+    elif mount is not None:
+        parse_section(MountSection, mount, where=f"{where}.mount", source=source)   # validated; read as [mount]
+    table = {k: v for k, v in raw.items() if k not in _PLACE_KEYS}
+    return CameraEntry(name, on, table, mount if isinstance(mount, Mapping) else None, pose_base)  # type: ignore[arg-type]
+
+
+def parse_cameras(document: Mapping[str, Any], source: str) -> tuple[CameraEntry, ...]:
+    """The cell's cameras from ``[[cameras]]`` or ``[camera]`` (with ``[mount]``).
+
+    Raises:
+        ConfigError: Both or neither given, an entry without a name or a place, two cameras with one name,
+            more than :data:`MAX_CAMERAS`.
+    """
+    listed = document.get("cameras")
+    if listed is None:
+        camera = document.get("camera")
+        if not isinstance(camera, Mapping):
+            raise ConfigError("missing table (it needs at least backend = \"...\"), or list the cell's cameras "
+                              "as [[cameras]]", source=source, key="camera")
+        return (CameraEntry(DEFAULT_CAMERA_NAME, "flange", camera, document.get("mount")),)
+    if "camera" in document:
+        raise ConfigError("give the cameras either as one [camera] or as [[cameras]], not both",
+                          source=source, key="cameras")
+    if not isinstance(listed, Sequence) or isinstance(listed, str | bytes) or not listed:
+        raise ConfigError("expected one or more [[cameras]] tables", source=source, key="cameras")
+    if len(listed) > MAX_CAMERAS:
+        raise ConfigError(f"at most {MAX_CAMERAS} cameras, got {len(listed)}", source=source, key="cameras")
+    if "mount" in document:
+        raise ConfigError("with [[cameras]], each camera on the flange has its own [cameras.mount]",
+                          source=source, key="mount")
+    entries = tuple(_entry(raw, i, source) for i, raw in enumerate(listed))
+    seen: dict[str, int] = {}
+    for i, entry in enumerate(entries):
+        if entry.name in seen:
+            raise ConfigError(f"two cameras are named {entry.name!r} (cameras[{seen[entry.name]}] and "
+                              f"cameras[{i}]): names must differ", source=source, key=f"cameras[{i}].name")
+        seen[entry.name] = i
+    return entries
+
+
+def select_camera(entries: Sequence[CameraEntry], name: str | None, source: str) -> CameraEntry:
+    """The camera a single-camera command runs: ``name``, or the first on the flange.
+
+    Raises:
+        ConfigError: No camera of that name (the names listed), or the camera is fixed (``on = "base"``):
+            the commands that move a camera do not run a fixed one.
+    """
+    if name is None:
+        flange = [e for e in entries if e.on == "flange"]
+        if not flange:
+            raise ConfigError("no camera on the flange (on = \"flange\"): the calibrating commands run a camera "
+                              "the arm carries; a cell of fixed cameras alone is not runnable yet",
+                              source=source, key="cameras")
+        return flange[0]
+    for entry in entries:
+        if entry.name == name:
+            if entry.on != "flange":
+                raise ConfigError(f"camera {name!r} is fixed (on = \"base\"): the calibrating commands run a "
+                                  "camera on the flange", source=source, key=f"cameras.{name}.on")
+            return entry
+    raise ConfigError(f"no camera named {name!r}; the cell has: {', '.join(e.name for e in entries)}",
+                      source=source, key="cameras")
+
+
+def single_camera_document(document: Mapping[str, Any], entry: CameraEntry) -> dict[str, Any]:
+    """The document a single-camera command reads for ``entry`` (a camera on the flange).
+
+    ``[[cameras]]`` is replaced by ``[camera]`` (the entry's backend table) and ``[mount]`` (its mount).
+    """
+    out = {k: v for k, v in document.items() if k not in ("cameras", "camera", "mount")}
+    out["camera"] = dict(entry.table)
+    if entry.mount is not None:
+        out["mount"] = dict(entry.mount)
+    return out
