@@ -1,4 +1,4 @@
-"""Geometry of the measuring plane: plane fits, frame chains, sampling, consistency, PlaneMap."""
+"""Geometry of the measuring plane: plane fits, frame chains, sampling, consistency, PlaneMap, relative poses."""
 
 from cellcal.core.geometry.consistency import (
     PlaneConsistency,
@@ -20,6 +20,13 @@ from cellcal.core.geometry.planes import (
     fit_plane_tls,
     validate_points,
 )
+from cellcal.core.geometry.relative import (
+    PlaneAgreement,
+    PlaneDifference,
+    PoseWithCovariance,
+    plane_agreement,
+    relative_pose,
+)
 from cellcal.core.geometry.robust_fit import (
     fit_plane_robust,
 )
@@ -33,16 +40,21 @@ __all__ = [
     "CameraPlaneAngles",
     "FrameChain",
     "Plane",
+    "PlaneAgreement",
     "PlaneConsistency",
+    "PlaneDifference",
     "PlaneFit",
     "PlaneMap",
     "PosePlane",
+    "PoseWithCovariance",
     "Sample",
     "fit_plane_ols",
     "fit_plane_robust",
     "fit_plane_tls",
+    "plane_agreement",
     "plane_consistency",
     "plane_in_base",
+    "relative_pose",
     "sample_points",
     "sample_window",
     "validate_points",
