@@ -129,6 +129,6 @@ plane_normal = [0.0, 0.0, 1.0]
     out = capsys.readouterr()
     assert "dry run OK" in out.out
     assert "the cell has 2 cameras (arm, above); this runs 'arm'" in out.err
-    assert main(["calibrate", "--config", str(config), "--camera", "above", "--dry-run"]) == 2          # a configuration error
+    assert main(["calibrate", "--config", str(config), "--camera", "above", "--dry-run"]) == 2   # configuration error
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "camera 'above' is fixed" in err[0]
