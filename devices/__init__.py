@@ -15,6 +15,7 @@ from .lazy import lazy_exports
 _EXPORTS = {
     "RobotArm": ".arm",
     "BackendContext": ".base",
+    "CameraPlacement": ".base",
     "Device": ".base",
     "BoundedCaller": ".blocking",
     "DeadlineGuard": ".blocking",
@@ -66,6 +67,7 @@ __all__ = [
     "CalibrationError",
     "CalibrationQualityError",
     "Camera3D",
+    "CameraPlacement",
     "CellcalError",
     "ConfigError",
     "DeadlineGuard",
@@ -102,7 +104,7 @@ __all__ = [
 
 if TYPE_CHECKING:
     from .arm import RobotArm
-    from .base import BackendContext, Device
+    from .base import BackendContext, CameraPlacement, Device
     from .blocking import BoundedCaller, DeadlineGuard
     from .camera import Camera3D
     from .errors import (

@@ -17,11 +17,30 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any, ClassVar, Self
+from typing import TYPE_CHECKING, Any, ClassVar, Literal, Self
 
 from .config import parse_section
 from .errors import CellcalError, NotConnectedError
 from .types import DeviceInfo
+
+if TYPE_CHECKING:
+    from .pose import Pose
+
+
+@dataclass(frozen=True)
+class CameraPlacement:
+    """Where a camera of a cell of several is configured to stand (``[[cameras]]``; ADR 0061).
+
+    Attributes:
+        name: The camera's name.
+        on: ``"flange"`` (carried by the arm) or ``"base"`` (fixed in the cell).
+        pose: ``T_flange_camera`` on the flange, ``T_base_camera`` fixed: the configured (nominal) pose;
+            a simulated camera stands there unless its ``[sim]`` truth says otherwise.
+    """
+
+    name: str
+    on: Literal["flange", "base"]
+    pose: Pose
 
 
 @dataclass
@@ -36,6 +55,8 @@ class BackendContext:
         shared: Objects shared between the backends built from one document (e.g. the
             simulated world that couples a simulated camera to a simulated arm).
         seed: Seed for any randomness, from the document's ``[cell] seed``.
+        placement: A camera of ``[[cameras]]`` other than the one the document's ``[camera]`` and
+            ``[mount]`` describe: where it is configured to stand (None: that one camera).
     """
 
     source: str | None = None
@@ -43,6 +64,7 @@ class BackendContext:
     document: Mapping[str, Any] = field(default_factory=dict)
     shared: dict[str, Any] = field(default_factory=dict)
     seed: int = 0
+    placement: CameraPlacement | None = None
 
     @property
     def base_dir(self) -> Path:

@@ -6,7 +6,7 @@ The ``replay`` names (the MCAP recording's reader and writer) are imported on fi
 
 from typing import TYPE_CHECKING
 
-from cellcal.core.calibration.build import build_camera, build_devices
+from cellcal.core.calibration.build import build_camera, build_cell, build_devices
 from cellcal.core.calibration.calibrator import (
     Calibrator,
     poses_saved,
@@ -79,6 +79,7 @@ __all__ = [
     "RegionSection",
     "SafetySection",
     "build_camera",
+    "build_cell",
     "build_devices",
     "check_moves",
     "compare_with_recording",

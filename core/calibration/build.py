@@ -12,23 +12,62 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from cellcal.core.calibration.config import CellConfig
+from cellcal.core.calibration.sections import MountSection
 from cellcal.devices.arm import RobotArm
-from cellcal.devices.base import BackendContext
+from cellcal.devices.base import BackendContext, CameraPlacement
 from cellcal.devices.camera import Camera3D
+from cellcal.devices.config import parse_section
 from cellcal.devices.registry import Registry, default_registry
 from cellcal.devices.safety import SafeArm
 
-__all__ = ["build_camera", "build_devices"]
+__all__ = ["build_camera", "build_cell", "build_devices"]
 
 
-def _context_factory(document: Mapping[str, Any], source: str | None, seed: int) -> Callable[[str], BackendContext]:
-    """``section -> BackendContext`` for the backends of one document (one ``shared`` dict for all of them)."""
+def _context_factory(document: Mapping[str, Any], source: str | None, seed: int
+                     ) -> Callable[..., BackendContext]:
+    """``(section, placement=None) -> BackendContext`` for the backends of one document (one ``shared`` dict)."""
     shared: dict[str, Any] = {}
 
-    def ctx(section: str) -> BackendContext:
-        return BackendContext(source=source, section=section, document=document, shared=shared, seed=seed)
+    def ctx(section: str, placement: CameraPlacement | None = None) -> BackendContext:
+        return BackendContext(source=source, section=section, document=document, shared=shared, seed=seed,
+                              placement=placement)
 
     return ctx
+
+
+def build_cell(config: CellConfig, registry: Registry | None = None, *, apply_correction: bool = True
+               ) -> tuple[dict[str, Camera3D], SafeArm]:
+    """Every camera of the cell (``[[cameras]]``; unconnected) and the safety-wrapped arm, one world for all.
+
+    The camera the configuration runs (:attr:`CellConfig.camera_name`) is built as :func:`build_devices`
+    builds it; each other camera from its own table with its :class:`CameraPlacement` in the context
+    (section ``cameras.NAME``), sharing the backends' ``shared`` objects (a simulated cell's one world).
+
+    Returns:
+        ``({name: camera}`` in the configuration's order, arm).
+
+    Raises:
+        ConfigError: If a backend is unknown or rejects its section.
+    """
+    registry = registry or default_registry()
+    ctx = _context_factory(config.document, config.source, config.cell.seed)
+    cameras: dict[str, Camera3D] = {}
+    for entry in config.cameras:
+        if entry.name == config.camera_name:
+            cameras[entry.name] = registry.create_camera(config.camera_section, ctx("camera"),
+                                                         apply_correction=apply_correction)
+            continue
+        if entry.on == "base":
+            assert entry.pose_base is not None          # parse_cameras requires it
+            placement = CameraPlacement(entry.name, "base", entry.pose_base)
+        else:
+            mount = parse_section(MountSection, entry.mount, where=f"cameras.{entry.name}.mount",
+                                  source=config.source)
+            placement = CameraPlacement(entry.name, "flange", mount.pose())
+        cameras[entry.name] = registry.create_camera(entry.table, ctx(f"cameras.{entry.name}", placement),
+                                                     apply_correction=apply_correction)
+    arm: RobotArm = registry.create_arm(config.arm_section, ctx("arm"))
+    return cameras, SafeArm(arm, config.safety_limits())
 
 
 def build_devices(config: CellConfig, registry: Registry | None = None, *, source: str | None = None,
