@@ -1,6 +1,8 @@
 """Hand-eye estimation: the camera mount from the measuring plane, with a ChArUco cross-check (ADR 0018)."""
 
 from cellcal.core.handeye.estimator import HandEyeEstimate, PoseResidual, estimate_mount, observability
+from cellcal.core.handeye.fixed import FixedCameraEstimate, ViewResidual, estimate_fixed_camera
+from cellcal.core.handeye.fixed_plan import FIXED_PARAMETERS, FixedObservability, MeasuringPlaneView, plate_poses
 from cellcal.core.handeye.model import PARAMETERS, PlaneModel, PlaneObservation, observation_from_pose
 from cellcal.core.handeye.observability import Observability, UnseenDirection, analyse
 from cellcal.core.handeye.plan import arm_reach, auto_plan, check_plan, plan_poses, view_pose
@@ -23,20 +25,26 @@ from cellcal.core.handeye.run import (
 )
 
 __all__ = [
+    "FIXED_PARAMETERS",
     "HANDEYE_FILENAME",
     "HANDEYE_SCHEMA",
     "PARAMETERS",
+    "FixedCameraEstimate",
+    "FixedObservability",
     "HandEyeEstimate",
+    "MeasuringPlaneView",
     "Observability",
     "PlaneModel",
     "PlaneObservation",
     "PoseResidual",
     "UnseenDirection",
+    "ViewResidual",
     "analyse",
     "arm_reach",
     "auto_plan",
     "check_observability",
     "check_plan",
+    "estimate_fixed_camera",
     "estimate_from_document",
     "estimate_mount",
     "format_report",
@@ -49,6 +57,7 @@ __all__ = [
     "plan_calibrator",
     "plan_poses",
     "plane_sections",
+    "plate_poses",
     "predicted_observations",
     "run_handeye",
     "view_pose",
