@@ -39,8 +39,9 @@ def build_cell(config: CellConfig, registry: Registry | None = None, *, apply_co
                ) -> tuple[dict[str, Camera3D], SafeArm]:
     """Every camera of the cell (``[[cameras]]``; unconnected) and the safety-wrapped arm, one world for all.
 
-    The camera the configuration runs (:attr:`CellConfig.camera_name`) is built as :func:`build_devices`
-    builds it; each other camera from its own table with its :class:`CameraPlacement` in the context
+    The camera on the flange the configuration runs (:attr:`CellConfig.camera_name`) is built as
+    :func:`build_devices` builds it; each other camera (and a fixed one the configuration runs) from its
+    own table with its :class:`CameraPlacement` in the context
     (section ``cameras.NAME``), sharing the backends' ``shared`` objects (a simulated cell's one world).
 
     Returns:
@@ -53,7 +54,7 @@ def build_cell(config: CellConfig, registry: Registry | None = None, *, apply_co
     ctx = _context_factory(config.document, config.source, config.cell.seed)
     cameras: dict[str, Camera3D] = {}
     for entry in config.cameras:
-        if entry.name == config.camera_name:
+        if entry.name == config.camera_name and entry.on == "flange":
             cameras[entry.name] = registry.create_camera(config.camera_section, ctx("camera"),
                                                          apply_correction=apply_correction)
             continue

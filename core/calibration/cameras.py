@@ -23,7 +23,7 @@ from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 
 __all__ = ["CAMERA_NAME", "CAMERA_PLACES", "DEFAULT_CAMERA_NAME", "MAX_CAMERAS", "CameraEntry", "CameraPoseSection",
-           "CamerasSection",
+           "CamerasSection", "PlateSection",
            "parse_cameras", "select_camera", "single_camera_document"]
 
 #: Where a camera can stand.
@@ -53,6 +53,44 @@ class CameraPoseSection:
     def pose(self) -> Pose:
         """The base -> camera transform (``T_base_camera``)."""
         return Pose.from_xyz_rpy(self.translation_m, np.radians(self.rpy_deg))
+
+
+@dataclass(frozen=True)
+class PlateSection:
+    """``[plate]``: the flat plate the arm shows a fixed camera (``cellcal handeye`` for ``on = "base"``; ADR 0061).
+
+    The plate frame sits at the centre of the measured face, in the flange frame; the face looks
+    along the plate frame's -z, its width runs along x and its height along y (as ``[sim.plate]``).
+    The plan puts the face's centre on the fixed camera's optical axis at ``distance_m``, face-on
+    and tilted by every ``tilts_deg`` at eight azimuths, the flange rolled in turn.
+
+    Attributes:
+        size_m: The face's width and height, m.
+        translation_m: The face's centre in the flange frame, m.
+        rpy_deg: The plate frame's roll, pitch, yaw in the flange frame, degrees.
+        estimate: Fit the plate's plane in the flange with the camera (False: the configured one is exact).
+        distance_m: The plan's distance from the fixed camera to the face's centre, m.
+        tilts_deg: The plan's angles between the face's normal and the camera's optical axis, degrees.
+        region_share: The share of the face (per side) the plane fit looks at, around the predicted centre.
+    """
+
+    size_m: tuple[float, float] = field(default=(0.2, 0.15), metadata={"gt": 0.0, "le": 2.0})
+    translation_m: Vec3 = field(default=(0.12, 0.0, 0.0), metadata={"ge": -2.0, "le": 2.0})
+    rpy_deg: Vec3 = field(default=(0.0, 0.0, 0.0), metadata={"ge": -360.0, "le": 360.0})
+    estimate: bool = True
+    distance_m: float = field(default=0.6, metadata={"gt": 0.05, "le": 5.0})
+    tilts_deg: tuple[float, ...] = field(default=(0.0, 20.0, 30.0, 45.0), metadata={
+        "ge": 0.0, "lt": 80.0, "min_items": 2, "max_items": 8})
+    region_share: float = field(default=0.6, metadata={"gt": 0.05, "le": 1.0})
+
+    def pose(self) -> Pose:
+        """``T_flange_plate``: the face's centre frame in the flange frame."""
+        return Pose.from_xyz_rpy(self.translation_m, np.radians(self.rpy_deg))
+
+    def corners_flange(self, share: float = 1.0) -> np.ndarray:
+        """The face's corners (4 x 3, m, flange frame), the face scaled by ``share`` about its centre."""
+        w, h = 0.5 * share * self.size_m[0], 0.5 * share * self.size_m[1]
+        return self.pose().apply(np.array([[-w, -h, 0.0], [w, -h, 0.0], [w, h, 0.0], [-w, h, 0.0]]))
 
 
 @dataclass(frozen=True)
@@ -163,15 +201,25 @@ def parse_cameras(document: Mapping[str, Any], source: str) -> tuple[CameraEntry
     return entries
 
 
-def select_camera(entries: Sequence[CameraEntry], name: str | None, source: str) -> CameraEntry:
+def select_camera(entries: Sequence[CameraEntry], name: str | None, source: str,
+                  allow_fixed: bool = False) -> CameraEntry:
     """The camera a single-camera command runs: ``name``, or the first on the flange.
 
+    Args:
+        entries: The cell's cameras.
+        name: The one asked for (``--camera``), or None.
+        source: For messages.
+        allow_fixed: The command runs a fixed camera too (``handeye``); None then still picks the first on the
+            flange, or the first camera when none is.
+
     Raises:
-        ConfigError: No camera of that name (the names listed), or the camera is fixed (``on = "base"``):
-            the commands that move a camera do not run a fixed one.
+        ConfigError: No camera of that name (the names listed), or the camera is fixed (``on = "base"``)
+            and the command runs only cameras the arm carries.
     """
     if name is None:
         flange = [e for e in entries if e.on == "flange"]
+        if not flange and allow_fixed:
+            return entries[0]
         if not flange:
             raise ConfigError("no camera on the flange (on = \"flange\"): the calibrating commands run a camera "
                               "the arm carries; a cell of fixed cameras alone is not runnable yet",
@@ -179,7 +227,7 @@ def select_camera(entries: Sequence[CameraEntry], name: str | None, source: str)
         return flange[0]
     for entry in entries:
         if entry.name == name:
-            if entry.on != "flange":
+            if entry.on != "flange" and not allow_fixed:
                 raise ConfigError(f"camera {name!r} is fixed (on = \"base\"): the calibrating commands run a "
                                   "camera on the flange", source=source, key=f"cameras.{name}.on")
             return entry

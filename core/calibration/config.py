@@ -25,7 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.core.calibration.cameras import CameraEntry, parse_cameras, select_camera, single_camera_document
+from cellcal.core.calibration.cameras import (
+    CameraEntry,
+    PlateSection,
+    parse_cameras,
+    select_camera,
+    single_camera_document,
+)
 from cellcal.core.calibration.sections import (
     CellSection,
     DepthcalSection,
@@ -45,7 +51,7 @@ from cellcal.devices.pose import Pose
 from cellcal.devices.safety import SafetyLimits
 
 TOP_LEVEL_TABLES = ("cell", "camera", "cameras", "arm", "mount", "reference", "region", "safety", "plan", "sim",
-                    "monitor", "full_frame", "handeye", "depthcal")
+                    "monitor", "full_frame", "handeye", "depthcal", "plate")
 #: Backends built on the simulated world, the only readers of ``[sim]`` (tests/unit/core/calibration/test_config.py
 #: checks this against the registered backends that live in ``cellcal.sims``).
 SIM_BACKENDS = frozenset({"sim", "o3r-emulated", "xarm-emulated", "ur-emulated"})
@@ -81,6 +87,12 @@ class CellConfig:
     #: configuration runs (:attr:`camera_name`) as ``[camera]`` and ``[mount]``.
     cameras: tuple[CameraEntry, ...] = ()
     camera_name: str = "camera"
+    plate: PlateSection = field(default_factory=PlateSection)
+
+    @property
+    def camera_entry(self) -> CameraEntry:
+        """The camera this configuration runs (:attr:`camera_name`) among :attr:`cameras`."""
+        return next(c for c in self.cameras if c.name == self.camera_name)
 
     @property
     def search_reference(self) -> ReferenceSection | None:
@@ -120,7 +132,8 @@ class CellConfig:
         )
 
 
-def parse_config(document: Mapping[str, Any], source: str, camera: str | None = None) -> CellConfig:
+def parse_config(document: Mapping[str, Any], source: str, camera: str | None = None,
+                 allow_fixed: bool = False) -> CellConfig:
     """Validate a parsed TOML document.
 
     A ``[sim]`` table next to backends that are all real is logged as a one-line warning
@@ -129,7 +142,8 @@ def parse_config(document: Mapping[str, Any], source: str, camera: str | None = 
     Args:
         document: The parsed TOML.
         source: Where it came from, for messages.
-        camera: With ``[[cameras]]``: the camera on the flange the configuration runs (None: the first).
+        camera: With ``[[cameras]]``: the camera the configuration runs (None: the first on the flange).
+        allow_fixed: ``camera`` may be a fixed camera (``on = "base"``: ``cellcal handeye`` runs one).
 
     Raises:
         ConfigError: Naming ``source``, the key and the expectation.
@@ -140,7 +154,7 @@ def parse_config(document: Mapping[str, Any], source: str, camera: str | None = 
         if not isinstance(value, Mapping) and key != "cameras":
             raise ConfigError(f"expected a table, got {type(value).__name__}", source=source, key=key)
     cameras = parse_cameras(document, source)
-    chosen = select_camera(cameras, camera, source) if "cameras" in document else cameras[0]
+    chosen = select_camera(cameras, camera, source, allow_fixed) if "cameras" in document else cameras[0]
     if camera is not None and "cameras" not in document and camera != chosen.name:
         raise ConfigError(f"no camera named {camera!r}; the cell has one, {chosen.name!r} ([camera])",
                           source=source, key="camera")
@@ -176,6 +190,7 @@ def parse_config(document: Mapping[str, Any], source: str, camera: str | None = 
         depthcal=parse_section(DepthcalSection, document.get("depthcal"), where="depthcal", source=source),
         cameras=cameras,
         camera_name=chosen.name,
+        plate=parse_section(PlateSection, document.get("plate"), where="plate", source=source),
     )
 
 
@@ -271,10 +286,11 @@ def _read_at_most(fd: int, limit: int) -> bytes:
     return b"".join(chunks)
 
 
-def load_config(path: str | Path | None = None, camera: str | None = None) -> CellConfig:
+def load_config(path: str | Path | None = None, camera: str | None = None, allow_fixed: bool = False) -> CellConfig:
     """Read and validate a configuration file; None loads the packaged ``sim.toml``.
 
-    ``camera`` picks one of ``[[cameras]]`` (a camera on the flange; None: the first).
+    ``camera`` picks one of ``[[cameras]]`` (a camera on the flange, or a fixed one with ``allow_fixed``;
+    None: the first on the flange).
 
     Raises:
         ConfigError: If the file is missing, unreadable (:func:`read_config_text`), not
@@ -287,7 +303,7 @@ def load_config(path: str | Path | None = None, camera: str | None = None) -> Ce
         raise ConfigError(f"invalid TOML: {exc}", source=source) from None
     except RecursionError:  # tomllib parses nested arrays and inline tables recursively
         raise ConfigError("invalid TOML: arrays or inline tables nested too deeply", source=source) from None
-    return parse_config(document, source, camera)
+    return parse_config(document, source, camera, allow_fixed)
 
 
 def look_at_pose(target_m: np.ndarray, normal: np.ndarray, height_m: float, inclination_rad: float,

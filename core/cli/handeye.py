@@ -76,7 +76,11 @@ def run(args: argparse.Namespace) -> int:
 
         config, camera, arm = replay_session(args.replay)
     else:
-        config, camera, arm = load_cell(args), None, None
+        config, camera, arm = load_cell(args, allow_fixed=True), None, None
+        if config.camera_entry.on == "base":  # a fixed camera: the arm shows it the plate (ADR 0061)
+            from cellcal.core.cli.handeye_fixed import run_fixed
+
+            return run_fixed(args, config)
     poses = plan_poses(config, args.plan)
     # an unobservable plan is refused before anything moves (the board method has no such limit)
     seen = None if args.method == "charuco" else check_observability(config, poses)

@@ -31,7 +31,7 @@ def add_config_option(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", metavar="NAME", help=CAMERA_HELP)
 
 
-def load_cell(args: argparse.Namespace) -> CellConfig:
+def load_cell(args: argparse.Namespace, allow_fixed: bool = False) -> CellConfig:
     """``--config`` for the camera of ``--camera``; says which camera runs when the cell has several.
 
     Raises:
@@ -40,7 +40,7 @@ def load_cell(args: argparse.Namespace) -> CellConfig:
     from cellcal.core.calibration.config import load_config
     from cellcal.core.console import say
 
-    config = load_config(args.config, args.camera)
+    config = load_config(args.config, args.camera, allow_fixed)
     if len(config.cameras) > 1 and args.camera is None:
         say(f"note: the cell has {len(config.cameras)} cameras ({', '.join(c.name for c in config.cameras)}); "
             f"this runs {config.camera_name!r} (--camera NAME runs another on the flange)")

@@ -17,6 +17,8 @@ def resume_command(command: str, args: Any, *extra: str) -> str:
     import shlex  # here: not at `cellcal --help`
 
     config = f" --config {shlex.quote(args.config)}" if args.config else ""
+    if getattr(args, "camera", None):
+        config += f" --camera {shlex.quote(args.camera)}"
     more = "".join(f" {part}" for part in extra)
     return f"cellcal {command}{config}{more} --out {shlex.quote(args.out)} --resume"
 

@@ -254,9 +254,7 @@ def estimate_fixed_camera(plate_observations: Sequence[PlaneObservation], nomina
     free = [*range(6), *((6, 7, 8) if estimate_plate else ())]
     fitted = free if prior_sigma is None else list(range(9))
     data = _Views(model, observations, measuring_plane, fitted, arm)
-    normals_base = np.einsum("nij,j->ni", data.flanges[0], model.nominal_plate.normal)  # plate normals, base frame
-    seen = analyse_fixed(jacobian(data, np.zeros(len(fitted)))[:, :len(free)], free, normals_base,
-                         len(data.offsets))  # structural: at the configured values, before any fit
+    seen = _structural(data, model, free)
     if not seen.observable:
         raise CalibrationQualityError("observability", seen.rank, seen.n_parameters, seen.message())
     prior_info = np.zeros(len(fitted)) if prior_sigma is None else np.concatenate([np.zeros(6), prior_sigma**-2.0])
@@ -280,6 +278,35 @@ def estimate_fixed_camera(plate_observations: Sequence[PlaneObservation], nomina
         views[n_plate] if measuring_plane is not None else None, chi2, dof, noise, seen, confidence,
         "estimated" if estimate_plate else ("exact" if prior_sigma is None else "prior"), arm,
         None if arm is None else _arm_common_covariance(arm, camera, data.flanges[1]))
+
+
+def _structural(data: _Views, model: FixedModel, free: Sequence[int]) -> FixedObservability:
+    """What the views can see, from the whitened Jacobian at the configured values (before any fit)."""
+    normals_base = np.einsum("nij,j->ni", data.flanges[0], model.nominal_plate.normal)  # plate normals, base frame
+    return analyse_fixed(jacobian(data, np.zeros(len(data.fitted)))[:, :len(free)], free, normals_base,
+                         len(data.offsets))
+
+
+def fixed_observability(plate_observations: Sequence[PlaneObservation], nominal_camera: Pose, nominal_plate: Plane,
+                        *, estimate_plate: bool = True, measuring_plane: MeasuringPlaneView | None = None
+                        ) -> FixedObservability:
+    """What a plan's plate views can see (a dry run's check, before the arm moves): no fit, no noise test.
+
+    Args:
+        plate_observations: The views the plan predicts (their covariances as expected).
+        nominal_camera: The configured ``T_base_camera``.
+        nominal_plate: The configured plate plane in the flange frame.
+        estimate_plate: Whether the plate's plane would be estimated.
+        measuring_plane: The measuring plane's predicted view, if the camera sees it.
+
+    Raises:
+        CalibrationError: As :func:`estimate_fixed_camera`'s bad inputs.
+    """
+    observations = list(plate_observations)
+    _check_inputs(observations, measuring_plane, estimate_plate, None, 0.95)
+    model = _oriented_model(observations, nominal_camera, nominal_plate, measuring_plane)
+    free = [*range(6), *((6, 7, 8) if estimate_plate else ())]
+    return _structural(_Views(model, observations, measuring_plane, free, None), model, free)
 
 
 def _check_inputs(observations: Sequence[PlaneObservation], measuring: MeasuringPlaneView | None,
@@ -391,4 +418,5 @@ def _arm_common_covariance(arm: ArmAccuracy, camera: Pose, flange_positions: Flo
     return cov
 
 
-__all__ = ["FIXED_PARAMETERS", "FixedCameraEstimate", "MeasuringPlaneView", "ViewResidual", "estimate_fixed_camera"]
+__all__ = ["FIXED_PARAMETERS", "FixedCameraEstimate", "MeasuringPlaneView", "ViewResidual", "estimate_fixed_camera",
+           "fixed_observability"]
