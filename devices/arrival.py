@@ -19,7 +19,7 @@ MAX_ANGLE_TOLERANCE_RAD = math.radians(10.0)
 def format_pose(pose: Pose) -> str:
     """``xyz=(x, y, z) m rpy=(r, p, y) deg`` of a flange pose, for messages."""
     x, y, z = pose.translation
-    r = np.degrees(pose.rotation.as_euler("xyz"))
+    r = np.degrees(pose.as_xyz_rpy()[3:])  # at pitch +-90 deg any split of roll and yaw names the pose
     return f"xyz=({x:.4f}, {y:.4f}, {z:.4f}) m rpy=({r[0]:.2f}, {r[1]:.2f}, {r[2]:.2f}) deg"
 
 

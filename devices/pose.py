@@ -15,6 +15,7 @@ neither scipy nor its 0.3 s import, which stays off ``cellcal calibrate``'s star
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -261,8 +262,14 @@ class Pose:
         return np.concatenate([self.translation, Pose.identity().rotvec_to(self)])
 
     def as_xyz_rpy(self) -> FloatArray:
-        """``[x, y, z, roll, pitch, yaw]``: metres and fixed-axis x-y-z angles (rad)."""
-        return np.concatenate([self.translation, self.rotation.as_euler("xyz")])
+        """``[x, y, z, roll, pitch, yaw]``: metres and fixed-axis x-y-z angles (rad).
+
+        At pitch +-90 deg (gimbal lock) roll and yaw are not unique: scipy's split (yaw 0), without its warning.
+        """
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            rpy = self.rotation.as_euler("xyz")
+        return np.concatenate([self.translation, rpy])
 
     def as_quat_xyzw(self) -> FloatArray:
         """The rotation's unit quaternion ``[x, y, z, w]`` with ``w >= 0``.

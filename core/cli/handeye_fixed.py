@@ -9,6 +9,7 @@ from typing import Any
 
 from cellcal.core.cli.exits import EXIT_OK
 from cellcal.core.cli.resumable import resume_command, run_resumable
+from cellcal.core.console import say
 
 
 def run_fixed(args: argparse.Namespace, config: Any) -> int:
@@ -24,7 +25,10 @@ def run_fixed(args: argparse.Namespace, config: Any) -> int:
     if args.method != "plane" or args.record or args.plan != "auto":
         raise ConfigError(f"camera {config.camera_name!r} is fixed: its calibration shows it the [plate] "
                           "(--method plane, --plan auto; --record/--replay not yet)")
-    poses = fixed_plan(config)
+    poses, dropped = fixed_plan(config)
+    if dropped:
+        say(f"note: {len(dropped)} of {len(poses) + len(dropped)} plate poses left out (envelope or reach); "
+            f"first: {dropped[0]}")
     seen = check_fixed_plan(config, poses)           # an unobservable plan is refused before anything moves
     if args.dry_run:
         return _dry_run(config, poses, seen)

@@ -42,6 +42,7 @@ from cellcal.core.handeye.fixed_plan import (
     measuring_covariance,
     whiten_view,
 )
+from cellcal.core.handeye.fixed_systematic import systematic_columns, systematic_response
 from cellcal.core.handeye.model import PlaneObservation, stack_poses
 from cellcal.core.handeye.noise import MAX_INTERVAL_SCALE, NOISE_TEST_LEVEL, NoiseCheck, check_noise, scaled_covariance
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
@@ -96,6 +97,7 @@ class FixedCameraEstimate:
         arm_accuracy: The arm's stated accuracy whose random part per pose is in the weights (None: none).
         arm_common_covariance: 6x6 the arm's error common to the poses would add to ``covariance`` for the
             camera's pose in the true base frame (None without an arm accuracy); not in ``covariance``.
+        systematic_terms: The camera's systematic terms taken as common to the views (:mod:`.fixed_systematic`).
     """
 
     camera_base: Pose
@@ -114,6 +116,7 @@ class FixedCameraEstimate:
     plate: str
     arm_accuracy: ArmAccuracy | None = None
     arm_common_covariance: FloatArray | None = None
+    systematic_terms: tuple[str, ...] = ()
 
     @property
     def z(self) -> float:
@@ -155,6 +158,9 @@ class FixedCameraEstimate:
                        f"RMS, stated by {a.source}): {100 * a.varying:.3g} % of it at random per pose is in the "
                        "weights; its part common to the poses moves the base frame the camera is found in with the "
                        f"arm's own and is not in the intervals (arm_common_covariance){trend}")
+        if self.systematic_terms:
+            out.append(f"the camera's systematic allowance ({', '.join(self.systematic_terms)}) is common to the "
+                       "views: weighed by the fits' noise alone, each term's response is in the intervals, unscaled")
         if self.measuring_residual is not None:
             out.append("the measuring plane's view is weighted with its base-frame uncertainty")
         return tuple(out)
@@ -179,7 +185,10 @@ class _Views:
         self.flanges = stack_poses([o.flange for o in observations])
         camera = model.nominal_camera
         rms = (0.0, 0.0) if arm is None else (arm.varying * arm.position_m, arm.varying * arm.rotation_rad)
-        whiten = [whiten_view(o.normal, o.covariance, arm_plate_covariance(o, camera, *rms)) for o in observations]
+        # weighed by the fits' noise alone when they state it: their systematic allowance is common to the views
+        # (fixed_systematic), not per-view noise
+        whiten = [whiten_view(o.normal, o.covariance if o.noise_covariance is None else o.noise_covariance,
+                              arm_plate_covariance(o, camera, *rms)) for o in observations]
         normals, offsets = [o.normal for o in observations], [o.offset_m for o in observations]
         if measuring is not None and model.measuring is not None:
             whiten.append(whiten_view(measuring.normal, measuring.covariance,
@@ -261,23 +270,26 @@ def estimate_fixed_camera(plate_observations: Sequence[PlaneObservation], nomina
     x, fun = _solve(data, prior_info)
     jac = jacobian(data, x)
     info_data, info_prior = jac.T @ jac, np.diag(prior_info)
-    chi2, dof = float(fun @ fun), len(fun) - len(x)
+    n_plate = len(observations)
+    terms, cols = systematic_columns(observations, data.bases[:n_plate], data.whiten[:n_plate], len(fun))
+    sys_cov, chi2 = systematic_response(jac, info_data + info_prior, fun, cols)
+    dof = len(fun) - len(x)
     views = data.residuals(x)
     worst = int(np.argmax([v.chi2 for v in views]))
     noise = check_noise(chi2, dof, confidence=confidence, level=noise_test_level,
                         max_interval_scale=max_interval_scale,
                         detail=f"largest residual at view {worst + 1} (chi2 {views[worst].chi2:.4g})")
     cov = np.zeros((9, 9))
-    cov[np.ix_(fitted, fitted)] = scaled_covariance(info_data, info_prior, noise.interval_scale)  # Birge-scaled
+    # Birge-scaled noise part, plus the common systematic terms' (never scaled: the data cannot tell them)
+    cov[np.ix_(fitted, fitted)] = scaled_covariance(info_data, info_prior, noise.interval_scale) + sys_cov
     params = data.full(x)
     camera = model.camera(params)
-    n_plate = len(observations)
     return FixedCameraEstimate(
         camera, cov[:6, :6], model.plate(params), cov[6:, 6:] if len(fitted) == 9 else None, params,
         {FIXED_PARAMETERS[i]: noise.interval_z * math.sqrt(cov[i, i]) for i in fitted}, views[:n_plate],
         views[n_plate] if measuring_plane is not None else None, chi2, dof, noise, seen, confidence,
         "estimated" if estimate_plate else ("exact" if prior_sigma is None else "prior"), arm,
-        None if arm is None else _arm_common_covariance(arm, camera, data.flanges[1]))
+        None if arm is None else _arm_common_covariance(arm, camera, data.flanges[1]), tuple(terms))
 
 
 def _structural(data: _Views, model: FixedModel, free: Sequence[int]) -> FixedObservability:

@@ -73,11 +73,32 @@ def _camera_base(config: CellConfig) -> Pose:
     return entry.pose_base
 
 
-def fixed_plan(config: CellConfig) -> list[Pose]:
-    """The flange poses that show ``[plate]`` to the configuration's fixed camera (no reach check: see dry run)."""
-    plate = config.plate
-    return plate_poses(_camera_base(config), distance_m=plate.distance_m, plate_flange=plate_plane(plate),
-                       tilts_deg=plate.tilts_deg, plate_centre_flange_m=plate.translation_m)
+def fixed_plan(config: CellConfig) -> tuple[list[Pose], list[str]]:
+    """The flange poses that show ``[plate]`` to the configuration's fixed camera, inside the envelope and reach.
+
+    Returns:
+        The poses kept, and one line per pose left out (its number among those generated and the first rule
+        it breaks). Each pose is checked on its own here; the moves between them are checked before and
+        while the arm moves, as for every plan.
+    """
+    from cellcal.core.calibration.dryrun import check_moves
+    from cellcal.core.calibration.reach import arm_reach
+
+    plate, limits, reach = config.plate, config.safety_limits(), arm_reach(config)
+    poses = plate_poses(_camera_base(config), distance_m=plate.distance_m, plate_flange=plate_plane(plate),
+                        tilts_deg=plate.tilts_deg, plate_centre_flange_m=plate.translation_m)
+    kept, dropped = [], []
+    for i, pose in enumerate(poses):
+        check = check_moves(limits, [pose], config.plan.speed_m_s, config.plan.acceleration_m_s2, reach=reach)[0]
+        if check.ok:
+            kept.append(pose)
+        else:
+            dropped.append(f"plate pose {i + 1} of {len(poses)} left out: {check.problems[0]}")
+    if not kept:
+        raise CalibrationError(f"every one of the {len(poses)} plate poses breaks the envelope or the arm's reach "
+                               f"(first: {dropped[0].partition(': ')[2]}): change [plate] distance_m or tilts_deg, "
+                               "or [safety]")
+    return kept, dropped
 
 
 def plate_region(intrinsics: Intrinsics, camera_base: Pose, flange: Pose, plate: PlateSection
