@@ -53,19 +53,19 @@ def build_cell(config: CellConfig, registry: Registry | None = None, *, apply_co
     registry = registry or default_registry()
     ctx = _context_factory(config.document, config.source, config.cell.seed)
     cameras: dict[str, Camera3D] = {}
-    for entry in config.cameras:
+    for i, entry in enumerate(config.cameras):
         if entry.name == config.camera_name and entry.on == "flange":
-            cameras[entry.name] = registry.create_camera(config.camera_section, ctx("camera"),
+            cameras[entry.name] = registry.create_camera(config.camera_section, ctx(config.camera_key),
                                                          apply_correction=apply_correction)
             continue
         if entry.on == "base":
             assert entry.pose_base is not None          # parse_cameras requires it
             placement = CameraPlacement(entry.name, "base", entry.pose_base)
         else:
-            mount = parse_section(MountSection, entry.mount, where=f"cameras.{entry.name}.mount",
+            mount = parse_section(MountSection, entry.mount, where=f"cameras[{i}].mount",
                                   source=config.source)
             placement = CameraPlacement(entry.name, "flange", mount.pose())
-        cameras[entry.name] = registry.create_camera(entry.table, ctx(f"cameras.{entry.name}", placement),
+        cameras[entry.name] = registry.create_camera(entry.table, ctx(f"cameras[{i}]", placement),
                                                      apply_correction=apply_correction)
     arm: RobotArm = registry.create_arm(config.arm_section, ctx("arm"))
     return cameras, SafeArm(arm, config.safety_limits())
@@ -90,7 +90,7 @@ def build_devices(config: CellConfig, registry: Registry | None = None, *, sourc
     """
     registry = registry or default_registry()
     ctx = _context_factory(config.document, config.source if source is None else source, config.cell.seed)
-    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx("camera"),
+    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx(config.camera_key),
                                  apply_correction=apply_correction)
     inner: RobotArm = registry.create_arm(config.arm_section if arm is None else arm, ctx("arm"))
     return cam, SafeArm(inner, config.safety_limits())

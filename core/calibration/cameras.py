@@ -132,39 +132,32 @@ class CameraEntry:
 
 
 def _entry(raw: object, index: int, source: str) -> CameraEntry:
-    """One ``[[cameras]]`` entry validated (``cameras[index]`` in messages)."""
+    """One ``[[cameras]]`` entry validated (``cameras[index]`` in messages, the camera's name in the text)."""
     where = f"cameras[{index}]"
     if not isinstance(raw, Mapping):
         raise ConfigError(f"expected a table, got {type(raw).__name__}", source=source, key=where)
-    name = raw.get("name")
-    if not isinstance(name, str) or not CAMERA_NAME.match(name):
-        raise ConfigError("needs a name: a letter, then up to 31 letters, digits, '_' or '-' "
-                          f"(got {name!r})", source=source, key=f"{where}.name")
-    where = f"cameras.{name}"
-    on = raw.get("on")
-    if on not in CAMERA_PLACES:
-        raise ConfigError(f"says where the camera is: on = \"flange\" (with [cameras.mount]) or on = \"base\" "
-                          f"(with [cameras.pose], its pose in the base frame); got {on!r}",
-                          source=source, key=f"{where}.on")
+    # types, ranges and the place's literal as every table's; then what ties the keys together
+    section = parse_section(CamerasSection, {k: raw[k] for k in _PLACE_KEYS if k in raw}, where=where, source=source)
+    name = section.name
+    if not CAMERA_NAME.match(name):
+        raise ConfigError(f"needs a name of a letter, then up to 31 letters, digits, '_' or '-' (got {name!r})",
+                          source=source, key=f"{where}.name")
     if not isinstance(raw.get("backend"), str):
-        raise ConfigError("missing or non-string 'backend'", source=source, key=f"{where}.backend")
-    mount, pose = raw.get("mount"), raw.get("pose")
-    if on == "flange" and pose is not None:
-        raise ConfigError("a camera on the flange has a [cameras.mount], not a pose in the base frame",
+        raise ConfigError(f"camera {name!r}: missing or non-string 'backend'", source=source, key=f"{where}.backend")
+    if section.on == "flange" and section.pose is not None:
+        raise ConfigError(f"camera {name!r} is on the flange: it has a [cameras.mount], not a pose in the base frame",
                           source=source, key=f"{where}.pose")
-    if on == "base" and mount is not None:
-        raise ConfigError("a fixed camera (on = \"base\") has a [cameras.pose] in the base frame, not a mount",
-                          source=source, key=f"{where}.mount")
-    if on == "base" and pose is None:
-        raise ConfigError("a fixed camera needs its [cameras.pose] (translation_m, rpy_deg in the base frame: "
-                          "where it is roughly, the start of its calibration)", source=source, key=f"{where}.pose")
-    pose_base = None
-    if on == "base":
-        pose_base = parse_section(CameraPoseSection, pose, where=f"{where}.pose", source=source).pose()
-    elif mount is not None:
-        parse_section(MountSection, mount, where=f"{where}.mount", source=source)   # validated; read as [mount]
+    if section.on == "base" and section.mount is not None:
+        raise ConfigError(f"camera {name!r} is fixed (on = \"base\"): it has a [cameras.pose] in the base frame, "
+                          "not a mount", source=source, key=f"{where}.mount")
+    if section.on == "base" and section.pose is None:
+        raise ConfigError(f"fixed camera {name!r} needs its [cameras.pose] (translation_m, rpy_deg in the base "
+                          "frame: where it is roughly, the start of its calibration)", source=source,
+                          key=f"{where}.pose")
+    mount = raw.get("mount")
     table = {k: v for k, v in raw.items() if k not in _PLACE_KEYS}
-    return CameraEntry(name, on, table, mount if isinstance(mount, Mapping) else None, pose_base)  # type: ignore[arg-type]
+    return CameraEntry(name, section.on, table, mount if isinstance(mount, Mapping) else None,
+                       None if section.pose is None else section.pose.pose())
 
 
 def parse_cameras(document: Mapping[str, Any], source: str) -> tuple[CameraEntry, ...]:
@@ -181,11 +174,12 @@ def parse_cameras(document: Mapping[str, Any], source: str) -> tuple[CameraEntry
             raise ConfigError("missing table (it needs at least backend = \"...\"), or list the cell's cameras "
                               "as [[cameras]]", source=source, key="camera")
         return (CameraEntry(DEFAULT_CAMERA_NAME, "flange", camera, document.get("mount")),)
+    if not isinstance(listed, Sequence) or isinstance(listed, str | bytes) or not listed:
+        raise ConfigError(f"expected a table per camera ([[cameras]]), one or more; got {type(listed).__name__}",
+                          source=source, key="cameras")
     if "camera" in document:
         raise ConfigError("give the cameras either as one [camera] or as [[cameras]], not both",
                           source=source, key="cameras")
-    if not isinstance(listed, Sequence) or isinstance(listed, str | bytes) or not listed:
-        raise ConfigError("expected one or more [[cameras]] tables", source=source, key="cameras")
     if len(listed) > MAX_CAMERAS:
         raise ConfigError(f"at most {MAX_CAMERAS} cameras, got {len(listed)}", source=source, key="cameras")
     if "mount" in document:
@@ -225,11 +219,11 @@ def select_camera(entries: Sequence[CameraEntry], name: str | None, source: str,
                               "the arm carries; a cell of fixed cameras alone is not runnable yet",
                               source=source, key="cameras")
         return flange[0]
-    for entry in entries:
+    for i, entry in enumerate(entries):
         if entry.name == name:
             if entry.on != "flange" and not allow_fixed:
                 raise ConfigError(f"camera {name!r} is fixed (on = \"base\"): the calibrating commands run a "
-                                  "camera on the flange", source=source, key=f"cameras.{name}.on")
+                                  "camera on the flange", source=source, key=f"cameras[{i}].on")
             return entry
     raise ConfigError(f"no camera named {name!r}; the cell has: {', '.join(e.name for e in entries)}",
                       source=source, key="cameras")

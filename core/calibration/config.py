@@ -87,6 +87,8 @@ class CellConfig:
     #: configuration runs (:attr:`camera_name`) as ``[camera]`` and ``[mount]``.
     cameras: tuple[CameraEntry, ...] = ()
     camera_name: str = "camera"
+    #: Where the running camera's table is in the file, for messages: ``camera``, or ``cameras[i]``.
+    camera_key: str = "camera"
     plate: PlateSection = field(default_factory=PlateSection)
 
     @property
@@ -158,7 +160,8 @@ def parse_config(document: Mapping[str, Any], source: str, camera: str | None = 
     if camera is not None and "cameras" not in document and camera != chosen.name:
         raise ConfigError(f"no camera named {camera!r}; the cell has one, {chosen.name!r} ([camera])",
                           source=source, key="camera")
-    if "cameras" in document:
+    listed = "cameras" in document
+    if listed:
         document = single_camera_document(document, chosen)
     for required in ("camera", "arm"):
         if required not in document:
@@ -190,6 +193,7 @@ def parse_config(document: Mapping[str, Any], source: str, camera: str | None = 
         depthcal=parse_section(DepthcalSection, document.get("depthcal"), where="depthcal", source=source),
         cameras=cameras,
         camera_name=chosen.name,
+        camera_key=f"cameras[{cameras.index(chosen)}]" if listed else "camera",
         plate=parse_section(PlateSection, document.get("plate"), where="plate", source=source),
     )
 

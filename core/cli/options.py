@@ -32,19 +32,14 @@ def add_config_option(parser: argparse.ArgumentParser) -> None:
 
 
 def load_cell(args: argparse.Namespace, allow_fixed: bool = False) -> CellConfig:
-    """``--config`` for the camera of ``--camera``; says which camera runs when the cell has several.
+    """``--config`` for the camera of ``--camera`` (default: the first on the flange; ADR 0061).
 
     Raises:
         ConfigError: As :func:`~cellcal.core.calibration.config.load_config`.
     """
     from cellcal.core.calibration.config import load_config
-    from cellcal.core.console import say
 
-    config = load_config(args.config, args.camera, allow_fixed)
-    if len(config.cameras) > 1 and args.camera is None:
-        say(f"note: the cell has {len(config.cameras)} cameras ({', '.join(c.name for c in config.cameras)}); "
-            f"this runs {config.camera_name!r} (--camera NAME runs another on the flange)")
-    return config
+    return load_config(args.config, args.camera, allow_fixed)
 
 
 def add_viz_port_option(parser: argparse.ArgumentParser) -> None:

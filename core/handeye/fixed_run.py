@@ -69,7 +69,7 @@ def _camera_base(config: CellConfig) -> Pose:
     entry = config.camera_entry
     if entry.on != "base" or entry.pose_base is None:
         raise ConfigError(f"camera {entry.name!r} is not fixed (on = \"base\")", source=config.source,
-                          key=f"cameras.{entry.name}.on")
+                          key="cameras")
     return entry.pose_base
 
 
