@@ -2,7 +2,8 @@
 
 A network backend (one with ``scan_hosts``: o3r, xarm, ur) probes ``--hosts``, ``--subnet``
 or, by default, its vendor's factory addresses on its vendor's ports (``--ports NAME=PORT``
-overrides); ADR 0036.
+overrides); ADR 0036. A device that drives several heads (an O3R VPU) lists each on a line of its
+own: port, type, PCIC port, state.
 """
 
 from __future__ import annotations
@@ -149,11 +150,34 @@ def scan_lines(kind: str, name: str, timeout: float, target: NetworkTarget | Non
         return notes or [f"no devices found ({one_line(str(summary))})" if summary else "no devices found"]
     lines = []
     for d in found:
-        extra = ", ".join(f"{k}={v}" for k, v in dict(d.get("extra", {})).items())
+        fields = dict(d.get("extra", {}))
+        heads, unread = fields.pop("heads", None), fields.pop("heads_unread", None)
+        extra = ", ".join(f"{k}={v}" for k, v in fields.items())
         firmware = f"firmware {d['firmware']}, " if d.get("firmware") else ""
         lines.append(one_line(f"{d.get('vendor', '')} {d.get('model', '')} {d.get('serial', '')} "
                               f"{firmware}{extra}".rstrip()))
+        lines += head_lines(heads, unread)
     return [*lines, *notes]
+
+
+def head_lines(heads: Any, unread: Any = None) -> list[str]:
+    """One indented line per head of a device that drives several (an O3R VPU's ports), from ``extra["heads"]``.
+
+    Each head is a mapping with ``port``, ``type``, ``pcic_port`` and ``state`` (or ``unreadable``,
+    the reason); ``unread`` says why the heads could not be listed at all.
+    """
+    if unread:
+        return [one_line(f"  heads not read ({unread})")]
+    if not isinstance(heads, list):
+        return []
+    out = []
+    for h in heads:
+        if not isinstance(h, dict):
+            continue
+        what = (f"unreadable ({h['unreadable']})" if "unreadable" in h
+                else f"{h.get('type', '?')}, PCIC port {h.get('pcic_port', '?')}, {h.get('state', '?')}")
+        out.append(one_line(f"  head {h.get('port', '?')}: {what}"))
+    return out
 
 
 def _unavailable(registry: Registry, kind: Kind, name: str) -> str | None:

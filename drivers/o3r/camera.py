@@ -50,7 +50,9 @@ class O3RConfig:
 
     host: str = field(default="192.168.0.69", metadata={"doc": "VPU address"})
     xmlrpc_port: int = field(default=80, metadata={"ge": 1, "le": 65535, "doc": "XML-RPC TCP port"})
-    port: str = field(default="port2", metadata={"doc": "VPU port of the 3D head ('' = no XML-RPC, use pcic_port)"})
+    port: str = field(default="port2", metadata={"doc": "VPU port of the 3D head: port0..port5 (several heads on one "
+                                                        "VPU: one camera entry per head; '' = no XML-RPC, use "
+                                                        "pcic_port)"})
     pcic_port: int = field(default=0, metadata={"ge": 0, "le": 65535,
                                                 "doc": "PCIC TCP port; 0 = read /ports/<port>/data/pcicTCPPort"})
     trigger: Literal["free_run", "software"] = field(default="free_run",
@@ -92,7 +94,11 @@ class O3RCamera(Camera3D):
     """ifm O3R 3D head over PCIC/TCP.
 
     On connect the port's PCIC TCP port, type and state are read over XML-RPC; the
-    port must be a 3D port. ``trigger = "free_run"`` wants the port in RUN (``capture``
+    port must be a 3D head (a port the VPU lacks, or one of another type, is a
+    :class:`ConfigError` naming the VPU's 3D heads, before any frame is asked for). A VPU
+    drives up to six heads: each is a camera of its own (``port = "port3"``); several
+    cameras with one ``host`` and different ports connect, switch state and capture
+    independently, each on its head's PCIC port. ``trigger = "free_run"`` wants the port in RUN (``capture``
     returns the newest frame received after the previous capture, never one older than
     the timeout); ``"software"`` wants IDLE (``capture`` sends one PCIC ``t`` and
     returns exactly the frame it produced). With ``set_state = true`` the driver
@@ -167,10 +173,8 @@ class O3RCamera(Camera3D):
         cfg = self.config
         rpc = O3RConfigClient(cfg.host, cfg.xmlrpc_port, cfg.io_timeout_s, cfg.max_rpc_reply_bytes,
                               set_timeout_s=cfg.set_timeout_s)
-        info = rpc.port_info(cfg.port, timeout=deadline - time.monotonic())
-        if info.type != "3D":
-            raise ConfigError(f"O3R {cfg.host} {cfg.port} is a {info.type} port; the o3r backend needs a 3D port",
-                              key="camera.port")
+        # a port the VPU lacks, or one that is not a 3D head, is one line naming the VPU's 3D heads
+        info = rpc.port_info(cfg.port, timeout=deadline - time.monotonic(), kind="3D")
         if not cfg.pcic_port and info.pcic_port == cfg.xmlrpc_port:
             raise ProtocolError(f"O3R {cfg.host}: /ports/{cfg.port}/data/pcicTCPPort is {info.pcic_port}, the "
                                 f"XML-RPC port; it does not answer as PCIC")

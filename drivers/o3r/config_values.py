@@ -17,6 +17,8 @@ STATES = ("RUN", "IDLE", "CONF")
 MAX_SIDE = 8192
 #: Longest plausible short text in the tree (a type, a firmware version), characters.
 MAX_TEXT = 64
+#: Most ports named in a message (a VPU has port0..port6).
+MAX_PORTS = 16
 
 
 @dataclass(frozen=True)
@@ -103,7 +105,30 @@ def text(value: Any, ptr: str, where: str, choices: tuple[str, ...] = ()) -> str
     return value
 
 
-def port_info(doc: Any, port: str, *, host: str, where: str) -> PortInfo:
+def ports_of_type(ports: Any, kind: str) -> list[str]:
+    """Names of the ports whose ``/info/features/type`` is ``kind``, read leniently (for messages), sorted.
+
+    Args:
+        ports: The ``/ports`` object of the tree (anything else: no ports).
+        kind: ``"3D"``, ``"2D"``, ``"IMU"``.
+    """
+    if not isinstance(ports, dict):
+        return []
+    out = []
+    for name, node in list(ports.items())[:MAX_PORTS]:
+        info = node.get("info") if isinstance(node, dict) else None
+        features = info.get("features") if isinstance(info, dict) else None
+        if isinstance(features, dict) and features.get("type") == kind:
+            out.append(clip(str(name), 16))
+    return sorted(out)
+
+
+def _heads_note(ports: Any, kind: str) -> str:
+    names = ports_of_type(ports, kind)
+    return f"its {kind} heads: {', '.join(names)}" if names else f"it has no {kind} head"
+
+
+def port_info(doc: Any, port: str, *, host: str, where: str, kind: str | None = None) -> PortInfo:
     """Read a port's PCIC port, type, state and resolution from a ``get(['/ports'])`` answer.
 
     Args:
@@ -111,17 +136,20 @@ def port_info(doc: Any, port: str, *, host: str, where: str) -> PortInfo:
         port: Port name, e.g. ``"port2"``.
         host: VPU address (for the unknown-port message).
         where: Names the call in messages, e.g. ``"O3R 192.168.0.69:80 get(['/ports'])"``.
+        kind: If given, the type the port must have (``"3D"``).
 
     Raises:
-        ConfigError: If the VPU has no such port.
+        ConfigError: If the VPU has no such port, or (with ``kind``) the port is of another type; the
+            message names the VPU's ports and its heads of ``kind``.
         ProtocolError: If a value is missing, of the wrong type or out of range (naming its pointer).
     """
     ports = child(doc, "ports", "", where)
     if not isinstance(ports, dict):
         raise _fail(where, "/ports", "an object", ports)
     if port not in ports:
-        names = ", ".join(sorted(str(k)[:16] for k in list(ports)[:16]))
-        raise ConfigError(f"O3R at {host} has no port {port!r} (ports: {names or 'none'})", key="camera.port")
+        names = ", ".join(sorted(clip(str(k), 16) for k in list(ports)[:MAX_PORTS]))
+        raise ConfigError(f"O3R at {host} has no port {clip(port, 16)!r} (ports: {names or 'none'}); "
+                          f"{_heads_note(ports, kind or '3D')}", key="camera.port")
     base = pointer("ports", port)
     node = ports[port]
     data = child(node, "data", base, where)
@@ -129,7 +157,11 @@ def port_info(doc: Any, port: str, *, host: str, where: str) -> PortInfo:
     info = child(node, "info", base, where)
     features = child(info, "features", base + "/info", where)
     fptr = base + "/info/features"
-    kind = text(child(features, "type", fptr, where), fptr + "/type", where)
+    found = text(child(features, "type", fptr, where), fptr + "/type", where)
+    if kind is not None and found != kind:
+        article = "an" if found[:1] in "AEIOU" else "a"
+        raise ConfigError(f"O3R at {host}: {port} is {article} {clip(found, 16)} port, not a {kind} head; "
+                          f"{_heads_note(ports, kind)}", key="camera.port")
     state = text(child(node, "state", base, where), base + "/state", where, STATES)
     width = height = 0
     if isinstance(features, dict) and "resolution" in features:
@@ -138,7 +170,7 @@ def port_info(doc: Any, port: str, *, host: str, where: str) -> PortInfo:
                        where)
         height = int_in(child(res, "height", fptr + "/resolution", where), 1, MAX_SIDE,
                         fptr + "/resolution/height", where)
-    return PortInfo(name=port, pcic_port=pcic, type=kind, state=state, width=width, height=height)
+    return PortInfo(name=port, pcic_port=pcic, type=found, state=state, width=width, height=height)
 
 
 def firmware(doc: Any, where: str) -> str:

@@ -2,7 +2,8 @@
 
 Ports: XML-RPC 80 and PCIC 50010 (protocols.md A1). The identity is
 ``get(["/device/info", "/device/swVersion"])``: ``productCode`` (e.g. OVP800), ``serialNumber``,
-``name`` and the firmware; every value is checked before it is shown.
+``name`` and the firmware; then ``get(["/ports"])`` lists every head (port, type, PCIC port,
+state) as ``extra["heads"]``. Every value is checked before it is shown.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ FACTORY_HOSTS: tuple[str, ...] = ("192.168.0.69",)
 
 #: Largest identity reply accepted, bytes (the two sub-trees are well under 4 kB).
 MAX_REPLY_BYTES = 64 * 1024
+#: Largest ``/ports`` reply accepted, bytes (every setting of up to seven ports: tens of kB on a VPU).
+MAX_PORTS_REPLY_BYTES = 1024 * 1024
 
 
 def scan_hosts(hosts: Sequence[str] | None, timeout: float, ports: Mapping[str, int] | None = None
@@ -67,9 +70,29 @@ def identify(host: str, open_ports: Mapping[str, int], deadline: float) -> Devic
     name = discovery.device_text(info.get("name"))
     if name:
         extra["name"] = name
+    extra.update(_heads(O3RConfigClient(host, rpc, timeout_s=remaining, max_reply_bytes=MAX_PORTS_REPLY_BYTES),
+                        deadline))
     return DeviceInfo(backend="o3r", vendor="ifm electronic", model=model,
                       serial=discovery.device_text(info.get("serialNumber")) or "",
                       firmware=discovery.device_text(sw.get("firmware")) or "", extra=extra)
+
+
+def _heads(client: O3RConfigClient, deadline: float) -> dict[str, Any]:
+    """``{"heads": [...]}``: every port of the VPU (port, type, PCIC port, state), or ``{"heads_unread": why}``.
+
+    A port whose values do not check out is listed with ``"unreadable"`` and the reason.
+    """
+    remaining = deadline - time.monotonic()
+    if remaining <= 0:
+        return {"heads_unread": "no time left"}
+    try:
+        ports, unread = client.ports(timeout=remaining)
+    except CellcalError as exc:
+        return {"heads_unread": _reason(exc)}
+    heads: list[dict[str, Any]] = [{"port": p.name, "type": p.type, "pcic_port": p.pcic_port, "state": p.state}
+                                   for p in ports]
+    heads += [{"port": line.split(": ", 1)[0], "unreadable": line.split(": ", 1)[-1][:120]} for line in unread]
+    return {"heads": sorted(heads, key=lambda h: str(h["port"]))}
 
 
 def _node(doc: Any, key: str) -> dict[str, Any]:

@@ -15,6 +15,7 @@ from xml.parsers.expat import ExpatError
 from defusedxml.xmlrpc import DefusedExpatParser
 
 from cellcal.devices.errors import (
+    ConfigError,
     DeviceConnectionError,
     DeviceTimeoutError,
     ProtocolError,
@@ -173,15 +174,40 @@ class O3RConfigClient:
         """Merge a partial configuration, within ``set_timeout_s`` (or ``timeout`` if shorter)."""
         self.call("set", json.dumps(patch), timeout=timeout)
 
-    def port_info(self, port: str, *, timeout: float | None = None) -> PortInfo:
+    def port_info(self, port: str, *, timeout: float | None = None, kind: str | None = None) -> PortInfo:
         """Read and check a port's PCIC port, type, state and resolution.
 
+        Args:
+            port: Port name, e.g. ``"port2"``.
+            timeout: Deadline of the call, s (at most ``timeout_s``).
+            kind: If given, the type the port must have (``"3D"``).
+
         Raises:
-            ConfigError: If the VPU has no such port.
+            ConfigError: If the VPU has no such port, or it is not of ``kind`` (naming the VPU's ports and heads).
             ProtocolError: If a value is missing, of the wrong type or out of range (naming its JSON pointer).
         """
         doc = self.get(["/ports"], timeout=timeout)
-        return config_values.port_info(doc, port, host=self.host, where=self._where("get", (["/ports"],)))
+        return config_values.port_info(doc, port, host=self.host, where=self._where("get", (["/ports"],)), kind=kind)
+
+    def ports(self, *, timeout: float | None = None) -> tuple[list[PortInfo], list[str]]:
+        """Every port of the VPU (sorted by name), and one line per port that could not be read.
+
+        Raises:
+            ProtocolError: If the answer holds no ``/ports`` object.
+        """
+        doc = self.get(["/ports"], timeout=timeout)
+        where = self._where("get", (["/ports"],))
+        ports = config_values.child(doc, "ports", "", where)
+        if not isinstance(ports, dict):
+            raise ProtocolError(f"{where}: /ports must be an object, got {config_values.show(ports)}")
+        found: list[PortInfo] = []
+        unread: list[str] = []
+        for name in sorted(str(k) for k in list(ports)[:config_values.MAX_PORTS]):
+            try:
+                found.append(config_values.port_info(doc, name, host=self.host, where=where))
+            except (ProtocolError, ConfigError) as exc:
+                unread.append(f"{config_values.clip(name, 16)}: {str(exc).removeprefix(where + ': ')}")
+        return found, unread
 
     def set_state(self, port: str, state: str, *, timeout: float | None = None) -> None:
         """Set ``/ports/<port>/state`` (RUN / IDLE / CONF)."""

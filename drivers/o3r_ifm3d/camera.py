@@ -64,7 +64,8 @@ class O3RIfm3dConfig:
 
     host: str = field(default="192.168.0.69", metadata={"doc": "VPU address"})
     xmlrpc_port: int = field(default=80, metadata={"ge": 1, "le": 65535, "doc": "XML-RPC TCP port"})
-    port: str = field(default="port2", metadata={"doc": "VPU port of the 3D head"})
+    port: str = field(default="port2", metadata={"doc": "VPU port of the 3D head: port0..port5 (several heads on one "
+                                                        "VPU: one camera entry per head)"})
     pcic_port: int = field(default=0, metadata={"ge": 0, "le": 65535,
                                                 "doc": "PCIC TCP port; 0 = read /ports/<port>/data/pcicTCPPort"})
     trigger: Literal["free_run", "software"] = field(default="free_run",
@@ -154,14 +155,23 @@ class O3RIfm3dCamera(Camera3D):
     def _set_up_port(self) -> int:
         """Read the port's PCIC port, type and state with ifm3dpy; switch its state if needed."""
         cfg = self.config
-        node = self._call(lambda: self._o3r.get([f"/ports/{cfg.port}"]), f"get /ports/{cfg.port}")
+        node = self._call(lambda: self._o3r.get(["/ports"]), "get /ports")
+        ports = node.get("ports") if isinstance(node, dict) else None
+        if not isinstance(ports, dict):
+            raise ProtocolError(f"o3r-ifm3d {cfg.host}: get /ports answered no /ports object")
+        heads = _heads_3d(ports)
+        if cfg.port not in ports:  # one line naming what the VPU has, before any frame is asked for
+            names = ", ".join(sorted(str(k)[:16] for k in list(ports)[:16])) or "none"
+            raise ConfigError(f"O3R at {cfg.host} has no port {cfg.port[:16]!r} (ports: {names}); {heads}",
+                              key="camera.port")
         try:
-            port = node["ports"][cfg.port]
+            port = ports[cfg.port]
             pcic, kind, state = int(port["data"]["pcicTCPPort"]), str(port["info"]["features"]["type"]), port["state"]
         except (KeyError, TypeError, ValueError):
             raise ProtocolError(f"o3r-ifm3d {cfg.host}: /ports/{cfg.port} lacks pcicTCPPort, type or state") from None
         if kind != "3D":
-            raise ConfigError(f"O3R {cfg.host} {cfg.port} is a {kind} port; the o3r-ifm3d backend needs a 3D port",
+            article = "an" if kind[:1] in "AEIOU" else "a"
+            raise ConfigError(f"O3R at {cfg.host}: {cfg.port} is {article} {kind[:16]} port, not a 3D head; {heads}",
                               key="camera.port")
         want = "RUN" if cfg.trigger == "free_run" else "IDLE"
         if state != want:
@@ -274,6 +284,14 @@ class O3RIfm3dCamera(Camera3D):
                           firmware=self._firmware,
                           extra={"host": cfg.host, "port": cfg.port, "pcic_port": self._pcic_port,
                                  "trigger": cfg.trigger, "client": "ifm3dpy"})
+
+
+def _heads_3d(ports: dict[str, Any]) -> str:
+    """``its 3D heads: port2, port3`` of a ``/ports`` object (read leniently: for a message)."""
+    names = sorted(str(name)[:16] for name, node in list(ports.items())[:16]
+                   if isinstance(node, dict) and isinstance(node.get("info"), dict)
+                   and isinstance(node["info"].get("features"), dict) and node["info"]["features"].get("type") == "3D")
+    return f"its 3D heads: {', '.join(names)}" if names else "it has no 3D head"
 
 
 def _missing() -> MissingDependencyError:

@@ -1,6 +1,7 @@
-"""Emulated ifm O3R (XML-RPC + PCIC over TCP) serving a simulated camera: :class:`O3REmulator`, and backend
-:class:`EmulatedO3RCamera` (``cameras: o3r-emulated``). Standalone: ``python -m cellcal.sims.o3r``.
-Both names load on first use, so ``python -m cellcal.sims.o3r --help`` imports no numpy."""
+"""Emulated ifm O3R VPU (XML-RPC + PCIC over TCP) serving simulated cameras, one per 3D head:
+:class:`O3REmulator`, and backend :class:`EmulatedO3RCamera` (``cameras: o3r-emulated``).
+Standalone: ``python -m cellcal.sims.o3r``. Both names load on first use, so
+``python -m cellcal.sims.o3r --help`` imports no numpy."""
 
 from __future__ import annotations
 

@@ -15,10 +15,12 @@ import copy
 import fnmatch
 import json
 import threading
-from collections.abc import Callable, MutableSet, Sequence
+from collections.abc import Callable, Mapping, MutableSet, Sequence
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass
 from typing import Any
+
+from .options import two_d_partners
 
 FIRMWARE = "1.4.30"
 STATES = ("RUN", "IDLE", "CONF")
@@ -84,21 +86,29 @@ def _head(kind: str, pcic_port: int, state: str, serial: str, name: str, **featu
     return node
 
 
-def default_tree(*, port: str, pcic_ports: dict[str, int], width: int, height: int, state: str,
+def default_tree(*, heads: Mapping[str, tuple[int, int]], pcic_ports: Mapping[str, int], state: str,
                  frame_rate_hz: float, mode: str = "standard_range4m") -> dict[str, Any]:
-    """A VPU tree: the 3D head on ``port``, its 2D head on port0 (port1 if the 3D is port0), the IMU on port6
-    and one application instance ``app0``; ``pcic_ports`` maps each of those names to its bound PCIC port."""
-    two_d = "port1" if port == "port0" else "port0"
-    ports = {
-        two_d: _head("2D", pcic_ports[two_d], "RUN", "000000000001", "O3R222 2D",
-                     resolution={"width": 1280, "height": 800}),
-        port: _head("3D", pcic_ports[port], state, "000000000002", "O3R222 3D",
-                    resolution={"width": width, "height": height}, fov={"horizontal": 60, "vertical": 45}),
-        "port6": _head("IMU", pcic_ports["port6"], "RUN", "000000000003", "VPU IMU"),
-    }
-    ports[two_d].update(mode="standard_autoexposure2D", acquisition={"framerate": 10.0})
-    ports[port].update(mode=mode, acquisition={"framerate": float(frame_rate_hz)})
-    app = {"app0": {"class": "ods", "name": "", "ports": [port], "state": "CONF",
+    """A VPU tree: a 3D head on each port of ``heads`` (port -> 3D resolution, width and height in px; the
+    first is the one application ``app0`` uses), the 2D head of each (:func:`~.options.two_d_partners`),
+    the IMU on port6 and ``app0``; ``pcic_ports`` maps each of those names to its bound PCIC port.
+
+    Every 3D head starts in ``state`` at ``frame_rate_hz`` in ``mode``; head k's 2D and 3D
+    imagers have serial numbers ``100 k + 1`` and ``100 k + 2`` (the IMU ``3``).
+    """
+    names = list(heads)
+    partners = two_d_partners(names)
+    ports: dict[str, dict[str, Any]] = {}
+    for k, name in enumerate(names):
+        width, height = heads[name]
+        ports[name] = _head("3D", pcic_ports[name], state, f"{100 * k + 2:012d}", "O3R222 3D",
+                            resolution={"width": width, "height": height}, fov={"horizontal": 60, "vertical": 45})
+        ports[name].update(mode=mode, acquisition={"framerate": float(frame_rate_hz)})
+    for k, name in enumerate(partners):
+        ports[name] = _head("2D", pcic_ports[name], "RUN", f"{100 * k + 1:012d}", "O3R222 2D",
+                            resolution={"width": 1280, "height": 800})
+        ports[name].update(mode="standard_autoexposure2D", acquisition={"framerate": 10.0})
+    ports["port6"] = _head("IMU", pcic_ports["port6"], "RUN", "000000000003", "VPU IMU")
+    app = {"app0": {"class": "ods", "name": "", "ports": names[:1], "state": "CONF",
                     "data": {"pcicTCPPort": int(pcic_ports["app0"])}}}
     return {
         "applications": {"instances": app},

@@ -11,16 +11,20 @@
   The pose is checked by the identity of what the world composes it from; the
   amplitude and confidence images are handed out read-only (the encoder copies them
   once per pose). This is what lets the emulator serve load rates (ADR 0024, ADR 0052).
+* :class:`OffsetView` is a further head's source: a simulated camera rendering the same
+  world from the first head's pose moved by a fixed offset.
 """
 
 from __future__ import annotations
 
 import random
+import threading
 from typing import Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame, Intrinsics
 
 from ..tof import datasheet_sigma_m
@@ -64,6 +68,60 @@ class PerFrame:
         frame = self.source.capture(self.timeout_s)
         self.captures += 1
         return self.encoder.counts(frame), float(frame.timestamp)
+
+
+class _PoseRenderer(Protocol):
+    """A simulated camera that renders its world from any pose (``SimCamera``)."""
+
+    @property
+    def intrinsics(self) -> Intrinsics: ...
+
+    @property
+    def world(self) -> Any: ...
+
+    def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame: ...
+
+
+class OffsetView:
+    """A further head of the emulated VPU: a simulated camera rendering the world from the first head's pose
+    moved by a fixed offset, ``T_base_head = T_base_camera @ offset``.
+
+    ``T_base_camera`` is the world's camera pose (``world.camera_pose()``) when the frame is
+    rendered, so the head moves with the first head (one rig on the flange, or both fixed).
+    Noise, timestamps (the simulated clock) and every artefact are the camera's own; the
+    clock is not advanced here (the first head's captures pace it). ``world`` is exposed so
+    that :class:`PerPose` renders once per pose.
+
+    Args:
+        camera: The simulated camera of this head (e.g. ``SimCamera(config, world=first.world)``).
+        offset: ``T_camera_head``: the head's optical frame in the first head's optical frame (m, rad).
+    """
+
+    def __init__(self, camera: _PoseRenderer, offset: Pose) -> None:
+        self.camera = camera
+        self.offset = offset
+        self.sequence = 0
+        self._lock = threading.Lock()
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        """The camera's intrinsics."""
+        return self.camera.intrinsics
+
+    @property
+    def world(self) -> Any:
+        """The simulated world the camera renders."""
+        return self.camera.world
+
+    def pose(self) -> Pose:
+        """The head's pose in the base frame now, ``T_base_head``."""
+        return cast(Pose, self.camera.world.camera_pose() @ self.offset)
+
+    def capture(self, timeout: float | None = None) -> Frame:
+        """Render the next frame from :meth:`pose` (``timeout`` is not used: rendering does not wait)."""
+        with self._lock:
+            self.sequence += 1
+            return self.camera.render(self.pose(), sequence=self.sequence)
 
 
 class NoiseHalves:

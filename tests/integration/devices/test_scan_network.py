@@ -7,6 +7,7 @@ emulators run on free ports (80 and 502 need root), given to the scan with ``--p
 from __future__ import annotations
 
 import contextlib
+import re
 import socket
 import threading
 from collections.abc import Callable, Iterator
@@ -72,9 +73,13 @@ def test_scan_finds_the_three_emulators_and_names_them(emulators: dict[str, int]
     assert main(["devices", "--scan", "--hosts", LOCAL, "--ports", _ports_arg(p), "--timeout", "5"]) == 0
     captured = capsys.readouterr()
     lines = _scan_lines(captured.out)
-    assert lines["camera o3r"] == [
-        f"ifm electronic OVP800 000000000000 firmware 1.4.30, host=127.0.0.1, port={p['o3r-rpc']}, "
-        f"pcic_port={p['o3r-pcic']}, name=cellcal-emulator"]
+    o3r = lines["camera o3r"]
+    assert o3r[0] == (f"ifm electronic OVP800 000000000000 firmware 1.4.30, host=127.0.0.1, port={p['o3r-rpc']}, "
+                      f"pcic_port={p['o3r-pcic']}, name=cellcal-emulator")
+    # then every port of the VPU: its 2D head (port0), the 3D head on the scanned PCIC port, the IMU
+    assert len(o3r) == 4 and o3r[2] == f"  head port2: 3D, PCIC port {p['o3r-pcic']}, IDLE"
+    assert re.fullmatch(r"  head port0: 2D, PCIC port \d+, RUN", o3r[1]), o3r[1]
+    assert re.fullmatch(r"  head port6: IMU, PCIC port \d+, RUN", o3r[3]), o3r[3]
     assert lines["arm xarm"] == [
         f"UFACTORY xArm5 XS1305EMU0001 firmware 2.5.0, host=127.0.0.1, port={p['xarm']}, arm_type=5, "
         "control_box=AC1305EMU0001"]
