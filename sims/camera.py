@@ -30,6 +30,7 @@ from .camera_shell import SimCameraShell
 from .charuco import BoardTexture
 from .mixed_pixels import PixelReturns, blend_edges
 from .multipath import SurfacePoints, second_bounce
+from .scene import Scene
 from .systematic import SystematicConfig
 from .tof import (
     SIGMA_AT_1M_M,
@@ -221,12 +222,14 @@ class SimCamera(SimCameraShell):
         return out
 
     # ------------------------------------------------------------------ rendering
-    def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
-        """Render one frame from a camera pose (``T_base_camera``), without touching the arm.
+    def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0,
+               flange_pose: Pose | None = None) -> Frame:
+        """Render one frame from a camera pose (``T_base_camera``), without moving the arm.
 
         Draws noise from this camera's generator (so successive calls differ unless
         the noise is off). Usable before :meth:`connect`. The rays are rotated into the
-        world by ``camera_pose``, cast against the scene, and then, with the world's
+        world by ``camera_pose``, cast against the scene (with the plate the arm holds at
+        ``flange_pose``, :meth:`~cellcal.sims.world.SimWorld.scene_at`), and then, with the world's
         ``[sim.artefacts]`` (:class:`~cellcal.sims.tof.ArtefactsConfig`):
 
         * **return**: relative amplitude ``(rho / 0.5) cos θ / d²`` of the surface hit;
@@ -256,10 +259,12 @@ class SimCamera(SimCameraShell):
             camera_pose: Camera pose in the world/base frame.
             timestamp: Frame time, seconds since the epoch; None uses the simulated clock.
             sequence: Sequence number to stamp.
+            flange_pose: True ``T_base_flange`` of the held plate (``[sim.plate]``); None: the flange's now.
         """
         h, w = self._intr.height, self._intr.width
-        cast = self._cast(camera_pose)
-        ret = self._returns(camera_pose, cast)
+        scene = self.world.scene_at(flange_pose)
+        cast = self._cast(camera_pose, scene)
+        ret = self._returns(camera_pose, cast, scene)
         d = self._measure(ret, cast)
         valid, conf = self._validity(d, ret.amplitude, cast)
         arte = self.world.artefacts
@@ -283,12 +288,12 @@ class SimCamera(SimCameraShell):
             metadata={"sim_systematic": self.systematic_error()[0].to_dict()} if self.world.systematic.enabled else {},
         )
 
-    def _cast(self, camera_pose: Pose) -> _Cast:
+    def _cast(self, camera_pose: Pose, scene: Scene) -> _Cast:
         """Centre-ray geometry per pixel, (H*W,)."""
         # Pixel rays, camera frame -> world frame.
         r_wc = camera_pose.rotation_matrix
         dirs = self._rays_safe @ r_wc.T
-        t, normal, hit, surface = self.world.scene.raycast_surfaces(camera_pose.translation, dirs)
+        t, normal, hit, surface = scene.raycast_surfaces(camera_pose.translation, dirs)
         # Pixels without a defined ray never hit.
         hit &= self._ray_ok
         surface[~hit] = -1
@@ -296,11 +301,11 @@ class SimCamera(SimCameraShell):
         cos_inc = np.where(hit, -np.einsum("ij,ij->i", normal, dirs), 0.0)
         return _Cast(np.where(hit, t, np.nan), cos_inc, hit, surface, normal, dirs)
 
-    def _returns(self, camera_pose: Pose, cast: _Cast) -> PixelReturns:
+    def _returns(self, camera_pose: Pose, cast: _Cast, scene: Scene) -> PixelReturns:
         """Effective range (m) and relative amplitude of each pixel's return, before noise."""
-        arte, scene = self.world.artefacts, self.world.scene
+        arte = self.world.artefacts
         # A lone plane has one surface: no depth edge (its horizon is beyond the grazing limit), no multipath.
-        edges = bool(scene.boxes)
+        edges = scene.has_edges
         rho = scene.reflectivity(cast.surface) if edges else scene.plane_reflectivity
         board = self._board_texture()
         if board is not None:  # a ChArUco board printed on the plane ([sim.charuco])

@@ -13,7 +13,7 @@ from abc import abstractmethod
 from collections.abc import Callable
 from typing import Any
 
-from cellcal.devices.base import BackendContext
+from cellcal.devices.base import BackendContext, CameraPlacement
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
@@ -30,6 +30,13 @@ class SimCameraShell(Camera3D):
     ``seed`` or the world's seed, so equal seeds give identical frame sequences. Frames are
     paced by the simulated clock: each capture advances it to the next frame period
     (``1 / frame_rate_hz``) and stamps the frame with the simulated time.
+
+    A camera of ``[[cameras]]`` built with a placement (``context.placement``, ADR 0061) renders
+    from its own true pose (:meth:`camera_pose_at`): fixed in the base frame, or its own mount on
+    the true flange; it draws its noise from its own stream (``"camera:NAME"``), and when it connects
+    the world's ``[[sim.cameras]]`` entries must name the cell's cameras
+    (:meth:`~cellcal.sims.world.SimWorld.check_camera_truths`). Every capture sees the plate the arm
+    holds (``[sim.plate]``) at the true flange pose of that frame.
 
     Fault injection (tests): :attr:`fault_hook`, if set, is called as ``hook("connect", n)``
     on the n-th connect and ``hook("capture", n)`` before the n-th frame is rendered, on the
@@ -48,7 +55,15 @@ class SimCameraShell(Camera3D):
                  frame_rate_hz: float) -> None:
         super().__init__()
         self.world = world if world is not None else world_from_context(context)
-        self._rng = self.world.rng("camera", seed)
+        #: Where this camera of ``[[cameras]]`` is configured to stand, or None (the camera a run drives).
+        self.placement: CameraPlacement | None = None if context is None else context.placement
+        self._source = None if context is None else context.source
+        placed = self.placement
+        # its true T_flange_camera (on the flange) or T_base_camera (fixed); None: the world's mount
+        self._true_pose = None if placed is None else self.world.place_camera(placed)
+        if placed is None:
+            self.world.driven_cameras += 1
+        self._rng = self.world.rng("camera" if placed is None else f"camera:{placed.name}", seed)
         self._lock = threading.Lock()
         self._sequence = 0
         self._last_frame_elapsed: float | None = None
@@ -58,8 +73,9 @@ class SimCameraShell(Camera3D):
         self.connects = 0
 
     @abstractmethod
-    def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
-        """Render one frame from a camera pose (``T_base_camera``), without touching the arm.
+    def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0,
+               flange_pose: Pose | None = None) -> Frame:
+        """Render one frame from a camera pose (``T_base_camera``), without moving the arm.
 
         Draws from this camera's noise stream; usable before :meth:`connect`.
 
@@ -67,16 +83,37 @@ class SimCameraShell(Camera3D):
             camera_pose: Camera pose in the world/base frame.
             timestamp: Frame time, seconds since the epoch; None uses the simulated clock.
             sequence: Sequence number to stamp.
+            flange_pose: True ``T_base_flange`` the held plate is drawn at (``[sim.plate]``); None: the
+                flange's true pose now (read only when there is a plate).
         """
 
     def _on_connect(self) -> None:
         """Work done once per connect, after the fault hook (override; default nothing)."""
+
+    def camera_pose_at(self, flange: Pose) -> Pose:
+        """This camera's true ``T_base_camera`` when the flange truly stands at ``flange``.
+
+        The camera a run drives: ``flange @ world.mount`` (:meth:`SimWorld.on_flange`); a placed
+        camera on the flange: ``flange @`` its own true mount; a fixed one: its true pose, whatever
+        the flange does.
+        """
+        placed, own = self.placement, self._true_pose
+        if placed is None or own is None:
+            return self.world.on_flange(flange, self.world.mount)
+        return own if placed.on == "base" else self.world.on_flange(flange, own)
+
+    def camera_pose(self) -> Pose:
+        """This camera's true ``T_base_camera`` now (the world's events applied, the clock brought up)."""
+        self.world.apply_events()
+        return self.camera_pose_at(self.world.true_flange_pose())
 
     # ------------------------------------------------------------------ backend hooks
     def _connect(self, timeout: float) -> None:
         self.connects += 1
         if self.fault_hook is not None:
             self.fault_hook("connect", self.connects)
+        if self.placement is not None:  # every camera of the cell is built by now: check the truths' names
+            self.world.check_camera_truths(self._source)
         self._on_connect()
 
     def _close(self) -> None:
@@ -92,7 +129,10 @@ class SimCameraShell(Camera3D):
                 clock.advance_to(self._last_frame_elapsed + self._frame_period_s)
             self._last_frame_elapsed = clock.elapsed_s
             self._sequence += 1
-            return self.render(self.world.camera_pose(), sequence=self._sequence)
+            world = self.world
+            world.apply_events()
+            flange = world.true_flange_pose()  # also brings the simulated clock up to the motion under way
+            return self.render(self.camera_pose_at(flange), sequence=self._sequence, flange_pose=flange)
 
     def resume_state(self) -> dict[str, Any]:
         """JSON-able state of the noise stream and frame pacing (restored when a run resumes)."""

@@ -1,9 +1,10 @@
-"""The simulated scene: the measuring plane and box-shaped work objects lying on it.
+"""The simulated scene: the measuring plane, box-shaped work objects lying on it, and posed solids.
 
 Everything here is in the *world* frame (the robot base frame), metres. Ray casting
 is vectorised over rays: one call handles a whole 224x172 depth image. Every surface
-(the plane, each face of each box) has an id and a near-infrared reflectivity, which
-the ToF artefacts (mixed pixels, multipath, amplitude) need: ADR 0014.
+(the plane, each face of each box or solid) has an id and a near-infrared reflectivity, which
+the ToF artefacts (mixed pixels, multipath, amplitude) need: ADR 0014. A :class:`Solid` is a
+box at any pose (the plate the arm holds, ``[sim.plate]``), added for one frame's cast.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ _PARALLEL_EPS = 1e-12
 #: Hits closer than this to the ray origin are ignored (the origin lying on a surface).
 _T_MIN_M = 1e-9
 #: Surface id of a ray that hits nothing, and of the measuring plane; box ``k``'s faces are
-#: ``1 + 6 k + f``, ``f = 2 * axis + (1 if the face is the +axis one else 0)`` in the box frame.
+#: ``1 + 6 k + f``, ``f = 2 * axis + (1 if the face is the +axis one else 0)`` in the box frame;
+#: the solids follow the boxes (solid ``j`` is box ``len(boxes) + j`` in that numbering).
 SURFACE_NONE = -1
 SURFACE_PLANE = 0
 #: Default near-infrared reflectivity of the plane and the boxes (a grey table, cardboard).
@@ -79,6 +81,36 @@ def _check_reflectivity(value: float, what: str) -> None:
 
 
 @dataclass(frozen=True, eq=False)
+class Solid:
+    """A box at any pose in the world (not standing on the plane): the plate the arm holds.
+
+    Attributes:
+        rotation: Rotation world <- solid frame, (3, 3) (columns: the solid's x, y, z axes).
+        centre_m: The solid's centre, world frame, metres, (3,).
+        size_m: Edge lengths along the solid's x, y, z axes, metres, > 0.
+        reflectivity: Near-infrared reflectivity of its faces, > 0.
+    """
+
+    rotation: FloatArray
+    centre_m: FloatArray
+    size_m: tuple[float, float, float]
+    reflectivity: float = DEFAULT_REFLECTIVITY
+
+    def __post_init__(self) -> None:
+        rot = np.asarray(self.rotation, dtype=np.float64)
+        if rot.shape != (3, 3) or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-9):
+            raise CalibrationError("Solid.rotation must be a 3x3 rotation matrix")
+        s = np.asarray(self.size_m, dtype=np.float64)
+        if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise CalibrationError(f"Solid.size_m must be 3 positive numbers, got {self.size_m!r}")
+        _check_reflectivity(self.reflectivity, "Solid.reflectivity")
+        object.__setattr__(self, "rotation", rot)
+        object.__setattr__(self, "centre_m", _vec3(self.centre_m, "Solid.centre_m"))
+        object.__setattr__(self, "size_m", (float(s[0]), float(s[1]), float(s[2])))
+        object.__setattr__(self, "reflectivity", float(self.reflectivity))
+
+
+@dataclass(frozen=True, eq=False)
 class Scene:
     """The measuring plane (world frame, metres) and boxes lying on it.
 
@@ -91,12 +123,14 @@ class Scene:
         plane_normal: Unit normal of the plane, world frame (normalised on construction).
         boxes: Work objects standing on the plane (on the side the normal points to).
         plane_reflectivity: Near-infrared reflectivity of the plane, > 0.
+        solids: Boxes at any pose (ray cast after the boxes; their surface ids follow the boxes').
     """
 
     plane_point_m: FloatArray = field(default_factory=lambda: np.zeros(3))
     plane_normal: FloatArray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     boxes: tuple[Box, ...] = ()
     plane_reflectivity: float = DEFAULT_REFLECTIVITY
+    solids: tuple[Solid, ...] = ()
 
     def __post_init__(self) -> None:
         p = _vec3(self.plane_point_m, "Scene.plane_point_m")
@@ -129,12 +163,36 @@ class Scene:
             local = np.array([b.center_xy_m[0], b.center_xy_m[1], b.size_m[2] / 2.0])
             centres.append(p + r_world_plane @ local)
             halves.append(np.asarray(b.size_m) / 2.0)
+        object.__setattr__(self, "solids", tuple(self.solids))
+        for solid in self.solids:
+            if not isinstance(solid, Solid):
+                raise CalibrationError(f"Scene.solids must hold Solid objects, got {type(solid).__name__}")
+            rots.append(solid.rotation)
+            centres.append(solid.centre_m)
+            halves.append(np.asarray(solid.size_m) / 2.0)
         object.__setattr__(self, "_box_rot", np.array(rots).reshape(-1, 3, 3))
         object.__setattr__(self, "_box_centre", np.array(centres).reshape(-1, 3))
         object.__setattr__(self, "_box_half", np.array(halves).reshape(-1, 3))
-        # Reflectivity per surface id + 1 (index 0: no surface, 1: the plane, then 6 faces per box).
-        refl = [0.0, self.plane_reflectivity] + [b.reflectivity for b in self.boxes for _ in range(6)]
+        # Reflectivity per surface id + 1 (index 0: no surface, 1: the plane, then 6 faces per box, then per solid).
+        faces = [b.reflectivity for b in self.boxes] + [s.reflectivity for s in self.solids]
+        refl = [0.0, self.plane_reflectivity] + [r for r in faces for _ in range(6)]
         object.__setattr__(self, "_reflectivity", np.asarray(refl, dtype=np.float64))
+
+    @property
+    def has_edges(self) -> bool:
+        """Whether anything but the plane is in the scene (a box or a solid: depth edges, multipath)."""
+        return bool(self.boxes or self.solids)
+
+    def solid_surface_ids(self, index: int) -> range:
+        """Surface ids of the six faces of solid ``index`` (face ``f`` is ``ids[f]``, numbered as a box's)."""
+        if not 0 <= index < len(self.solids):
+            raise IndexError(f"no solid {index} (the scene has {len(self.solids)})")
+        first = 1 + 6 * (len(self.boxes) + index)
+        return range(first, first + 6)
+
+    def with_solids(self, solids: Sequence[Solid]) -> Scene:
+        """This scene with ``solids`` in place of its own (the plane and the boxes shared)."""
+        return Scene(self.plane_point_m, self.plane_normal, self.boxes, self.plane_reflectivity, tuple(solids))
 
     @property
     def plane_rotation(self) -> FloatArray:
@@ -161,7 +219,7 @@ class Scene:
 
     # ------------------------------------------------------------------ ray casting
     def raycast(self, origin: ArrayLike, dirs: ArrayLike) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-        """Cast rays from one origin against the plane and the boxes.
+        """Cast rays from one origin against the plane, the boxes and the solids.
 
         Args:
             origin: Ray origin, world frame, metres, shape (3,).
@@ -184,7 +242,8 @@ class Scene:
                          ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.int32]]:
         """:meth:`raycast` plus the id of the surface each ray hits (``SURFACE_NONE`` = -1 for none).
 
-        Ids: ``SURFACE_PLANE`` (0) for the plane, ``1 + 6 k + f`` for face ``f`` of box ``k``.
+        Ids: ``SURFACE_PLANE`` (0) for the plane, ``1 + 6 k + f`` for face ``f`` of box ``k`` (the solids
+        numbered on after the boxes: :meth:`solid_surface_ids`).
 
         Raises:
             CalibrationError: On malformed shapes or non-finite values.
@@ -193,7 +252,7 @@ class Scene:
         # The plane first: the nearest hit so far, its normal and surface id.
         t_best, normals = self._hit_plane(o, d)
         surface = np.where(np.isfinite(t_best), SURFACE_PLANE, SURFACE_NONE).astype(np.int32)
-        # Then each box; a box hit replaces the current one only where it is nearer.
+        # Then each box (and solid); a hit replaces the current one only where it is nearer.
         boxes = zip(self._box_rot, self._box_centre, self._box_half, strict=True)  # type: ignore[attr-defined]
         for k, (rot, centre, half) in enumerate(boxes):
             t_best = _hit_box(o, d, rot, centre, half, t_best, normals, surface, 1 + 6 * k)

@@ -211,15 +211,20 @@ class SimStereoCamera(SimCameraShell):
         return self._systematic_cache
 
     # ------------------------------------------------------------------ rendering
-    def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0) -> Frame:
-        """Render one frame from a camera pose (``T_base_camera``); the steps are in the class docstring."""
+    def render(self, camera_pose: Pose, *, timestamp: float | None = None, sequence: int = 0,
+               flange_pose: Pose | None = None) -> Frame:
+        """Render one frame from a camera pose (``T_base_camera``); the steps are in the class docstring.
+
+        The scene holds the plate the arm holds (``[sim.plate]``) at ``flange_pose`` (None: the flange's now).
+        """
         cfg = self.config
         h, w = cfg.height, cfg.width
         fb = cfg.fb_px_m
         draws = self._draw(h * w)
         # ray cast: unit rays into the world, the surface hit and its incidence
         dirs = self._rays_unit @ camera_pose.rotation_matrix.T
-        t, normal, hit, surface = self.world.scene.raycast_surfaces(camera_pose.translation, dirs)
+        scene = self.world.scene_at(flange_pose)
+        t, normal, hit, surface = scene.raycast_surfaces(camera_pose.translation, dirs)
         cos_inc = np.where(hit, -np.einsum("ij,ij->i", normal, dirs), 0.0)
         # Z-depth = radial distance / |ray with z = 1|; the true disparity f·B/Z (0 where nothing is hit)
         z_true = np.where(hit, t / self._ray_norm, np.inf)
@@ -251,7 +256,7 @@ class SimStereoCamera(SimCameraShell):
         xyz = self._rays_z1.reshape(h, w, 3) * z[..., None]
         dist = np.where(valid, self._ray_norm.reshape(h, w) * z, np.nan)
         # grey level of the mono image: the reference target head-on reads 128
-        rho = self.world.scene.reflectivity(np.where(hit, surface, SURFACE_NONE)).reshape(h, w)
+        rho = scene.reflectivity(np.where(hit, surface, SURFACE_NONE)).reshape(h, w)
         grey = np.minimum(GREY_AT_REFERENCE * (rho / REFERENCE_REFLECTIVITY) * cos_inc.reshape(h, w), 255.0)
         grey = np.where(hit.reshape(h, w), grey, 0.0)
         conf = np.where(valid, CONF_VALID, CONF_INVALID).astype(np.uint8)

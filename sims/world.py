@@ -1,14 +1,13 @@
 """The simulated world: scene + true camera mount + true arm state + simulated clock.
 
 World frame == robot base frame (metres). One :class:`SimWorld` per configuration
-document (:func:`world_from_context`) couples the simulated camera to the simulated
-arm, so moving the arm moves the camera. Design: docs/adr/0014-simulated-cell.md.
+document (:func:`world_from_context`) couples the simulated cameras to the simulated
+arm, so moving the arm moves the cameras on it and the plate it holds. Design:
+docs/adr/0014-simulated-cell.md; several cameras and the plate: :mod:`cellcal.sims.placement`.
 """
 
 from __future__ import annotations
 
-import threading
-import time
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -16,19 +15,23 @@ from typing import Any
 
 import numpy as np
 
-from cellcal.devices.base import BackendContext
+from cellcal.devices.base import BackendContext, CameraPlacement
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 from cellcal.devices.scene_view import SceneSnapshot, publish_scene_view
 
+from .arm_state import SimArmModel, SimClock
 from .charuco import CharucoConfig
 from .kinematics import ArmErrors, ArmErrorsConfig
-from .motion import Motion
+from .placement import MAX_SIM_CAMERAS, PlateConfig, SimCameraTruth, check_truth_names, true_placement_pose, truth_of
 from .scene import DEFAULT_REFLECTIVITY, MAX_REFLECTIVITY, Box, Scene
 from .systematic import SystematicConfig
 from .tof import ArtefactsConfig
 from .work import EventConfig, WorkConfig, WorkPlan
+
+__all__ = ["SHARED_KEY", "BoxConfig", "MountConfig", "SimArmModel", "SimClock", "SimConfig", "SimWorld",
+           "parse_mount", "world_from_context"]
 
 #: Key of the shared world in ``BackendContext.shared``.
 SHARED_KEY = "sim.world"
@@ -81,7 +84,9 @@ class SimConfig:
     arm (``camera_on_arm``; false simulates a rig error) and optionally a mount that
     overrides the document's ``[mount]`` table: the calibrator reads ``[mount]`` as its
     *nominal* mount, the sim uses it as the *true* one unless ``[sim.mount]`` says
-    otherwise, which is how a mount error is simulated.
+    otherwise, which is how a mount error is simulated. In a cell of several cameras
+    (``[[cameras]]``) ``[[sim.cameras]]`` gives the true poses of the cameras built with a
+    placement, and ``[sim.plate]`` a plate the arm holds (:mod:`cellcal.sims.placement`).
     """
 
     plane_point_m: tuple[float, float, float] = field(
@@ -115,10 +120,16 @@ class SimConfig:
     arm_errors: ArmErrorsConfig = field(default_factory=ArmErrorsConfig, metadata={
         "doc": "the arm's kinematic errors (joint zero offsets, link lengths): the flange stands off the pose the "
                "arm reports, smoothly with the pose (on by default; enabled = false: the ideal arm)"})
+    cameras: list[SimCameraTruth] = field(default_factory=list, metadata={
+        "max_items": MAX_SIM_CAMERAS, "doc": "true poses of the cameras of [[cameras]] built with a placement, "
+                                             "by name (default: where they are configured)"})
+    plate: PlateConfig | None = field(default=None, metadata={
+        "doc": "a flat plate the arm holds, fixed in the flange frame (every simulated camera sees it)"})
 
     def __post_init__(self) -> None:
         if float(np.linalg.norm(self.plane_normal)) < 1e-9:
             raise ConfigError("must be a non-zero vector", key="sim.plane_normal")
+        check_truth_names(self.cameras)
 
     def scene(self) -> Scene:
         """The scene this config describes."""
@@ -149,155 +160,13 @@ def parse_mount(table: Mapping[str, Any] | None, *, source: str | None = None,
     return cfg
 
 
-# ---------------------------------------------------------------------- clock and arm state
-class SimClock:
-    """Simulated time: seconds since the world was made, plus a Unix epoch offset.
-
-    It advances only through simulated events (arm motions, camera frame periods),
-    never by itself, so results do not depend on the machine's speed.
-    """
-
-    def __init__(self, start_epoch_s: float | None = None) -> None:
-        self._lock = threading.Lock()
-        self._epoch0 = time.time() if start_epoch_s is None else float(start_epoch_s)
-        self._elapsed = 0.0
-
-    @property
-    def elapsed_s(self) -> float:
-        """Simulated seconds since the start."""
-        with self._lock:
-            return self._elapsed
-
-    def now(self) -> float:
-        """Simulated time as seconds since the Unix epoch."""
-        with self._lock:
-            return self._epoch0 + self._elapsed
-
-    def advance(self, dt_s: float) -> float:
-        """Move time forward by ``dt_s`` >= 0 seconds; returns the new elapsed time."""
-        with self._lock:
-            self._elapsed += max(0.0, float(dt_s))
-            return self._elapsed
-
-    def advance_to(self, elapsed_s: float) -> float:
-        """Move time forward to ``elapsed_s`` (never backwards); returns the new elapsed time."""
-        with self._lock:
-            self._elapsed = max(self._elapsed, float(elapsed_s))
-            return self._elapsed
-
-
-class SimArmModel:
-    """The true state of the simulated arm: flange pose and the motion under way.
-
-    Thread-safe. While a motion runs, its simulated time is
-    ``(wall time since start) / time_scale`` (capped at its duration); with
-    ``time_scale == 0`` a motion completes the moment it starts. The clock is advanced
-    to the motion's simulated time whenever the arm state is looked at.
-    """
-
-    def __init__(self, flange_pose: Pose, clock: SimClock) -> None:
-        self.lock = threading.RLock()
-        self._pose = flange_pose
-        self._clock = clock
-        self._motion: Motion | None = None
-        self._time_scale = 0.0
-        self._sim_start = 0.0
-        self._wall_start = 0.0
-        self._motion_t = 0.0
-        self._work: WorkPlan | None = None
-
-    @property
-    def clock(self) -> SimClock:
-        """The world's clock."""
-        return self._clock
-
-    def start_work(self, plan: WorkPlan) -> None:
-        """Follow ``plan`` on the simulated clock from now on (the arm's own program; ``[sim.work]``)."""
-        with self.lock:
-            self._work = plan
-            self._update()
-
-    @property
-    def working(self) -> bool:
-        """Whether the arm follows its own work plan (a commanded motion ends it)."""
-        return self._work is not None
-
-    def start_motion(self, motion: Motion, time_scale: float) -> None:
-        """Start ``motion`` now (replacing any motion under way at its current pose; a work plan ends)."""
-        with self.lock:
-            self._update()
-            self._work = None
-            self._motion = motion
-            self._time_scale = max(0.0, float(time_scale))
-            self._sim_start = self._clock.elapsed_s
-            self._wall_start = time.monotonic()
-            self._motion_t = 0.0
-            self._update()
-
-    def _update(self) -> None:
-        if self._work is not None:  # the arm's own program: where it is at the clock's time
-            self._pose = self._work.pose_at(self._clock.elapsed_s)
-            return
-        m = self._motion
-        if m is None:
-            return
-        if self._time_scale <= 0.0 or m.duration_s <= 0.0:
-            t = m.duration_s
-        else:
-            t = min(m.duration_s, (time.monotonic() - self._wall_start) / self._time_scale)
-        self._motion_t = t
-        self._pose = m.pose_at(t)
-        self._clock.advance_to(self._sim_start + t)
-        if t >= m.duration_s:
-            self._motion = None
-
-    def flange_pose(self) -> Pose:
-        """True flange pose in the base frame now (``T_base_flange``)."""
-        with self.lock:
-            self._update()
-            return self._pose
-
-    def set_flange_pose(self, pose: Pose) -> None:
-        """Teleport the flange (cancels any motion); for set-up and tests."""
-        with self.lock:
-            self._motion = None
-            self._pose = pose
-
-    def is_moving(self) -> bool:
-        """Whether a motion is under way."""
-        with self.lock:
-            self._update()
-            return self._motion is not None
-
-    def progress(self) -> float:
-        """Fraction 0..1 of the current motion's duration done (1.0 when idle)."""
-        with self.lock:
-            self._update()
-            m = self._motion
-            if m is None:
-                return 1.0
-            return self._motion_t / m.duration_s if m.duration_s > 0 else 1.0
-
-    def remaining_s(self) -> float:
-        """Simulated seconds left in the current motion (0 when idle)."""
-        with self.lock:
-            self._update()
-            m = self._motion
-            return 0.0 if m is None else max(0.0, m.duration_s - self._motion_t)
-
-    def halt(self) -> Pose:
-        """Stop the motion where it is now; returns the flange pose it stopped at."""
-        with self.lock:
-            self._update()
-            self._motion = None
-            return self._pose
-
-
 # ---------------------------------------------------------------------- the world
 class SimWorld:
     """Scene + true mount + true arm state + clock + seed + the camera's artefacts and systematic errors.
 
-    The camera renders from :meth:`camera_pose` = true flange pose @ true mount.
+    The camera renders from :meth:`camera_pose` = true flange pose @ true mount; a camera of
+    ``[[cameras]]`` built with a placement renders from its own pose (:meth:`place_camera`), and every
+    camera sees the plate the arm holds, if any, in :meth:`scene_at`.
 
     Attributes:
         scene: The measuring plane and boxes (world == base frame).
@@ -330,6 +199,14 @@ class SimWorld:
         #: the controller believes (and reports, with noise); the flange truly stands at
         #: :meth:`true_flange_pose`.
         self.arm_errors: ArmErrors | None = None
+        #: The plate the arm holds (``[sim.plate]``), or None.
+        self.plate: PlateConfig | None = None
+        #: True poses of the placed cameras by name (``[[sim.cameras]]``).
+        self.camera_truths: tuple[SimCameraTruth, ...] = ()
+        #: The cameras built with a placement in this world, by name (:meth:`place_camera`).
+        self.placed: dict[str, CameraPlacement] = {}
+        #: How many cameras were built without one (the camera a run drives through ``[camera]``/``[mount]``).
+        self.driven_cameras = 0
 
     @classmethod
     def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
@@ -341,6 +218,8 @@ class SimWorld:
         world.charuco = config.charuco
         world.arm_errors = config.arm_errors.errors()
         world.events = sorted(config.events, key=lambda e: e.at_s)
+        world.plate = config.plate
+        world.camera_truths = tuple(config.cameras)
         if not config.camera_on_arm:
             world.camera_flange = config.initial_flange_pose()
         if config.work is not None:
@@ -354,8 +233,52 @@ class SimWorld:
         """
         self.apply_events()
         flange = self.true_flange_pose()  # also brings the simulated clock up to the motion under way
+        return self.on_flange(flange, self.mount)
+
+    def on_flange(self, flange: Pose, mount: Pose) -> Pose:
+        """``T_base_camera`` of a camera with true mount ``mount`` when the flange truly stands at ``flange``.
+
+        With :attr:`camera_flange` set (``camera_on_arm = false``) the camera stays at ``camera_flange @ mount``.
+        """
         fixed = self.camera_flange
-        return (flange if fixed is None else fixed) @ self.mount
+        return (flange if fixed is None else fixed) @ mount
+
+    def place_camera(self, placement: CameraPlacement) -> Pose:
+        """Register a camera of ``[[cameras]]`` built with ``placement``; returns its true pose.
+
+        The pose is its ``[[sim.cameras]]`` entry's, else the configured one
+        (:func:`~cellcal.sims.placement.true_placement_pose`): ``T_flange_camera`` for a camera on
+        the flange (it renders from :meth:`on_flange`), ``T_base_camera`` for a fixed one.
+        """
+        self.placed[placement.name] = placement
+        return true_placement_pose(placement, truth_of(self.camera_truths, placement.name))
+
+    def check_camera_truths(self, source: str | None = None) -> None:
+        """Refuse ``[[sim.cameras]]`` entries that name no camera of the cell (once every camera is built).
+
+        The placed cameras are known by name; the camera a run drives through ``[camera]``/``[mount]``
+        (built without a placement) is not, so one entry naming no placed camera is taken as naming it
+        when such a camera was built in this world, and none otherwise.
+
+        Raises:
+            ConfigError: One line naming the first entry too many and the placed cameras.
+        """
+        unmatched = [i for i, truth in enumerate(self.camera_truths) if truth.name not in self.placed]
+        allowed = 1 if self.driven_cameras else 0
+        if len(unmatched) > allowed:
+            names = " and ".join(repr(self.camera_truths[i].name) for i in unmatched)
+            placed = ", ".join(sorted(self.placed)) or "none"
+            one = "; one may name the camera the run drives through [camera]" if allowed else ""
+            i = unmatched[allowed]
+            raise ConfigError(f"{names} name no camera of the cell: {self.camera_truths[i].name!r} is one too many "
+                              f"(placed: {placed}{one})", source=source, key=f"sim.cameras[{i}].name")
+
+    def scene_at(self, flange: Pose | None = None) -> Scene:
+        """The scene a frame sees: :attr:`scene`, plus the plate at the true flange pose ``flange`` (None: now)."""
+        plate = self.plate
+        if plate is None:
+            return self.scene
+        return self.scene.with_solids((plate.solid(self.true_flange_pose() if flange is None else flange),))
 
     def true_flange_pose(self) -> Pose:
         """Where the flange truly stands now: the arm's believed pose moved by its kinematic errors, if any."""

@@ -318,8 +318,8 @@ def plate_poses(camera_base: Pose, *, distance_m: float, plate_flange: Plane,
     the plate's face toward the camera, tilted by the tilt about an axis across the optical axis
     at the azimuth (measured in the camera's x-y plane from its x axis; a zero tilt is shown
     once); the flange is rolled about the plate normal by ``rolls_deg`` in turn, pose by pose.
-    The face shown is the one away from the flange (the plate's normal is taken pointing away
-    from the flange origin). Two azimuths 90 deg apart and a nonzero tilt see the camera's pose;
+    The face shown is the one ``plate_flange``'s normal points out of (the measured face's outward
+    normal, in the flange frame). Two azimuths 90 deg apart and a nonzero tilt see the camera's pose;
     the rolls separate the plate's plane in the flange from it. Pure geometry: no reach check.
 
     Args:
@@ -343,7 +343,7 @@ def plate_poses(camera_base: Pose, *, distance_m: float, plate_flange: Plane,
     if not tilts_deg or not all(0.0 <= t < 80.0 for t in tilts_deg) or not azimuths_deg or not rolls_deg:
         raise CalibrationError(f"plate_poses needs tilts in [0, 80) deg, azimuths and rolls, got {list(tilts_deg)}, "
                                f"{list(azimuths_deg)}, {list(rolls_deg)}")
-    plate = Plane(-plate_flange.normal, -plate_flange.offset_m) if plate_flange.offset_m > 0 else plate_flange
+    plate = plate_flange  # its normal is the face's outward normal: the face shown to the camera
     centre = plate.point_m if plate_centre_flange_m is None else np.asarray(plate_centre_flange_m, dtype=np.float64)
     if abs(float(plate.signed_distance(centre))) > 1e-3:
         raise CalibrationError(f"plate_centre_flange_m is {1000 * abs(float(plate.signed_distance(centre))):.3g} mm "

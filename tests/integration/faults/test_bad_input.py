@@ -44,7 +44,9 @@ from fuzz_targets import CONFIG_DIR, dump_toml
 from repo_paths import TEST_DATA
 
 from cellcal.core.calibration.calibrator import build_devices
+from cellcal.core.calibration.cameras import CameraPoseSection, CamerasSection
 from cellcal.core.calibration.config import TOP_LEVEL_TABLES, CellConfig, load_config
+from cellcal.core.calibration.sections import MountSection
 from cellcal.core.cli import build_parser, main
 from cellcal.devices.config import DEFAULT_LIMITS, INT_MAX, parse_section, schema_of
 from cellcal.devices.registry import default_registry
@@ -238,8 +240,23 @@ def _nested(table: Table) -> Iterator[Table]:
                                      table.label, doc))
 
 
+def _camera_tables() -> Iterator[Table]:
+    """``[[cameras]]`` of configs/sim_multi.toml: a camera on the flange with its mount, a fixed one with its pose.
+
+    Not through :func:`_nested`: an entry holds a mount or a pose by its place, never both.
+    """
+    multi = _read("sim_multi.toml")
+    entries = multi["cameras"]
+    flange = next(i for i, e in enumerate(entries) if e["on"] == "flange")
+    fixed = next(i for i, e in enumerate(entries) if e["on"] == "base")
+    multi["cameras"][flange].setdefault("mount", valid_value(MountSection))
+    yield Table(f"cameras[{flange}]", ("cameras", flange), CamerasSection, "sim_multi.toml", multi, ("backend",))
+    yield Table(f"cameras[{flange}].mount", ("cameras", flange, "mount"), MountSection, "sim_multi.toml", multi)
+    yield Table(f"cameras[{fixed}].pose", ("cameras", fixed, "pose"), CameraPoseSection, "sim_multi.toml", multi)
+
+
 def all_tables() -> list[Table]:
-    return [t for top in _top_tables() for t in _nested(top)]
+    return [t for top in _top_tables() for t in _nested(top)] + list(_camera_tables())
 
 
 # ---------------------------------------------------------------------- cases
@@ -437,7 +454,7 @@ def test_every_base_document_is_valid(tmp_path: Path, table: Table) -> None:
         parse_section(cls, section, where=str(kind), source=str(path), ignore=("backend",))
         return
     camera, arm = build_devices(config)
-    assert camera.backend_name == table.doc["camera"]["backend"]
+    assert camera.backend_name == config.camera_section["backend"]
     assert arm.inner.backend_name == table.doc["arm"]["backend"]
 
 
