@@ -1,9 +1,10 @@
-"""``cellcal export --ros2 FILE``: the camera mount of a result (or hand-eye file) as ROS 2 text.
+"""``cellcal export --ros2 FILE [FILE ...]``: the cameras of results (or hand-eye files) as ROS 2 text.
 
-Prints a ``static_transform_publisher`` launch snippet and a URDF joint for
-``T_flange_camera`` (ADR 0020). A result whose mount is the configured one (no
-``[mount] from_handeye``) says so on stderr and in both texts. Exit status 2 for a file
-that is not one of those.
+Prints one ``static_transform_publisher`` launch file and a URDF joint per camera: ``T_flange_camera``
+of a camera on the flange (a result.json or handeye.json), ``T_base_camera`` of a fixed camera
+(``handeye-NAME.json``; ADR 0020, 0061). A result whose mount is the configured one (no
+``[mount] from_handeye``) says so on stderr and in both texts. Exit status 2 for a file that is
+not one of those, or two files for one camera frame.
 """
 
 from __future__ import annotations
@@ -37,17 +38,19 @@ def _frame(text: str) -> str:
 
 def register(sub: Any) -> None:
     """Add the ``export`` subcommand."""
-    p = sub.add_parser("export", help="print the camera mount of a result as ROS 2 launch and URDF text",
-                       description="Read the camera mount (flange -> camera) from a 'cellcal calibrate' "
-                       "result.json or a hand-eye file (mount.translation_m, mount.rpy_deg) and print a ROS 2 "
-                       "static_transform_publisher launch snippet and a URDF fixed joint for it. The camera "
-                       "frame is the optical frame (x right, y down, z forward).")
-    p.add_argument("--ros2", metavar="FILE", required=True, type=path_arg,
-                   help="result.json or handeye.json to read the mount from")
+    p = sub.add_parser("export", help="print the cameras of results as ROS 2 launch and URDF text",
+                       description="Read each camera's transform from 'cellcal calibrate' result.json or hand-eye "
+                       "files (the mount, flange -> camera; a fixed camera's handeye-NAME.json: base -> camera) "
+                       "and print one ROS 2 launch file with a static_transform_publisher per camera and a URDF "
+                       "fixed joint for each. The camera frame is the optical frame (x right, y down, z forward).")
+    p.add_argument("--ros2", metavar="FILE", required=True, nargs="+", type=path_arg,
+                   help="result.json, handeye.json or handeye-NAME.json files, one per camera")
     p.add_argument("--parent", metavar="FRAME", default="flange", type=_frame,
-                   help="parent frame / link (default: %(default)s)")
-    p.add_argument("--child", metavar="FRAME", default="camera", type=_frame,
-                   help="child frame / link (default: %(default)s)")
+                   help="parent frame / link of a camera on the flange (default: %(default)s)")
+    p.add_argument("--base", metavar="FRAME", default="base_link", type=_frame,
+                   help="parent frame / link of a fixed camera (default: %(default)s)")
+    p.add_argument("--child", metavar="FRAME", default=None, type=_frame,
+                   help="child frame / link of a single camera (default: its name in the file, else 'camera')")
     p.set_defaults(func=run)
 
 
@@ -107,8 +110,8 @@ def configured_mount_note(document: Mapping[str, Any]) -> str | None:
             "(estimate it with 'cellcal handeye', set [mount] from_handeye to its handeye.json, calibrate again)")
 
 
-def read_document(path: str) -> dict[str, Any]:
-    """The JSON object of ``path`` (ConfigError naming the file otherwise)."""
+def read_document(path: str, need_mount: bool = True) -> dict[str, Any]:
+    """The JSON object of ``path`` (with a ``mount`` object unless ``need_mount`` is False; ConfigError otherwise)."""
     from cellcal.devices import boundedjson  # here: json with it, not at `cellcal --help`
 
     check_input_file(path, MAX_INPUT_BYTES)
@@ -119,7 +122,10 @@ def read_document(path: str) -> dict[str, Any]:
         raise ConfigError("file not found", source=path) from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise ConfigError(f"not a readable JSON file: {exc}", source=path) from None
-    if not isinstance(document, dict) or not isinstance(document.get("mount"), dict):
+    if not isinstance(document, dict):
+        raise ConfigError("no 'mount' object (not a JSON object): expected a cellcal result.json or a hand-eye file",
+                          source=path)
+    if need_mount and not isinstance(document.get("mount"), dict):
         raise ConfigError("no 'mount' object: expected a cellcal result.json or a hand-eye file", source=path)
     return document
 
@@ -160,16 +166,53 @@ def mount_pose(document: Mapping[str, Any], path: str) -> Pose:
                       key="mount")
 
 
+def _fixed_pose(document: Mapping[str, Any], path: str) -> Pose:
+    """``T_base_camera`` of a fixed camera's result (``camera_base``), checked as a mount is."""
+    table = document.get("camera_base")
+    if not isinstance(table, Mapping):
+        raise ConfigError("no 'camera_base' object: not a fixed camera's handeye-NAME.json", source=path)
+    return mount_pose({"mount": {k: table.get(k) for k in ("translation_m", "quaternion_xyzw")}}, path)
+
+
+def camera_transform(path: str, child: str | None, args: argparse.Namespace
+                     ) -> tuple[Pose, str, str, str | None]:
+    """``(pose, parent, child, note)`` of one file: a fixed camera under ``--base``, else the mount under ``--parent``.
+
+    Raises:
+        ConfigError: Naming the file and what is wrong with it.
+    """
+    from cellcal.core.handeye.fixed_run import FIXED_SCHEMA  # here: not at `cellcal --help`
+
+    document = read_document(path, need_mount=False)
+    name = document.get("camera")
+    default = name if isinstance(name, str) and FRAME_NAME.fullmatch(name) else "camera"
+    if str(document.get("schema", "")) == FIXED_SCHEMA:
+        return _fixed_pose(document, path), args.base, child or default, None
+    if not isinstance(document.get("mount"), dict):
+        raise ConfigError("no 'mount' object: expected a cellcal result.json or a hand-eye file", source=path)
+    return mount_pose(document, path), args.parent, child or default, configured_mount_note(document)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal export``; returns the exit status."""
-    from cellcal.devices.recording.ros2.static import launch_snippet, urdf_joint
+    from cellcal.devices.recording.ros2.static import launch_file, urdf_joint
 
-    document = read_document(args.ros2)
-    pose = mount_pose(document, args.ros2)
-    note = configured_mount_note(document)
-    if note is not None:
-        say(f"cellcal export: note: {note}")
-    print(launch_snippet(pose, args.parent, args.child, note=note))
-    print(f"<!-- URDF fixed joint: {args.parent} -> {args.child} -->")
-    print(urdf_joint(pose, args.parent, args.child, note=note), end="")
+    paths = list(args.ros2)
+    if args.child is not None and len(paths) > 1:
+        raise ConfigError("--child names one camera's frame; with several files each takes its camera's name")
+    transforms = [camera_transform(path, args.child, args) for path in paths]
+    children = [t[2] for t in transforms]
+    for k, child in enumerate(children):
+        if children.index(child) != k:
+            raise ConfigError(f"two files give camera frame {child!r} ({paths[children.index(child)]} and "
+                              f"{paths[k]}): export each camera once")
+    for _pose, _parent, _child, note in transforms:
+        if note is not None:
+            say(f"cellcal export: note: {note}")
+    single = len(transforms) == 1
+    print(launch_file([(pose, parent, child, "cellcal_mount" if single else f"cellcal_{child.replace('/', '_')}",
+                        note) for pose, parent, child, note in transforms]))
+    for k, (pose, parent, child, note) in enumerate(transforms):
+        print(f"<!-- URDF fixed joint: {parent} -> {child} -->")
+        print(urdf_joint(pose, parent, child, note=note), end="" if k == len(transforms) - 1 else "\n")
     return EXIT_OK

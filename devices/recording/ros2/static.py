@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from xml.sax.saxutils import quoteattr
 
 from cellcal.devices.pose import Pose
 
-__all__ = ["launch_snippet", "urdf_joint"]
+__all__ = ["launch_file", "launch_snippet", "urdf_joint"]
 
 
 def _num(value: float) -> str:
@@ -31,22 +32,31 @@ def launch_snippet(pose: Pose, parent: str, child: str, *, node_name: str = "cel
     ``note`` (e.g. that the transform was configured, not estimated) becomes a ``# NOTE:``
     comment line after the first.
     """
-    x, y, z = (_num(v) for v in pose.translation)
-    qx, qy, qz, qw = (_num(v) for v in pose.rotation.as_quat())
-    args = (f'"--x", "{x}", "--y", "{y}", "--z", "{z}",\n'
-            f'                       "--qx", "{qx}", "--qy", "{qy}", "--qz", "{qz}", "--qw", "{qw}",\n'
-            f'                       "--frame-id", "{parent}", "--child-frame-id", "{child}"')
-    return (f"# {parent} -> {child}: publish with 'ros2 launch' (or 'ros2 run tf2_ros static_transform_publisher"
-            f" --x {x} --y {y} --z {z} --qx {qx} --qy {qy} --qz {qz} --qw {qw}"
-            f" --frame-id {parent} --child-frame-id {child}')\n"
-            + (f"# NOTE: {_one_line(note)}\n" if note else "")
-            + "from launch import LaunchDescription\n"
+    return launch_file([(pose, parent, child, node_name, note)])
+
+
+def launch_file(transforms: Sequence[tuple[Pose, str, str, str, str | None]]) -> str:
+    """One ROS 2 launch file with a ``static_transform_publisher`` per ``(pose, parent, child, node, note)``.
+
+    Each transform's header comment gives its ``ros2 run`` line and its note; node names must differ.
+    """
+    head, nodes = [], []
+    for pose, parent, child, node_name, note in transforms:
+        x, y, z = (_num(v) for v in pose.translation)
+        qx, qy, qz, qw = (_num(v) for v in pose.rotation.as_quat())
+        args = (f'"--x", "{x}", "--y", "{y}", "--z", "{z}",\n'
+                f'                       "--qx", "{qx}", "--qy", "{qy}", "--qz", "{qz}", "--qw", "{qw}",\n'
+                f'                       "--frame-id", "{parent}", "--child-frame-id", "{child}"')
+        head.append(f"# {parent} -> {child}: publish with 'ros2 launch' (or 'ros2 run tf2_ros "
+                    f"static_transform_publisher --x {x} --y {y} --z {z} --qx {qx} --qy {qy} --qz {qz} --qw {qw}"
+                    f" --frame-id {parent} --child-frame-id {child}')\n"
+                    + (f"# NOTE: {_one_line(note)}\n" if note else ""))
+        nodes.append(f'        Node(package="tf2_ros", executable="static_transform_publisher", name="{node_name}",\n'
+                     f"             arguments=[{args}]),\n")
+    return ("".join(head) + "from launch import LaunchDescription\n"
             "from launch_ros.actions import Node\n\n\n"
             "def generate_launch_description():\n"
-            "    return LaunchDescription([\n"
-            f'        Node(package="tf2_ros", executable="static_transform_publisher", name="{node_name}",\n'
-            f"             arguments=[{args}]),\n"
-            "    ])\n")
+            "    return LaunchDescription([\n" + "".join(nodes) + "    ])\n")
 
 
 def urdf_joint(pose: Pose, parent: str, child: str, *, name: str | None = None, note: str | None = None) -> str:

@@ -41,10 +41,15 @@ def variant(tmp_path: Path, **plate: Any) -> Path:
 
 
 @pytest.fixture(scope="module")
-def above(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+def above_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("fixed")
     assert main(["handeye", "--config", str(MULTI), "--camera", "above", "--out", str(out), "--quiet"]) == 0
-    document: dict[str, Any] = json.loads((out / "handeye-above.json").read_text(encoding="utf-8"))
+    return out / "handeye-above.json"
+
+
+@pytest.fixture(scope="module")
+def above(above_path: Path) -> dict[str, Any]:
+    document: dict[str, Any] = json.loads(above_path.read_text(encoding="utf-8"))
     return document
 
 
@@ -96,3 +101,27 @@ def test_what_the_fixed_run_cannot_do_is_one_line_before_anything_moves(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0]
     assert not (tmp_path / "out" / "handeye-above.json").exists()
+
+
+def test_export_writes_every_camera_under_its_parent(above_path: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "wrist"
+    assert main(["calibrate", "--config", str(MULTI), "--no-report", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["export", "--ros2", str(out / "result.json"), str(above_path)]) == 0
+    text = capsys.readouterr().out
+    assert text.count('executable="static_transform_publisher"') == 2
+    assert 'name="cellcal_camera"' in text and 'name="cellcal_above"' in text
+    assert '"--frame-id", "flange", "--child-frame-id", "camera"' in text
+    assert '"--frame-id", "base_link", "--child-frame-id", "above"' in text
+    compile(text.split("<!-- URDF")[0], "launch.py", "exec")          # one launch file, valid Python
+    found = Pose.from_dict(json.loads(above_path.read_text(encoding="utf-8"))["camera_base"])
+    joint = text.split("<!-- URDF fixed joint: base_link -> above -->")[1]
+    xyz = [float(v) for v in joint.split('xyz="')[1].split('"')[0].split()]
+    assert np.allclose(xyz, found.translation, atol=1e-12)
+
+
+def test_export_refuses_two_files_for_one_camera_frame(above_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["export", "--ros2", str(above_path), str(above_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "two files give camera frame 'above'" in err[0]
