@@ -41,7 +41,8 @@ SUMMARIES = {
     "report": "open a run's report (DIR/report.html) or render it again from its JSON",
     "study": "Monte Carlo accuracy study of every method on the simulated cell",
     "record": "run the calibration plan and record the session to an MCAP file or a ROS 2 bag",
-    "export": "print the camera mount of a result as ROS 2 launch and URDF text",
+    "export": "print the cameras of results as ROS 2 launch and URDF text",
+    "cameras": "relate several cameras' calibrations: pair transforms, plane agreement",
     "devices": "list camera and arm backends and where they come from",
     "paper": "reproduce the paper's two tilt-measurement approaches from a P1-P9 table",
 }

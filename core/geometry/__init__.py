@@ -26,6 +26,7 @@ from cellcal.core.geometry.relative import (
     PoseWithCovariance,
     plane_agreement,
     relative_pose,
+    transform_plane,
 )
 from cellcal.core.geometry.robust_fit import (
     fit_plane_robust,
@@ -57,5 +58,6 @@ __all__ = [
     "relative_pose",
     "sample_points",
     "sample_window",
+    "transform_plane",
     "validate_points",
 ]

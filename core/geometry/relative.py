@@ -36,6 +36,7 @@ __all__ = [
     "perturb",
     "plane_agreement",
     "relative_pose",
+    "transform_plane",
 ]
 
 #: Largest asymmetry of a covariance, relative to its largest entry.
@@ -229,6 +230,49 @@ def relative_pose(a: PoseWithCovariance, b: PoseWithCovariance, *, cross_covaria
         return inv.compose(b)
     cross = _checked_cross(a.covariance, b.covariance, cross_covariance)
     return inv.compose(b, cross_covariance=jac @ cross)  # Cov(J da, db) = J Cov(da, db)
+
+
+def _plane_step(plane: Plane, step: FloatArray) -> Plane:
+    """``plane`` moved by ``(tilt a, tilt b, offset)``: its normal turned across ``tangent_basis``, offset shifted."""
+    basis = tangent_basis(np.asarray(plane.normal, dtype=np.float64))
+    normal = np.asarray(plane.normal, dtype=np.float64) + basis @ step[:2]
+    return Plane(normal / np.linalg.norm(normal), float(plane.offset_m) + float(step[2]))
+
+
+def _plane_coordinates(plane: Plane, about: Plane) -> FloatArray:
+    """``plane`` as ``(tilt a, tilt b, offset)`` about ``about`` (the same side of it)."""
+    n = np.asarray(plane.normal, dtype=np.float64)
+    sign = 1.0 if float(n @ np.asarray(about.normal)) >= 0 else -1.0
+    basis = tangent_basis(np.asarray(about.normal, dtype=np.float64))
+    return np.array([*(basis.T @ (sign * n)), sign * float(plane.offset_m) - float(about.offset_m)])
+
+
+def transform_plane(plane: Plane, covariance: ArrayLike, pose: PoseWithCovariance) -> tuple[Plane, FloatArray]:
+    """A plane given in a child frame, in its parent frame through ``pose`` (``T_parent_child``), with covariance.
+
+    Args:
+        plane: The plane in the child frame (e.g. a camera's measurement of the table).
+        covariance: 3x3 of its ``(tilt a, tilt b, offset)``: turns of the normal about the axes of
+            :func:`~cellcal.core.geometry.planes.tangent_basis` (rad) and the offset (m), as the hand-eye
+            model's plane; independent of ``pose``'s.
+        pose: The child's pose in the parent frame with its covariance.
+
+    Returns:
+        The plane in the parent frame and the 3x3 covariance of its ``(tilt a, tilt b, offset)`` about
+        the returned plane's own tangent basis (first order, central differences).
+    """
+    cov_plane = _checked_covariance(covariance, 3, "plane covariance", definite=False)
+    out = plane.transformed(pose.pose)
+    jac = np.zeros((3, 9))
+    for k in range(9):
+        h = np.zeros(9)
+        h[k] = 1e-7
+        ends = [_plane_step(plane, s[6:]).transformed(perturb(pose.pose, s[:6])) for s in (h, -h)]
+        jac[:, k] = (_plane_coordinates(ends[0], out) - _plane_coordinates(ends[1], out)) / 2e-7
+    joint = np.zeros((9, 9))
+    joint[:6, :6], joint[6:, 6:] = pose.covariance, cov_plane
+    result: FloatArray = jac @ joint @ jac.T
+    return out, 0.5 * (result + result.T)
 
 
 @dataclass(frozen=True)

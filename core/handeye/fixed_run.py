@@ -175,12 +175,40 @@ class FixedCalibrator(Calibrator):
         super().__init__(config, camera, arm, progress=progress)
         self.poses = list(poses)
         self.camera_base = _camera_base(config)
+        #: The measuring plane as the camera saw it before the first move (:meth:`_table_view`).
+        self.table: dict[str, Any] | None = None
 
     def _check_image(self) -> None:
-        """Before the first move: the plate must be in the camera's view at every pose (one line naming those out)."""
+        """Before the first move: the plate in the camera's view at every pose; the measuring plane as it sees it."""
         t = self.camera.default_timeout_s
         intrinsics = self.guards["camera"].call(lambda: self.camera.intrinsics, t, "intrinsics")
         check_plate_in_view(self.config, self.poses, intrinsics)
+        self.table = self._table_view(intrinsics)
+
+    def _table_view(self, intrinsics: Intrinsics) -> dict[str, Any] | None:
+        """The ``[reference]`` plane as the fixed camera sees it before the first move, the plate's outline (1.5x)
+        left out: its ``full_frame`` section, ``{"error": ...}`` when no plane is found there, None without a
+        ``[reference]``. Not journaled: a resumed run measures it again (the arm has not moved yet)."""
+        import dataclasses
+
+        ref = self.config.reference
+        if ref is None:
+            return None
+        flange = self._flange_pose()
+        t = self.config.plan.capture_timeout_s
+        frames = [self.guards["camera"].call(lambda: self.camera.capture(t), t, f"capture(timeout={t:g} s)")]
+        try:
+            plate = plate_region(intrinsics, self.camera_base, flange,
+                                 dataclasses.replace(self.config.plate, region_share=1.5))
+        except CalibrationError:
+            plate = np.zeros((intrinsics.height, intrinsics.width), dtype=bool)   # not in view: nothing to leave out
+        expected = Plane.from_point_normal(ref.plane_point_m, ref.plane_normal).transformed(self.camera_base.inv())
+        search = ExpectedPlane(expected.oriented_toward_origin(), SEARCH_ANGLE_RAD, SEARCH_OFFSET_M)
+        try:
+            _row, result = measure_full_frame(frames, self.config.full_frame, region=~plate, expected_plane=search)
+        except CalibrationError as exc:
+            return {"error": str(exc)}
+        return full_frame_document(result, self.camera_base, None, expected_plane=search)
 
     def _measure_pose(self, index: int, target: Pose) -> PoseRecord:
         """Move (the safety wrapper confirms the arrival), capture, fit the plate inside its predicted outline."""
@@ -225,6 +253,30 @@ def fixed_document(config: CellConfig, estimate: FixedCameraEstimate, header: di
                           for i, r in enumerate(estimate.residuals)]}
 
 
+def measuring_plane_section(table: dict[str, Any] | None, estimate: FixedCameraEstimate) -> dict[str, Any] | None:
+    """The measuring plane the fixed camera saw, in the base frame through its estimated pose, with covariance.
+
+    Its ``(tilt a, tilt b, offset)`` covariance (about the base plane's tangent basis) carries the frame's fit
+    and the camera pose's; it is what ``plane_agreement`` compares with the other cameras' planes. None
+    without a view; ``{"error": ...}`` when the camera found no plane there.
+    """
+    from cellcal.core.geometry.planes import tangent_basis
+    from cellcal.core.geometry.relative import PoseWithCovariance, transform_plane
+
+    if table is None or "error" in table:
+        return table
+    obs = observation_from_pose({"full_frame": table, "reported_flange_pose": Pose.identity().to_dict()})
+    cov4 = obs.covariance   # the fit's total (noise and the allowance): one view
+    basis = tangent_basis(obs.normal)
+    jac = np.zeros((3, 4))
+    jac[:2, :3], jac[2, 3] = basis.T, 1.0                   # (normal, offset) -> (tilt a, tilt b, offset)
+    plane_cam = Plane(obs.normal, obs.offset_m)
+    plane, cov = transform_plane(plane_cam, jac @ cov4 @ jac.T,
+                                 PoseWithCovariance(estimate.camera_base, estimate.covariance))
+    return {"plane_base": plane.to_dict(), "covariance": cov.tolist(),
+            "covariance_parameters": ["tilt_a_rad", "tilt_b_rad", "offset_m"], "plane_cam": plane_cam.to_dict()}
+
+
 def run_fixed_handeye(calibrator: FixedCalibrator, out_dir: str | Path, *, resume: bool = False) -> dict[str, Any]:
     """Measure the plate plan (journal beside the output), estimate, write ``DIR/handeye-NAME.json`` atomically.
 
@@ -246,6 +298,7 @@ def run_fixed_handeye(calibrator: FixedCalibrator, out_dir: str | Path, *, resum
                   "arm_model": arm_model.to_dict(),
                   **({"resumed_poses": measured["resumed_poses"]} if "resumed_poses" in measured else {})}
         document = fixed_document(config, estimate, header)
+        document["measuring_plane"] = measuring_plane_section(calibrator.table, estimate)
         write_json_atomic(out, document)
         remove_journal(journal)
     return document

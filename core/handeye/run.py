@@ -144,7 +144,7 @@ def run_handeye(calibrator: Calibrator, out_dir: str | Path, *, plan_kind: str, 
         estimate = estimate_from_document(config, measured, calibrator.arm.arm_model())
         flanges = [Pose.from_dict(p["reported_flange_pose"]) for p in measured["poses"]]
         header = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-                  "config_source": config.source, "plan": plan_kind, "method": "plane",
+                  "config_source": config.source, "camera": config.camera_name, "plan": plan_kind, "method": "plane",
                   "commanded_flange_poses": [p.to_dict() for p in calibrator.poses],
                   "arm_model": calibrator.arm.arm_model().to_dict(),
                   **({"resumed_poses": measured["resumed_poses"]} if "resumed_poses" in measured else {})}

@@ -125,3 +125,44 @@ def test_export_refuses_two_files_for_one_camera_frame(above_path: Path, capsys:
     assert main(["export", "--ros2", str(above_path), str(above_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "two files give camera frame 'above'" in err[0]
+
+
+@pytest.fixture(scope="module")
+def cell_results(above_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The hand-eye results of the three cameras of configs/sim_multi.toml (the wrist's, above's, side45's)."""
+    out = above_path.parent
+    assert main(["handeye", "--config", str(MULTI), "--out", str(out), "--quiet", "--no-report"]) == 0
+    assert main(["handeye", "--config", str(MULTI), "--camera", "side45", "--out", str(out), "--quiet"]) == 0
+    return {"wrist": out / "handeye.json", "above": above_path, "side45": out / "handeye-side45.json"}
+
+
+def test_cameras_relates_the_fixed_pair_within_its_intervals_and_the_planes_agree(
+        cell_results: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    capsys.readouterr()
+    out = tmp_path / "cameras.json"
+    assert main(["cameras", *map(str, cell_results.values()), "--json", str(out)]) == 0
+    document = json.loads(out.read_text(encoding="utf-8"))
+    assert [c["name"] for c in document["cameras"]] == ["wrist", "above", "side45"]
+    (pair,) = document["pairs"]                     # the two fixed cameras; the wrist's changes with the arm
+    assert (pair["from"], pair["to"], pair["parent"]) == ("above", "side45", "base")
+    true = truth("above").inv() @ truth("side45")
+    # measured: the pair 0.3-2.6 mm and 0.1 deg from the truth, half-widths 3.8-14 mm and 0.4-0.5 deg
+    err = np.asarray(pair["translation_m"]) - true.translation
+    assert np.all(np.abs(err) <= np.asarray(pair["translation_half_width_m"]))
+    agreement = document["plane_agreement"]
+    assert agreement["agree"] and agreement["cameras"] == ["above", "side45", "wrist"]
+    assert agreement["p_value"] > 0.05                  # measured 0.94
+    assert "agree" in capsys.readouterr().out
+
+
+def test_cameras_names_the_camera_whose_plane_disagrees(cell_results: dict[str, Path], tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    moved = json.loads(cell_results["side45"].read_text(encoding="utf-8"))
+    moved["measuring_plane"]["plane_base"]["offset_m"] -= 0.08   # its table 80 mm off: 10 of its sigmas
+    path = tmp_path / "handeye-side45.json"
+    path.write_text(json.dumps(moved), encoding="utf-8")
+    capsys.readouterr()
+    assert main(["cameras", str(cell_results["wrist"]), str(cell_results["above"]), str(path)]) == 1
+    assert "camera 'side45' disagrees" in capsys.readouterr().out
+    assert main(["cameras", str(cell_results["above"]), str(cell_results["above"])]) == 2
+    assert "two results for camera 'above'" in capsys.readouterr().err

@@ -314,3 +314,24 @@ def test_too_few_cameras_or_a_bad_level() -> None:
         plane_agreement({"flange": planes["flange"]})
     with pytest.raises(CalibrationError, match="confidence"):
         plane_agreement(planes, confidence=0.0)
+
+
+def test_transform_plane_propagates_both_covariances_as_a_monte_carlo_does() -> None:
+    from cellcal.core.geometry.relative import _plane_coordinates, _plane_step, perturb, transform_plane
+
+    rng = np.random.default_rng(11)
+    plane = Plane(np.array([0.1, -0.2, -1.0]) / np.linalg.norm([0.1, -0.2, -1.0]), 1.19)   # a table seen from above
+    cov_plane = np.diag([2e-4, 3e-4, 1e-3]) ** 2
+    a = rng.normal(size=(6, 6)) * np.array([1e-3] * 3 + [2e-3] * 3)
+    pose = PoseWithCovariance(Pose.from_xyz_rpy([0.3, 0.0, 1.2], np.radians([180.0, 0.5, -0.3])), a @ a.T)
+    out, cov = transform_plane(plane, cov_plane, pose)
+    assert np.allclose(out.normal, plane.transformed(pose.pose).normal, atol=1e-15)
+    draws = []
+    for _ in range(20000):
+        moved = _plane_step(plane, rng.multivariate_normal(np.zeros(3), cov_plane))
+        draws.append(_plane_coordinates(moved.transformed(perturb(pose.pose, rng.multivariate_normal(
+            np.zeros(6), pose.covariance))), out))
+    mc = np.cov(np.array(draws).T)
+    scale = np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
+    # first order against 20000 draws: within 5 % of each entry's diagonal scale (sampling error ~1-2 %)
+    assert np.max(np.abs(mc - cov) / scale) < 0.05
