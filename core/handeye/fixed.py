@@ -98,6 +98,7 @@ class FixedCameraEstimate:
         arm_common_covariance: 6x6 the arm's error common to the poses would add to ``covariance`` for the
             camera's pose in the true base frame (None without an arm accuracy); not in ``covariance``.
         systematic_terms: The camera's systematic terms taken as common to the views (:mod:`.fixed_systematic`).
+        systematic_covariance: 6x6: their part of ``covariance`` (the floor no number of views lowers).
     """
 
     camera_base: Pose
@@ -117,6 +118,7 @@ class FixedCameraEstimate:
     arm_accuracy: ArmAccuracy | None = None
     arm_common_covariance: FloatArray | None = None
     systematic_terms: tuple[str, ...] = ()
+    systematic_covariance: FloatArray | None = None
 
     @property
     def z(self) -> float:
@@ -289,7 +291,15 @@ def estimate_fixed_camera(plate_observations: Sequence[PlaneObservation], nomina
         {FIXED_PARAMETERS[i]: noise.interval_z * math.sqrt(cov[i, i]) for i in fitted}, views[:n_plate],
         views[n_plate] if measuring_plane is not None else None, chi2, dof, noise, seen, confidence,
         "estimated" if estimate_plate else ("exact" if prior_sigma is None else "prior"), arm,
-        None if arm is None else _arm_common_covariance(arm, camera, data.flanges[1]), tuple(terms))
+        None if arm is None else _arm_common_covariance(arm, camera, data.flanges[1]), tuple(terms),
+        _camera_block(sys_cov, fitted))
+
+
+def _camera_block(cov: FloatArray, fitted: Sequence[int]) -> FloatArray:
+    """The camera pose's 6x6 block of a covariance over the ``fitted`` parameters (the first six are the pose's)."""
+    full = np.zeros((9, 9))
+    full[np.ix_(fitted, fitted)] = cov
+    return full[:6, :6]
 
 
 def _structural(data: _Views, model: FixedModel, free: Sequence[int]) -> FixedObservability:
