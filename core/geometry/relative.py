@@ -220,7 +220,8 @@ def relative_pose(a: PoseWithCovariance, b: PoseWithCovariance, *, cross_covaria
     :meth:`PoseWithCovariance.at_flange`); the result's step is in *a*'s frame.
 
     Args:
-        a, b: The two cameras' poses in the common frame.
+        a: Camera *a*'s pose in the common frame.
+        b: Camera *b*'s pose in the common frame.
         cross_covariance: 6x6 covariance of (a's step, rows; b's step, columns); None: independent
             (``b``'s own covariance for ``a`` and ``b`` the same estimate gives zero).
     """

@@ -31,6 +31,7 @@ from cellcal.core.handeye.model import (
     PLANE_TILT,
     PlaneModel,
     PlaneObservation,
+    PlaneResiduals,
     arm_accuracy_covariance,
     stack_poses,
     whitening,
@@ -261,7 +262,7 @@ def jacobian(fun: Callable[[FloatArray], FloatArray], x: FloatArray) -> FloatArr
     return np.column_stack(cols) if cols else np.zeros((len(fun(x)), 0))
 
 
-class _Problem:
+class _Problem(PlaneResiduals):
     """The whitened residual function of a set of observations over the free parameters."""
 
     def __init__(self, model: PlaneModel, observations: Sequence[PlaneObservation], free: Sequence[int],
@@ -281,23 +282,6 @@ class _Problem:
         self.whiten = np.stack([m for _, m in w])  # (N, 3, 3) inverse Cholesky factors
         self.normals = np.stack([o.normal for o in observations])
         self.offsets = np.array([o.offset_m for o in observations])
-
-    def full(self, x: FloatArray) -> FloatArray:
-        """The 9-vector with the free parameters ``x`` and the given ones at 0."""
-        p = np.zeros(len(PARAMETERS))
-        p[self.free] = x
-        return p
-
-    def raw(self, x: FloatArray) -> FloatArray:
-        """Unwhitened residuals (N, 3): tangent components of the normal error, offset error."""
-        normals, offsets = self.model.predict(self.full(x), self.flanges)
-        tangent = np.einsum("nij,ni->nj", self.bases, normals - self.normals)  # predicted - measured, across
-        return np.column_stack([tangent, offsets - self.offsets])
-
-    def __call__(self, x: FloatArray) -> FloatArray:
-        """Whitened residuals, flattened (3N,)."""
-        white: FloatArray = np.einsum("nij,nj->ni", self.whiten, self.raw(x)).ravel()
-        return white
 
 
 def _setup(observations: Sequence[PlaneObservation], nominal_mount: Pose, nominal_plane: Plane,

@@ -43,7 +43,7 @@ from cellcal.core.handeye.fixed_plan import (
     whiten_view,
 )
 from cellcal.core.handeye.fixed_systematic import systematic_columns, systematic_response
-from cellcal.core.handeye.model import PlaneObservation, stack_poses
+from cellcal.core.handeye.model import PlaneObservation, PlaneResiduals, stack_poses
 from cellcal.core.handeye.noise import MAX_INTERVAL_SCALE, NOISE_TEST_LEVEL, NoiseCheck, check_noise, scaled_covariance
 from cellcal.devices.errors import CalibrationError, CalibrationQualityError
 from cellcal.devices.pose import Pose
@@ -178,12 +178,12 @@ class FixedCameraEstimate:
                 "observability": self.observability.to_dict(), "notes": list(self.notes)}
 
 
-class _Views:
+class _Views(PlaneResiduals):
     """The whitened residual function of the plate views (and the measuring plane's) over the fitted parameters."""
 
     def __init__(self, model: FixedModel, observations: Sequence[PlaneObservation],
                  measuring: MeasuringPlaneView | None, fitted: Sequence[int], arm: ArmAccuracy | None) -> None:
-        self.model, self.fitted = model, list(fitted)
+        self.model, self.free = model, list(fitted)
         self.flanges = stack_poses([o.flange for o in observations])
         camera = model.nominal_camera
         rms = (0.0, 0.0) if arm is None else (arm.varying * arm.position_m, arm.varying * arm.rotation_rad)
@@ -200,23 +200,6 @@ class _Views:
         self.whiten = np.stack(whiten)  # (V, 3, 3) inverse Cholesky factors
         self.normals, self.offsets = np.stack(normals), np.array(offsets)
         self.bases = np.stack([tangent_basis(n) for n in self.normals])  # (V, 3, 2) across the measured normals
-
-    def full(self, x: FloatArray) -> FloatArray:
-        """The 9-vector with the fitted parameters ``x`` and the others at 0."""
-        p = np.zeros(len(FIXED_PARAMETERS))
-        p[self.fitted] = x
-        return p
-
-    def raw(self, x: FloatArray) -> FloatArray:
-        """Unwhitened residuals (V, 3): tangent components of the normal's error, the offset's error."""
-        normals, offsets = self.model.predict(self.full(x), self.flanges)
-        tangent = np.einsum("nij,ni->nj", self.bases, normals - self.normals)  # predicted - measured, across
-        return np.column_stack([tangent, offsets - self.offsets])
-
-    def __call__(self, x: FloatArray) -> FloatArray:
-        """Whitened residuals, flattened (3V,)."""
-        white: FloatArray = np.einsum("nij,nj->ni", self.whiten, self.raw(x)).ravel()
-        return white
 
     def residuals(self, x: FloatArray) -> tuple[ViewResidual, ...]:
         """Per view at ``x``: the angle between the normals, the offset's error and the whitened residual."""
@@ -305,7 +288,7 @@ def _camera_block(cov: FloatArray, fitted: Sequence[int]) -> FloatArray:
 def _structural(data: _Views, model: FixedModel, free: Sequence[int]) -> FixedObservability:
     """What the views can see, from the whitened Jacobian at the configured values (before any fit)."""
     normals_base = np.einsum("nij,j->ni", data.flanges[0], model.nominal_plate.normal)  # plate normals, base frame
-    return analyse_fixed(jacobian(data, np.zeros(len(data.fitted)))[:, :len(free)], free, normals_base,
+    return analyse_fixed(jacobian(data, np.zeros(len(data.free)))[:, :len(free)], free, normals_base,
                          len(data.offsets))
 
 

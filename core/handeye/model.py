@@ -111,6 +111,40 @@ class PlaneModel:
         return normals, plane.offset_m + t_c @ n_b  # c_C = c_B + n_B . t_C
 
 
+class PlaneResiduals:
+    """Whitened plane residuals over the fitted parameters (the camera on the flange's and a fixed camera's fits).
+
+    A subclass sets ``model`` (with ``predict(p, flanges) -> (normals, offsets)``), ``free`` (the fitted
+    parameters' indices into the 9), ``flanges`` (:func:`stack_poses`), ``bases`` (V, 3, 2 tangent bases of the
+    measured normals), ``normals`` (V, 3), ``offsets`` (V,) and ``whiten`` (V, 3, 3 inverse Cholesky factors).
+    """
+
+    model: Any
+    free: list[int]
+    flanges: tuple[FloatArray, FloatArray]
+    bases: FloatArray
+    normals: FloatArray
+    offsets: FloatArray
+    whiten: FloatArray
+
+    def full(self, x: FloatArray) -> FloatArray:
+        """The 9-vector with the fitted parameters ``x`` and the others at 0."""
+        p = np.zeros(len(PARAMETERS))
+        p[self.free] = x
+        return p
+
+    def raw(self, x: FloatArray) -> FloatArray:
+        """Unwhitened residuals (V, 3): tangent components of the normal's error, the offset's error."""
+        normals, offsets = self.model.predict(self.full(x), self.flanges)
+        tangent = np.einsum("nij,ni->nj", self.bases, normals - self.normals)  # predicted - measured, across
+        return np.column_stack([tangent, offsets - self.offsets])
+
+    def __call__(self, x: FloatArray) -> FloatArray:
+        """Whitened residuals, flattened (3V,)."""
+        white: FloatArray = np.einsum("nij,nj->ni", self.whiten, self.raw(x)).ravel()
+        return white
+
+
 def stack_poses(poses: Sequence[Pose]) -> tuple[FloatArray, FloatArray]:
     """Rotation matrices (N, 3, 3) and translations (N, 3) of poses."""
     return (np.stack([p.rotation.as_matrix() for p in poses]), np.stack([np.asarray(p.translation) for p in poses]))
@@ -223,5 +257,5 @@ def _budget_shifts(ff: Mapping[str, Any]) -> dict[str, tuple[FloatArray, float]]
 
 
 __all__ = ["MOUNT_ROTATION", "MOUNT_TRANSLATION", "PARAMETERS", "PLANE_OFFSET", "PLANE_TILT", "PlaneModel",
-           "PlaneObservation", "arm_accuracy_covariance", "arm_error_jacobian",
+           "PlaneObservation", "PlaneResiduals", "arm_accuracy_covariance", "arm_error_jacobian",
            "observation_from_pose", "plane_covariance", "stack_poses", "tangent_basis", "whitening"]
