@@ -57,6 +57,8 @@ class BackendContext:
         seed: Seed for any randomness, from the document's ``[cell] seed``.
         placement: A camera of ``[[cameras]]`` other than the one the document's ``[camera]`` and
             ``[mount]`` describe: where it is configured to stand (None: that one camera).
+        camera_names: Every camera of the cell (``[[cameras]]``' names; empty when unknown), e.g. for a
+            simulator to check the names of its truths.
     """
 
     source: str | None = None
@@ -65,6 +67,7 @@ class BackendContext:
     shared: dict[str, Any] = field(default_factory=dict)
     seed: int = 0
     placement: CameraPlacement | None = None
+    camera_names: tuple[str, ...] = ()
 
     @property
     def base_dir(self) -> Path:

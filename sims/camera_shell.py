@@ -57,6 +57,8 @@ class SimCameraShell(Camera3D):
         self.world = world if world is not None else world_from_context(context)
         #: Where this camera of ``[[cameras]]`` is configured to stand, or None (the camera a run drives).
         self.placement: CameraPlacement | None = None if context is None else context.placement
+        if context is not None and context.camera_names:
+            self.world.cell_camera_names = tuple(context.camera_names)
         self._source = None if context is None else context.source
         placed = self.placement
         # its true T_flange_camera (on the flange) or T_base_camera (fixed); None: the world's mount
@@ -112,7 +114,7 @@ class SimCameraShell(Camera3D):
         self.connects += 1
         if self.fault_hook is not None:
             self.fault_hook("connect", self.connects)
-        if self.placement is not None:  # every camera of the cell is built by now: check the truths' names
+        if self.placement is not None or self.world.cell_camera_names:  # every camera is built by now
             self.world.check_camera_truths(self._source)
         self._on_connect()
 

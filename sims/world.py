@@ -207,6 +207,8 @@ class SimWorld:
         self.placed: dict[str, CameraPlacement] = {}
         #: How many cameras were built without one (the camera a run drives through ``[camera]``/``[mount]``).
         self.driven_cameras = 0
+        #: The cell's cameras' names when the builder gave them (``BackendContext.camera_names``), else empty.
+        self.cell_camera_names: tuple[str, ...] = ()
 
     @classmethod
     def from_config(cls, config: SimConfig, mount: MountConfig | None = None, seed: int = 0) -> SimWorld:
@@ -263,6 +265,13 @@ class SimWorld:
         Raises:
             ConfigError: One line naming the first entry too many and the placed cameras.
         """
+        if self.cell_camera_names:  # the cell named its cameras: the truths must name them, exactly
+            for i, truth in enumerate(self.camera_truths):
+                if truth.name not in self.cell_camera_names:
+                    raise ConfigError(f"{truth.name!r} names no camera of the cell (its cameras: "
+                                      f"{', '.join(self.cell_camera_names)})", source=source,
+                                      key=f"sim.cameras[{i}].name")
+            return
         unmatched = [i for i, truth in enumerate(self.camera_truths) if truth.name not in self.placed]
         allowed = 1 if self.driven_cameras else 0
         if len(unmatched) > allowed:

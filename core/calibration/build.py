@@ -23,16 +23,25 @@ from cellcal.devices.safety import SafeArm
 __all__ = ["build_camera", "build_cell", "build_devices"]
 
 
-def _context_factory(document: Mapping[str, Any], source: str | None, seed: int
+def _context_factory(document: Mapping[str, Any], source: str | None, seed: int, names: tuple[str, ...] = ()
                      ) -> Callable[..., BackendContext]:
-    """``(section, placement=None) -> BackendContext`` for the backends of one document (one ``shared`` dict)."""
+    """``(section, placement=None) -> BackendContext`` for the backends of one document (one ``shared`` dict);
+    ``names``: the cell's cameras."""
     shared: dict[str, Any] = {}
 
     def ctx(section: str, placement: CameraPlacement | None = None) -> BackendContext:
         return BackendContext(source=source, section=section, document=document, shared=shared, seed=seed,
-                              placement=placement)
+                              placement=placement, camera_names=names)
 
     return ctx
+
+
+def _fixed_placement(config: CellConfig) -> CameraPlacement | None:
+    """The placement of the camera the configuration runs when it is fixed (``on = "base"``), else None."""
+    entry = config.camera_entry
+    if entry.on != "base" or entry.pose_base is None:
+        return None
+    return CameraPlacement(entry.name, "base", entry.pose_base)
 
 
 def build_cell(config: CellConfig, registry: Registry | None = None, *, apply_correction: bool = True
@@ -51,7 +60,7 @@ def build_cell(config: CellConfig, registry: Registry | None = None, *, apply_co
         ConfigError: If a backend is unknown or rejects its section.
     """
     registry = registry or default_registry()
-    ctx = _context_factory(config.document, config.source, config.cell.seed)
+    ctx = _context_factory(config.document, config.source, config.cell.seed, tuple(c.name for c in config.cameras))
     cameras: dict[str, Camera3D] = {}
     for i, entry in enumerate(config.cameras):
         if entry.name == config.camera_name and entry.on == "flange":
@@ -89,8 +98,10 @@ def build_devices(config: CellConfig, registry: Registry | None = None, *, sourc
         ConfigError: If a backend is unknown or rejects its section.
     """
     registry = registry or default_registry()
-    ctx = _context_factory(config.document, config.source if source is None else source, config.cell.seed)
-    cam = registry.create_camera(config.camera_section if camera is None else camera, ctx(config.camera_key),
+    ctx = _context_factory(config.document, config.source if source is None else source, config.cell.seed,
+                           tuple(c.name for c in config.cameras))
+    cam = registry.create_camera(config.camera_section if camera is None else camera,
+                                 ctx(config.camera_key, _fixed_placement(config)),
                                  apply_correction=apply_correction)
     inner: RobotArm = registry.create_arm(config.arm_section if arm is None else arm, ctx("arm"))
     return cam, SafeArm(inner, config.safety_limits())

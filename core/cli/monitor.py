@@ -134,6 +134,18 @@ class _Printer:
 
 
 # ---------------------------------------------------------------------- cameras
+def _cameras_of(path: str | None, taken: set[str]) -> list[tuple[str, CellConfig]]:
+    """Every camera of one configuration, labelled: one ``[camera]`` as the file's stem, ``[[cameras]]`` as
+    ``STEM.NAME`` each (on the flange or fixed: each watches the measuring plane from where it is)."""
+    from cellcal.core.calibration.config import load_config
+
+    config = load_config(path)
+    if len(config.cameras) == 1:
+        return [(_label(path, taken), config)]
+    stem = _label(path, taken)
+    return [(f"{stem}.{c.name}", load_config(path, c.name, allow_fixed=True)) for c in config.cameras]
+
+
 def _label(path: str | None, taken: set[str]) -> str:
     base = "sim" if path is None else Path(path).stem
     label, n = base, 2
@@ -146,7 +158,6 @@ def _label(path: str | None, taken: set[str]) -> str:
 # ---------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``cellcal monitor``; returns the exit status."""
-    from cellcal.core.calibration.config import load_config
     from cellcal.core.monitor import monitored_cameras
 
     check_viz_options(args)
@@ -154,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
         check_input_file(args.baseline, MAX_BASELINE_BYTES)
     paths: list[str | None] = list(args.config) if args.config else [None]
     taken: set[str] = set()
-    configs: list[tuple[str, CellConfig]] = [(_label(p, taken), load_config(p)) for p in paths]
+    configs = [labelled for p in paths for labelled in _cameras_of(p, taken)]
     specs = monitored_cameras(configs, args.baseline)
     printer = _Printer({label: config.monitor.status_every_s for label, config in configs}, args.quiet)
     report, capture = _monitor_report(args, configs)

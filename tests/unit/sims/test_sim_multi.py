@@ -263,14 +263,15 @@ def _multi_document(**sim: Any) -> dict[str, Any]:
 
 def test_a_truth_naming_no_placed_camera_is_one_line_naming_it() -> None:
     cameras = [*_multi_document()["sim"]["cameras"], {"name": "abvoe", "translation_m": [0.3, 0.0, 1.2]}]
-    # "wrist" names the camera the run drives (built without a placement): one such entry is taken as naming it
+    # the builder gives the cell's camera names: the typo is named exactly, the driven "wrist" is a camera
     placed, _ = build_cell(parse_config(_multi_document(cameras=cameras), "cell.toml"))
     with pytest.raises(ConfigError) as err:
         placed["above"].connect()
     assert err.value.key == "sim.cameras[3].name"
-    assert "'wrist' and 'abvoe'" in str(err.value) and "above, side45" in str(err.value)
+    assert "'abvoe' names no camera of the cell (its cameras: wrist, above, side45)" in str(err.value)
     assert "cell.toml" in str(err.value) and "\n" not in str(err.value)
-    # without the typo the cell connects; a world whose cameras are all placed allows no unnamed one
+    # without the typo the cell connects; without the names (a world built directly), a world whose cameras are all
+    # placed allows no unnamed one
     placed, _ = build_cell(parse_config(_multi_document(), "cell.toml"))
     placed["above"].connect()
     world = world_from_context(BackendContext(document=_multi_document()))
