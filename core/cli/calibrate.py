@@ -53,8 +53,10 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
-    """The configuration and devices: from ``--config``, or from a recording with ``--replay``."""
+def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm, dict[str, Camera3D]]:
+    """The configuration, the driven camera, the arm and the cell's other cameras (``[[cameras]]``; ADR 0061):
+    from ``--config``, or from a recording with ``--replay`` (its one camera)."""
+    from cellcal.core.calibration.build import build_cell
     from cellcal.core.calibration.calibrator import build_devices
 
     if getattr(args, "replay", None):
@@ -62,9 +64,13 @@ def _session(args: argparse.Namespace) -> tuple[CellConfig, Camera3D, SafeArm]:
             raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
         from cellcal.core.calibration.replay import replay_session  # the recording's reader, only here
 
-        return replay_session(args.replay)
+        return (*replay_session(args.replay), {})
     config = load_cell(args)
-    return (config, *build_devices(config))
+    if len(config.cameras) == 1:
+        return (config, *build_devices(config), {})
+    cameras, arm = build_cell(config)
+    driven = cameras.pop(config.camera_name)
+    return config, driven, arm, cameras
 
 
 #: Config keys that say where a device is, shown by ``--check``.
@@ -87,7 +93,7 @@ def _check(args: argparse.Namespace) -> int:
     from cellcal.core.calibration.calibrator import Calibrator
     from cellcal.core.calibration.plan_image import describe_plan_image
 
-    config, camera, arm = _session(args)
+    config, camera, arm, _others = _session(args)
     calibrator = Calibrator(config, camera, arm)
     calibrator.check_plan(None)
     image = describe_plan_image(config, camera.configured_intrinsics())  # refuses an image too small for the plan
@@ -149,22 +155,26 @@ def run(args: argparse.Namespace) -> int:
 
         dry_run(load_cell(args))
         return EXIT_OK
-    config, camera, arm = _session(args)
+    config, camera, arm, others = _session(args)
     if getattr(args, "viz_port", None) is None:  # the live view's imports only when it is asked for
-        return _calibrate(args, config, camera, arm, None)
+        return _calibrate(args, config, camera, arm, None, others)
     from cellcal.core.liveview import linger, live_view_session
 
     with live_view_session(args.viz_port, wait_s=getattr(args, "viz_wait", None)) as view:
-        status = _calibrate(args, config, camera, arm, view)
+        status = _calibrate(args, config, camera, arm, view, others)
         if view is not None and getattr(args, "viz_linger", None) and status != EXIT_INTERRUPTED:
             linger(view, args.viz_linger)
     return status
 
 
 def _calibrate(args: argparse.Namespace, config: CellConfig, camera: Camera3D, arm: SafeArm,
-               view: LiveView | None) -> int:
-    """Run the plan into ``DIR/result.json`` (publishing to ``view``), print the report; the exit status."""
+               view: LiveView | None, others: dict[str, Camera3D] | None = None) -> int:
+    """Run the plan into ``DIR/result.json`` (publishing to ``view``; the ``others`` captured at each pose into
+    ``DIR/result-NAME.json``), print the report; the exit status."""
+    import contextlib
+
     from cellcal.core.calibration.calibrator import Calibrator, run_to_file
+    from cellcal.core.calibration.cell_capture import OtherCameras
     from cellcal.core.calibration.report import RESULT_FILENAME
 
     out = Path(args.out) / RESULT_FILENAME
@@ -174,12 +184,19 @@ def _calibrate(args: argparse.Namespace, config: CellConfig, camera: Camera3D, a
 
         report = CalibrationReport(config, camera, args.out)
     live = None if view is None else view.observe_pose(config.mount.pose())
+    extra = OtherCameras(config, others) if others else None
     calibrator = Calibrator(config, camera if report is None else report.camera, arm,  # type: ignore[arg-type]
                             progress=progress_factory("poses", "pose", args.quiet),
-                            observer=live if report is None else report.observer(live))
+                            observer=_chain(live if report is None else report.observer(live), extra))
     try:
-        document = run_resumable(lambda: run_to_file(calibrator, out, resume=getattr(args, "resume", False)),
-                                 calibrator, len(calibrator.poses), out, resume_command("calibrate", args))
+        with contextlib.ExitStack() as stack:
+            if extra is not None:  # the other cameras stay connected for the plan, closed after it
+                extra.connect(stack)
+            document = run_resumable(lambda: run_to_file(calibrator, out, resume=getattr(args, "resume", False)),
+                                     calibrator, len(calibrator.poses), out, resume_command("calibrate", args))
+            if extra is not None and not isinstance(document, int):
+                for path in extra.write(args.out, calibrator._reference_plane(), calibrator._arm_model()):
+                    print(f"camera {path.stem.removeprefix('result-')!r}: result written to {path}")
     except CellcalError as exc:
         if report is not None and not isinstance(exc, (ConfigError, OutputError)):  # a run that failed, not bad input
             report.failed_run(exc, one_line(f"cellcal: error: {exc}"), calibrator.poses)
@@ -194,6 +211,18 @@ def _calibrate(args: argparse.Namespace, config: CellConfig, camera: Camera3D, a
     if isinstance(document, int):  # interrupted: the exit status
         return document
     return _summarize(args, calibrator, document, out)
+
+
+def _chain(first: Any, then: Any) -> Any:
+    """A pose observer calling ``first`` then ``then`` (either may be None)."""
+    if first is None or then is None:
+        return then if first is None else first
+
+    def both(record: Any, frames: Any, result: Any) -> None:
+        first(record, frames, result)
+        then(record, frames, result)
+
+    return both
 
 
 def _summarize(args: argparse.Namespace, calibrator: Any, document: dict[str, Any], out: Path) -> int:
