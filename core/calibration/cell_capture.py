@@ -13,6 +13,7 @@ with its interval, as the driven camera's (``summarize_poses``). Each camera's r
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -80,7 +81,7 @@ class OtherCameras:
         """Connect every other camera, closed by ``stack`` (each under its deadline)."""
         for name, cam in self.cameras.items():
             guard, t = self.guards[name], cam.default_timeout_s
-            guard.call(lambda c=cam, t=t: c.connect(t), t, f"connect(timeout={t:g} s)")
+            guard.call(functools.partial(cam.connect, t), t, f"connect(timeout={t:g} s)")
             stack.callback(self._close, name)
 
     def _close(self, name: str) -> None:
@@ -93,7 +94,7 @@ class OtherCameras:
         started = time.perf_counter()
         for name, cam in self.cameras.items():
             t = self.config.plan.capture_timeout_s
-            frame = self.guards[name].call(lambda c=cam, t=t: c.capture(t), t, f"capture(timeout={t:g} s)")
+            frame = self.guards[name].call(functools.partial(cam.capture, t), t, f"capture(timeout={t:g} s)")
             self.poses[name].append(self._entry(name, record, frame, time.perf_counter() - started))
 
     def _entry(self, name: str, record: PoseRecord, frame: Frame, after_s: float) -> dict[str, Any]:
