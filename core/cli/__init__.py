@@ -25,6 +25,10 @@ if TYPE_CHECKING:
 __all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_USAGE", "build_parser", "main"]
 
 
+#: Ctrl-C presses put off while an import is under way (5 ms apart: 2 s), then delivered wherever they land.
+MAX_DEFERRED = 400
+
+
 def _say(text: str) -> None:
     """One line on stderr, on a line of its own, never raising (stderr may be closed or a broken pipe)."""
     with contextlib.suppress(Exception):
@@ -40,14 +44,24 @@ class _Interrupts:
     a Ctrl-C quits at once with 130 while the interpreter waits for threads to end; from
     its ``atexit`` callbacks on (the shutdown's last milliseconds, where Python resets
     SIGINT to its default and would die of the signal) it is ignored and the status stands.
+    A first Ctrl-C that lands inside an import is put off until the import is done (C
+    extensions that import, numpy's among them, may print a KeyboardInterrupt as a traceback).
     """
 
     def __init__(self) -> None:
         self.presses = 0
+        self.deferred = 0
         self.finished = False
         self.previous_unraisable = sys.unraisablehook
 
     def __call__(self, signum: int, frame: FrameType | None) -> None:
+        if self.presses == 0 and not self.finished and self.deferred < MAX_DEFERRED and _importing(frame):
+            # raised inside importlib, a KeyboardInterrupt reaches C extensions that import (numpy, scipy) and
+            # some print it as a traceback before turning it into an ImportError: deliver it once the import
+            # is done (sent again every 5 ms while the frame is inside an import, for 2 s at most)
+            self.deferred += 1
+            _send_again_soon()
+            return
         self.presses += 1
         if self.finished or self.presses >= 3:
             self.quit_now()
@@ -65,15 +79,8 @@ class _Interrupts:
         ignores it again).
         """
         if isinstance(info.exc_value, KeyboardInterrupt) and self.presses == 1 and not self.finished:
-            import _thread
-            import time
-
-            def send_again() -> None:
-                time.sleep(0.005)
-                os.kill(os.getpid(), signal.SIGINT)
-
             self.presses = 0
-            _thread.start_new_thread(send_again, ())
+            _send_again_soon()
             return
         self.previous_unraisable(info)
 
@@ -83,6 +90,28 @@ class _Interrupts:
         with contextlib.suppress(Exception):
             sys.stdout.flush()
         os._exit(EXIT_INTERRUPTED)
+
+
+def _send_again_soon() -> None:
+    """SIGINT to this process again 5 ms from now, from a thread (the handler runs once the main thread can)."""
+    import _thread
+    import time
+
+    def send_again() -> None:
+        time.sleep(0.005)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    _thread.start_new_thread(send_again, ())
+
+
+def _importing(frame: FrameType | None) -> bool:
+    """Whether ``frame`` or a caller of it runs importlib's own code (an import under way)."""
+    depth = 0
+    while frame is not None and depth < 500:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame, depth = frame.f_back, depth + 1
+    return False
 
 
 def _install(handler: _Interrupts) -> Any:

@@ -123,3 +123,26 @@ def test_a_ctrl_c_swallowed_by_a_finaliser_is_delivered_again() -> None:
     """
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert (proc.returncode, proc.stderr) == (EXIT_INTERRUPTED, "cellcal: interrupted\n")
+
+
+def test_a_first_ctrl_c_inside_an_import_is_put_off_until_the_import_is_done(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Raised inside importlib, a KeyboardInterrupt reaches C extensions that import, and some print it as a
+    traceback (seen once in 4676 tests on a loaded machine): the handler sends it again instead."""
+    import importlib
+
+    (tmp_path / "frame_probe.py").write_text("import sys\nFRAME = sys._getframe()\n", encoding="utf-8")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    importing = importlib.import_module("frame_probe").FRAME     # a frame whose callers run importlib
+    assert cli._importing(importing) and not cli._importing(sys._getframe())
+    sent = []
+    monkeypatch.setattr(cli, "_send_again_soon", lambda: sent.append(1))
+    handler = cli._Interrupts()
+    handler(signal.SIGINT, importing)                             # put off: sent again, not counted
+    assert (sent, handler.presses, handler.deferred) == ([1], 0, 1)
+    with pytest.raises(KeyboardInterrupt):
+        handler(signal.SIGINT, sys._getframe())                   # outside the import: delivered
+    handler = cli._Interrupts()
+    handler.deferred = cli.MAX_DEFERRED                           # an import that never ends: delivered anyway
+    with pytest.raises(KeyboardInterrupt):
+        handler(signal.SIGINT, importing)
