@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,6 +40,9 @@ from cellcal.core.handeye import MeasuringPlaneView, PlaneObservation, estimate_
 from cellcal.core.handeye.estimator import ArmAccuracy
 from cellcal.devices.pose import Pose
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from tests.support.look_at import look_at
+
 VALUES = ("rot_x", "rot_y", "rot_z", "tx", "ty", "tz")
 TARGET_DEG, TARGET_MM = 0.05, 0.5
 COVERAGE = (0.90, 0.98)
@@ -47,16 +52,6 @@ ARM = ArmAccuracy(5e-4, math.radians(0.05), "benchmark", varying=1.0, trend=0.0)
 TABLE = Plane([0.0, 0.0, 1.0], 0.0)
 TABLE_COV = np.diag([1e-4**2, 1e-4**2, 2e-4**2])  # tilts (rad), offset (m)
 SETUPS = ("plate estimated", "plate estimated + table", "plate given + table")
-
-
-def look_at(eye: Sequence[float], target: Sequence[float]) -> Pose:
-    """``T_base_camera`` at ``eye`` looking (z) at ``target``, its x horizontal."""
-    e = np.asarray(eye, dtype=np.float64)
-    z = np.asarray(target, dtype=np.float64) - e
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return Pose.from_rotation_matrix(np.column_stack([x, np.cross(z, x), z]), e)
 
 
 def observe(seen: Plane, rng: np.random.Generator) -> tuple[np.ndarray, float, np.ndarray]:

@@ -220,16 +220,7 @@ class Calibrator:
 
     def _connect(self, stack: contextlib.ExitStack, kind: str, device: Camera3D | SafeArm) -> None:
         """Connect ``device`` under its guard; ``stack`` closes it (bounded) when it unwinds."""
-        guard = self.guards[kind]
-        stack.callback(self._close, guard, device)
-        t = device.connect_timeout_s  # an emulated arm's includes starting its emulator process
-        guard.call(lambda: device.connect(t), t, f"connect(timeout={t:g} s)")
-
-    @staticmethod
-    def _close(guard: DeadlineGuard, device: Camera3D | SafeArm) -> None:
-        """Close ``device``, abandoning a close() that hangs (it has no timeout; failing here would hide the cause)."""
-        with contextlib.suppress(CellcalError):
-            guard.call(device.close, CLOSE_ALLOWANCE_S - guard.grace_s, "close()")
+        connect_guarded(stack, self.guards[kind], device)
 
     def _check_image(self) -> None:
         """Before the first move: the camera's image must hold the plan's grid (ConfigError naming the perimeters)."""
@@ -414,6 +405,19 @@ class Calibrator:
             if writer is not None and writer.saved:
                 remove_journal(writer.path)
             raise
+
+
+def connect_guarded(stack: contextlib.ExitStack, guard: DeadlineGuard, device: Camera3D | SafeArm) -> None:
+    """Connect ``device`` under ``guard``; ``stack`` closes it (bounded) when it unwinds, a failed connect too."""
+    stack.callback(close_guarded, guard, device)
+    t = device.connect_timeout_s  # an emulated arm's includes starting its emulator process
+    guard.call(lambda: device.connect(t), t, f"connect(timeout={t:g} s)")
+
+
+def close_guarded(guard: DeadlineGuard, device: Camera3D | SafeArm) -> None:
+    """Close ``device``, abandoning a close() that hangs (it has no timeout; failing here would hide the cause)."""
+    with contextlib.suppress(CellcalError):
+        guard.call(device.close, CLOSE_ALLOWANCE_S - guard.grace_s, "close()")
 
 
 def run_to_file(calibrator: Calibrator, out: str | Path, *, resume: bool = False) -> dict[str, Any]:

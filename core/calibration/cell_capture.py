@@ -21,7 +21,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from cellcal.core.calibration.calibrator import CLOSE_ALLOWANCE_S, GUARD_GRACE_S
+from cellcal.core.calibration.calibrator import GUARD_GRACE_S, connect_guarded
 from cellcal.core.calibration.config import CellConfig
 from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.report import summarize_poses, write_json_atomic
@@ -33,7 +33,7 @@ from cellcal.devices.arm_model import ArmModel
 from cellcal.devices.blocking import DeadlineGuard
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.config import parse_section
-from cellcal.devices.errors import CalibrationError, CellcalError
+from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 from cellcal.devices.types import Frame
 from cellcal.devices.version import cellcal_version
@@ -78,16 +78,9 @@ class OtherCameras:
         self.poses: dict[str, list[dict[str, Any]]] = {name: [] for name in self.cameras}
 
     def connect(self, stack: contextlib.ExitStack) -> None:
-        """Connect every other camera, closed by ``stack`` (each under its deadline)."""
+        """Connect every other camera, closed by ``stack`` (each under its deadline, as the calibrator's)."""
         for name, cam in self.cameras.items():
-            guard, t = self.guards[name], cam.default_timeout_s
-            guard.call(functools.partial(cam.connect, t), t, f"connect(timeout={t:g} s)")
-            stack.callback(self._close, name)
-
-    def _close(self, name: str) -> None:
-        with contextlib.suppress(CellcalError):
-            guard = self.guards[name]
-            guard.call(self.cameras[name].close, CLOSE_ALLOWANCE_S - guard.grace_s, "close()")
+            connect_guarded(stack, self.guards[name], cam)
 
     def __call__(self, record: PoseRecord, frames: Sequence[Frame], result: object) -> None:
         """At a measured pose (the arm at rest): capture each other camera in turn and fit its plane."""

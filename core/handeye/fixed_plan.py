@@ -22,7 +22,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane, tangent_basis
-from cellcal.core.handeye.model import PlaneObservation
+from cellcal.core.handeye.model import (
+    MOUNT_ROTATION,
+    MOUNT_TRANSLATION,
+    PLANE_OFFSET,
+    PLANE_TILT,
+    PlaneModel,
+    PlaneObservation,
+)
 from cellcal.core.handeye.observability import ACROSS_COS, BLOCK_SHARE, PARALLEL_COS, UNOBSERVABLE_SIGMA, axis_text
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
@@ -34,10 +41,11 @@ FloatArray = NDArray[np.float64]
 #: two axes across its configured normal in the flange frame (rad) and its offset (m).
 FIXED_PARAMETERS: tuple[str, ...] = ("rot_x", "rot_y", "rot_z", "tx", "ty", "tz",
                                      "plate_tilt_a", "plate_tilt_b", "plate_offset")
-CAMERA_ROTATION = slice(0, 3)
-CAMERA_TRANSLATION = slice(3, 6)
-PLATE_TILT = slice(6, 8)
-PLATE_OFFSET = 8
+# the flange camera's mount and plane blocks (PlaneModel's steps), with the base and the flange as parents
+CAMERA_ROTATION = MOUNT_ROTATION
+CAMERA_TRANSLATION = MOUNT_TRANSLATION
+PLATE_TILT = PLANE_TILT
+PLATE_OFFSET = PLANE_OFFSET
 #: Plane views below which no plan can fix a camera pose (each view gives 3 numbers, with 2 normals only 5 dof).
 MIN_VIEWS = 3
 
@@ -122,19 +130,15 @@ class FixedModel:
     measuring: Plane | None  # the measuring plane in the base frame, normal toward the camera
 
     def camera(self, p: FloatArray) -> Pose:
-        """``T_base_camera`` of the parameters ``p`` (9,)."""
-        from scipy.spatial.transform import Rotation
+        """``T_base_camera`` of the parameters ``p`` (9,): turned about the base axes, shifted in the base frame.
 
-        turn = Rotation.from_rotvec(p[CAMERA_ROTATION]) * self.nominal_camera.rotation  # about the base axes
-        return Pose(turn, self.nominal_camera.translation + p[CAMERA_TRANSLATION])
+        The steps are the flange camera's mount's (:meth:`PlaneModel.mount`), with the base as the parent.
+        """
+        return PlaneModel(self.nominal_camera, self.nominal_plate).mount(p)
 
     def plate(self, p: FloatArray) -> Plane:
-        """The plate's plane in the flange frame of the parameters ``p`` (9,)."""
-        from scipy.spatial.transform import Rotation
-
-        axes = tangent_basis(self.nominal_plate.normal)
-        turn = Rotation.from_rotvec(axes @ p[PLATE_TILT])  # tilt about the two axes across the normal
-        return Plane(turn.apply(np.array(self.nominal_plate.normal)), self.nominal_plate.offset_m + p[PLATE_OFFSET])
+        """The plate's plane in the flange frame of the parameters ``p`` (9,), as :meth:`PlaneModel.plane` steps."""
+        return PlaneModel(self.nominal_camera, self.nominal_plate).plane(p)
 
     def predict(self, p: FloatArray, flanges: tuple[FloatArray, FloatArray]) -> tuple[FloatArray, FloatArray]:
         """Camera-frame normals (V, 3) and offsets (V,): the plate at each flange, then the measuring plane."""

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.handeye.model import PlaneObservation
+from cellcal.core.handeye.systematic import pattern, systematic_terms
 
 FloatArray = NDArray[np.float64]
 
@@ -34,23 +35,17 @@ def systematic_columns(observations: Sequence[PlaneObservation], bases: FloatArr
         observations: The plate views (their ``systematic_shifts``: ``{term: (normal_delta, offset_delta_m)}``).
         bases: (V, 3, 2) tangent bases across the measured normals (the residual's first two components).
         whiten: (V, 3, 3) the views' whitening matrices.
-        n_rows: Rows of the whitened residual vector (3 x views, the measuring plane's included).
+        n_rows: Rows of the whitened residual vector (3 x views, the measuring plane's included: 0 there).
 
     Returns:
         The terms' names and their columns (n_rows, K); rows of views without the term are 0.
     """
-    terms = sorted({k for o in observations for k in o.systematic_shifts})
+    terms = systematic_terms(observations)   # the union over the views, zero shifts where a view lacks one
     cols = np.zeros((n_rows, len(terms)))
-    for j, term in enumerate(terms):
-        for v, obs in enumerate(observations):
-            shift = obs.systematic_shifts.get(term)
-            if shift is None:
-                continue
-            d_normal, d_offset = np.asarray(shift[0], dtype=np.float64), float(shift[1])
-            # residual = predicted - measured: a measured plane moved by the shift moves it by minus the shift
-            raw = -np.concatenate([bases[v].T @ d_normal, [d_offset]])
-            cols[3 * v:3 * v + 3, j] = whiten[v] @ raw
-    return terms, cols
+    for j, shifts in enumerate(terms.values()):
+        white = pattern(bases, whiten, shifts)
+        cols[:white.size, j] = white
+    return list(terms), cols
 
 
 def systematic_response(jac: FloatArray, info: FloatArray, residual: FloatArray, cols: FloatArray

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import pytest
+from look_at import look_at
 from scipy.spatial.transform import Rotation
 
 from cellcal.core.geometry.planes import Plane, tangent_basis
@@ -29,16 +30,6 @@ ARM = ArmAccuracy(5e-4, math.radians(0.05), "test", varying=1.0, trend=0.0)
 #: The measuring plane (the table, z = 0 in the base frame) and its base-frame covariance (tilts, rad; offset, m).
 TABLE = Plane([0.0, 0.0, 1.0], 0.0)
 TABLE_COV = np.diag([1e-4**2, 1e-4**2, 1e-4**2])
-
-
-def look_at(eye: Sequence[float], target: Sequence[float]) -> Pose:
-    """``T_base_camera`` at ``eye`` with its optical axis (z) toward ``target``, its x horizontal."""
-    e = np.asarray(eye, dtype=np.float64)
-    z = np.asarray(target, dtype=np.float64) - e
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return Pose.from_rotation_matrix(np.column_stack([x, np.cross(z, x), z]), e)
 
 
 #: The camera: 1.3 m up and out, looking down at the arm's workspace; configured 0.9 deg and 20 mm off.
