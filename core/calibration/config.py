@@ -155,14 +155,7 @@ def parse_config(document: Mapping[str, Any], source: str, camera: str | None = 
             raise ConfigError(f"unknown table; expected one of: {', '.join(TOP_LEVEL_TABLES)}", source=source, key=key)
         if not isinstance(value, Mapping) and key != "cameras":
             raise ConfigError(f"expected a table, got {type(value).__name__}", source=source, key=key)
-    cameras = parse_cameras(document, source)
-    chosen = select_camera(cameras, camera, source, allow_fixed) if "cameras" in document else cameras[0]
-    if camera is not None and "cameras" not in document and camera != chosen.name:
-        raise ConfigError(f"no camera named {camera!r}; the cell has one, {chosen.name!r} ([camera])",
-                          source=source, key="camera")
-    listed = "cameras" in document
-    if listed:
-        document = single_camera_document(document, chosen)
+    cameras, chosen, camera_key, document = _running_camera(document, source, camera, allow_fixed)
     for required in ("camera", "arm"):
         if required not in document:
             raise ConfigError("missing table (it needs at least backend = \"...\")", source=source, key=required)
@@ -193,9 +186,27 @@ def parse_config(document: Mapping[str, Any], source: str, camera: str | None = 
         depthcal=parse_section(DepthcalSection, document.get("depthcal"), where="depthcal", source=source),
         cameras=cameras,
         camera_name=chosen.name,
-        camera_key=f"cameras[{cameras.index(chosen)}]" if listed else "camera",
+        camera_key=camera_key,
         plate=parse_section(PlateSection, document.get("plate"), where="plate", source=source),
     )
+
+
+def _running_camera(document: Mapping[str, Any], source: str, camera: str | None, allow_fixed: bool
+                    ) -> tuple[tuple[CameraEntry, ...], CameraEntry, str, Mapping[str, Any]]:
+    """The cell's cameras, the one to run, where its table is (``camera`` or ``cameras[i]``) and the document
+    that holds it as ``[camera]`` and ``[mount]`` (:func:`~cellcal.core.calibration.cameras.single_camera_document`).
+
+    Raises:
+        ConfigError: As :func:`parse_cameras` and :func:`select_camera`; ``camera`` naming another than ``[camera]``.
+    """
+    cameras = parse_cameras(document, source)
+    if "cameras" not in document:
+        if camera is not None and camera != cameras[0].name:
+            raise ConfigError(f"no camera named {camera!r}; the cell has one, {cameras[0].name!r} ([camera])",
+                              source=source, key="camera")
+        return cameras, cameras[0], "camera", document
+    chosen = select_camera(cameras, camera, source, allow_fixed)
+    return cameras, chosen, f"cameras[{cameras.index(chosen)}]", single_camera_document(document, chosen)
 
 
 #: Schema prefix of the documents ``[mount] from_handeye`` reads (``cellcal handeye``'s output).
