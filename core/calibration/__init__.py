@@ -15,6 +15,7 @@ from cellcal.core.calibration.calibrator import (
 from cellcal.core.calibration.config import (
     CellConfig,
     load_config,
+    load_every_camera,
     look_at_pose,
     parse_config,
     plan_flange_poses,
@@ -90,6 +91,7 @@ __all__ = [
     "format_table",
     "journal_path",
     "load_config",
+    "load_every_camera",
     "look_at_pose",
     "parse_config",
     "plan_fingerprint",

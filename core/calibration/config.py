@@ -311,14 +311,33 @@ def load_config(path: str | Path | None = None, camera: str | None = None, allow
         ConfigError: If the file is missing, unreadable (:func:`read_config_text`), not
             valid TOML, or fails validation.
     """
+    return parse_config(*_read_document(path), camera, allow_fixed)
+
+
+def _read_document(path: str | Path | None) -> tuple[dict[str, Any], str]:
+    """The parsed TOML of ``path`` (None: the packaged ``sim.toml``) and where it was read from."""
     text, source = read_config_text(path)
     try:
-        document = tomllib.loads(text)
+        return tomllib.loads(text), source
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"invalid TOML: {exc}", source=source) from None
     except RecursionError:  # tomllib parses nested arrays and inline tables recursively
         raise ConfigError("invalid TOML: arrays or inline tables nested too deeply", source=source) from None
-    return parse_config(document, source, camera, allow_fixed)
+
+
+def load_every_camera(path: str | Path | None = None) -> list[CellConfig]:
+    """Read a configuration once and validate it for each of its cameras, in the file's order.
+
+    One ``[camera]`` gives one configuration; ``[[cameras]]`` one per camera, on the flange or fixed
+    (each as :func:`load_config` with that camera and ``allow_fixed``).
+
+    Raises:
+        ConfigError: As :func:`load_config`.
+    """
+    document, source = _read_document(path)
+    if "cameras" not in document:
+        return [parse_config(document, source)]
+    return [parse_config(document, source, c.name, allow_fixed=True) for c in parse_cameras(document, source)]
 
 
 def look_at_pose(target_m: np.ndarray, normal: np.ndarray, height_m: float, inclination_rad: float,

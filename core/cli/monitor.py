@@ -137,13 +137,13 @@ class _Printer:
 def _cameras_of(path: str | None, taken: set[str]) -> list[tuple[str, CellConfig]]:
     """Every camera of one configuration, labelled: one ``[camera]`` as the file's stem, ``[[cameras]]`` as
     ``STEM.NAME`` each (on the flange or fixed: each watches the measuring plane from where it is)."""
-    from cellcal.core.calibration.config import load_config
+    from cellcal.core.calibration.config import load_every_camera
 
-    config = load_config(path)
-    if len(config.cameras) == 1:
-        return [(_label(path, taken), config)]
+    configs = load_every_camera(path)  # the file read once
     stem = _label(path, taken)
-    return [(f"{stem}.{c.name}", load_config(path, c.name, allow_fixed=True)) for c in config.cameras]
+    if len(configs) == 1:
+        return [(stem, configs[0])]
+    return [(f"{stem}.{c.camera_name}", c) for c in configs]
 
 
 def _label(path: str | None, taken: set[str]) -> str:

@@ -32,6 +32,7 @@ __all__ = [
     "PlaneDifference",
     "PoseWithCovariance",
     "compose_jacobians",
+    "cross_matrix",
     "inverse_jacobian",
     "perturb",
     "plane_agreement",
@@ -45,7 +46,7 @@ _SYMMETRY_TOLERANCE = 1e-9
 _PSD_TOLERANCE = 1e-10
 
 
-def _skew(v: FloatArray) -> FloatArray:
+def cross_matrix(v: FloatArray) -> FloatArray:
     """The cross-product matrix ``[v]x`` (``[v]x w = v x w``)."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
@@ -95,7 +96,7 @@ def inverse_jacobian(pose: Pose) -> FloatArray:
     r_t = pose.rotation_matrix.T
     jac = np.zeros((6, 6))
     jac[:3, :3] = -r_t  # R^T Exp(-phi) = Exp(-R^T phi) R^T
-    jac[3:, :3] = -r_t @ _skew(pose.translation)  # -R^T Exp(-phi) t moves by -R^T [t]x phi
+    jac[3:, :3] = -r_t @ cross_matrix(pose.translation)  # -R^T Exp(-phi) t moves by -R^T [t]x phi
     jac[3:, 3:] = -r_t  # and by -R^T rho
     return jac
 
@@ -104,7 +105,7 @@ def compose_jacobians(a: Pose, b: Pose) -> tuple[FloatArray, FloatArray]:
     """The 6x6 first-order maps of steps of ``a`` and of ``b`` to the step of ``a @ b``."""
     r_a = a.rotation_matrix
     jac_a = np.eye(6)
-    jac_a[3:, :3] = -_skew(r_a @ b.translation)  # a's turn swings b's translation: phi x (R_a t_b)
+    jac_a[3:, :3] = -cross_matrix(r_a @ b.translation)  # a's turn swings b's translation: phi x (R_a t_b)
     jac_b = np.zeros((6, 6))
     jac_b[:3, :3] = r_a  # b's turn, about b's parent axes, seen in a's parent frame: R_a phi_b
     jac_b[3:, 3:] = r_a  # b's shift likewise

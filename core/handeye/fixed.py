@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane, tangent_basis
+from cellcal.core.geometry.relative import cross_matrix
 from cellcal.core.handeye.estimator import ArmAccuracy, jacobian, rpy_with_sigma_deg
 from cellcal.core.handeye.fixed_plan import (
     CAMERA_ROTATION,
@@ -38,7 +39,6 @@ from cellcal.core.handeye.fixed_plan import (
     MeasuringPlaneView,
     analyse_fixed,
     arm_plate_covariance,
-    cross_matrix,
     measuring_covariance,
     whiten_view,
 )

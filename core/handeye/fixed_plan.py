@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane, tangent_basis
+from cellcal.core.geometry.relative import cross_matrix
 from cellcal.core.handeye.model import (
     MOUNT_ROTATION,
     MOUNT_TRANSLATION,
@@ -153,11 +154,6 @@ class FixedModel:
             normals = np.vstack([normals, m.normal @ r_x])
             offsets = np.append(offsets, m.offset_m + float(m.normal @ t_x))  # c_C = c_B + n_B . t_X
         return normals, offsets
-
-
-def cross_matrix(v: FloatArray) -> FloatArray:
-    """The matrix of ``v ×``."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def whiten_view(normal: FloatArray, covariance: FloatArray, extra: FloatArray) -> FloatArray:
@@ -368,4 +364,4 @@ def plate_poses(camera_base: Pose, *, distance_m: float, plate_flange: Plane,
 
 __all__ = ["CAMERA_ROTATION", "CAMERA_TRANSLATION", "FIXED_PARAMETERS", "MIN_VIEWS", "PLATE_OFFSET", "PLATE_TILT",
            "FixedModel", "FixedObservability", "MeasuringPlaneView", "analyse_fixed", "arm_plate_covariance",
-           "cross_matrix", "measuring_covariance", "plate_poses", "whiten_view"]
+           "measuring_covariance", "plate_poses", "whiten_view"]

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.core.geometry.planes import Plane, plane_covariance, tangent_basis
+from cellcal.core.geometry.relative import perturb
 from cellcal.devices.errors import CalibrationError
 from cellcal.devices.pose import Pose
 
@@ -82,10 +83,8 @@ class PlaneModel:
 
     def mount(self, p: FloatArray) -> Pose:
         """``T_flange_camera`` of the parameters ``p`` (9,)."""
-        from scipy.spatial.transform import Rotation
-
-        rot = Rotation.from_rotvec(p[MOUNT_ROTATION]) * self.nominal_mount.rotation  # turn about flange axes
-        return Pose(rot, self.nominal_mount.translation + p[MOUNT_TRANSLATION])
+        # a turn about the flange axes on the left and a shift in the flange frame (the relative poses' step)
+        return perturb(self.nominal_mount, np.concatenate([p[MOUNT_ROTATION], p[MOUNT_TRANSLATION]]))
 
     def plane(self, p: FloatArray) -> Plane:
         """The base-frame plane of the parameters ``p`` (9,)."""

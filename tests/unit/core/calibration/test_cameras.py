@@ -13,6 +13,7 @@ from cellcal.core.calibration.cameras import MAX_CAMERAS, parse_cameras
 from cellcal.core.calibration.config import parse_config
 from cellcal.core.cli import main
 from cellcal.devices.errors import ConfigError
+from tests.support.toml_files import write_toml
 
 
 def arm_camera(name: str = "arm", **extra: Any) -> dict[str, Any]:
@@ -131,3 +132,51 @@ plane_normal = [0.0, 0.0, 1.0]
     assert main(["calibrate", "--config", str(config), "--camera", "above", "--dry-run"]) == 2   # configuration error
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "camera 'above' is fixed" in err[0]
+
+
+THREE_CAMERAS = """
+[arm]
+backend = "sim"
+[reference]
+plane_point_m = [0.3, 0.0, 0.0]
+plane_normal = [0.0, 0.0, 1.0]
+[[cameras]]
+name = "wrist"
+on = "flange"
+backend = "sim"
+mount = { translation_m = [0.0, 0.01, 0.05], rpy_deg = [0.0, 0.0, 90.0] }
+[[cameras]]
+name = "above"
+on = "base"
+backend = "sim"
+pose = { translation_m = [0.4, 0.0, 1.2], rpy_deg = [180.0, 0.0, 45.0] }
+[[cameras]]
+name = "side"
+on = "base"
+backend = "sim"
+pose = { translation_m = [0.4, 0.6, 0.8], rpy_deg = [135.0, 0.0, 0.0] }
+"""
+
+
+def test_load_every_camera_reads_the_file_once_and_gives_each_camera_its_configuration(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from cellcal.core.calibration import config as config_module
+
+    path = tmp_path / "cell.toml"
+    path.write_text(THREE_CAMERAS)
+    reads: list[object] = []
+    real_read = config_module.read_config_text
+    monkeypatch.setattr(config_module, "read_config_text", lambda p: reads.append(p) or real_read(p))
+    configs = config_module.load_every_camera(path)
+    assert len(reads) == 1
+    assert [(c.camera_name, c.camera_key, c.camera_entry.on) for c in configs] == [
+        ("wrist", "cameras[0]", "flange"), ("above", "cameras[1]", "base"), ("side", "cameras[2]", "base")]
+    assert configs[0].mount.translation_m == (0.0, 0.01, 0.05)  # the flange camera's own [cameras.mount]
+
+
+def test_load_every_camera_of_one_camera_table_is_that_camera(tmp_path: Path) -> None:
+    from cellcal.core.calibration.config import load_every_camera
+
+    path = write_toml(tmp_path / "cell.toml", {"camera": {"backend": "sim"}, "arm": {"backend": "sim"},
+                                               "reference": REFERENCE})
+    assert [c.camera_name for c in load_every_camera(path)] == ["camera"]
