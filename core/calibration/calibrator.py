@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from cellcal.core.calibration.build import build_camera, build_devices
 from cellcal.core.calibration.config import CellConfig
@@ -64,6 +64,7 @@ __all__ = [
     "GUARD_GRACE_S",
     "STOP_TIMEOUT_S",
     "Calibrator",
+    "PoseCompanion",
     "PoseObserver",
     "PoseRecord",
     "ProgressFactory",
@@ -77,6 +78,21 @@ ProgressFactory = Callable[[int], Any]
 #: Called after each measured plan pose with its record, its frames and the full-frame fit (None
 #: when the method is not run), e.g. to draw the scene live or write it to a bag (ADR 0020).
 PoseObserver = Callable[["PoseRecord", Sequence[Frame], FullFrameResult | None], None]
+
+
+class PoseCompanion(Protocol):
+    """Other cameras that capture at each pose beside the driven one (ADR 0061; e.g. ``OtherCameras``).
+
+    :meth:`begin` is called once the arm has settled at a pose, just before the driven camera captures; what
+    it starts is collected by the observer, and :meth:`end` (after the pose, however it went) waits, bounded,
+    for anything still running, so no capture outlives its pose.
+    """
+
+    def begin(self, index: int) -> None:
+        """The arm is at rest at plan pose ``index`` (0-based): start the captures that run beside the driven one."""
+
+    def end(self) -> None:
+        """The pose is over: join what :meth:`begin` started (each within its deadline); never raises."""
 
 
 #: Seconds the calibrator allows the arm's stop command when a run fails.
@@ -96,15 +112,19 @@ class Calibrator:
         arm: The arm, already wrapped in :class:`SafeArm`.
         progress: Optional factory ``total -> tqdm-like`` for a progress bar.
         observer: Optional :data:`PoseObserver`, called after each measured pose.
+        companion: Optional :class:`PoseCompanion`: started at each pose once the arm is at rest,
+            before the driven camera captures (its results are the observer's to collect).
     """
 
     def __init__(self, config: CellConfig, camera: Camera3D, arm: SafeArm,
-                 progress: ProgressFactory | None = None, observer: PoseObserver | None = None):
+                 progress: ProgressFactory | None = None, observer: PoseObserver | None = None,
+                 companion: PoseCompanion | None = None):
         self.config = config
         self.camera = camera
         self.arm = arm
         self.progress = progress
         self.observer = observer
+        self.companion = companion
         self.poses: Sequence[Pose] = reachable_plan_poses(config)  # generated views moved within the arm's reach
         #: Every backend call runs under one of these: a backend that ignores its timeout ends the run.
         self.guards = {"camera": DeadlineGuard(f"camera backend '{camera.backend_name}'", GUARD_GRACE_S),
@@ -194,7 +214,11 @@ class Calibrator:
                 if bar is not None:
                     stack.callback(bar.close)
                 for i in todo:
-                    measured[i] = self._measure_and_journal(i)
+                    try:
+                        measured[i] = self._measure_and_journal(i)
+                    finally:  # the companion's captures end with their pose, whatever happened
+                        if self.companion is not None:
+                            self.companion.end()
                     if bar is not None:
                         bar.update(1)
             except BaseException:
@@ -331,6 +355,8 @@ class Calibrator:
         if plan.settle_s > 0:
             time.sleep(plan.settle_s)
         t2 = time.perf_counter()
+        if self.companion is not None:  # the other cameras start with the driven one, the arm at rest
+            self.companion.begin(index)
         t_cap = plan.capture_timeout_s
         frames = [self.guards["camera"].call(lambda: self.camera.capture(t_cap), t_cap,
                                              f"capture(timeout={t_cap:g} s)") for _ in range(n_frames)]

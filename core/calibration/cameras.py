@@ -18,16 +18,19 @@ from typing import Any, Literal
 import numpy as np
 
 from cellcal.core.calibration.sections import MountSection, Vec3
+from cellcal.devices.base import CameraPlacement
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError
 from cellcal.devices.pose import Pose
 
-__all__ = ["CAMERA_NAME", "CAMERA_PLACES", "DEFAULT_CAMERA_NAME", "MAX_CAMERAS", "CameraEntry", "CameraPoseSection",
-           "CamerasSection", "PlateSection",
+__all__ = ["CAMERA_NAME", "CAMERA_PLACES", "CAPTURE_MODES", "DEFAULT_CAMERA_NAME", "MAX_CAMERAS", "CameraEntry",
+           "CameraPoseSection", "CamerasSection", "PlateSection",
            "parse_cameras", "select_camera", "single_camera_document"]
 
 #: Where a camera can stand.
 CAMERA_PLACES = ("flange", "base")
+#: How a camera captures beside the cell's others at a pose: at the same time, or by itself.
+CAPTURE_MODES = ("together", "alone")
 #: The name of the camera of a ``[camera]`` table.
 DEFAULT_CAMERA_NAME = "camera"
 #: Most cameras in one cell (an O3R VPU drives six heads; a cell rarely has more than a few cameras).
@@ -35,7 +38,7 @@ MAX_CAMERAS = 16
 #: A camera's name: it names files, frames (``/tf``) and metrics, so letters, digits, ``_`` and ``-`` only.
 CAMERA_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
 #: Keys of a ``[[cameras]]`` entry that are cellcal's, not the backend's.
-_PLACE_KEYS = ("name", "on", "mount", "pose")
+_PLACE_KEYS = ("name", "on", "mount", "pose", "capture")
 
 
 @dataclass(frozen=True)
@@ -103,12 +106,18 @@ class CamerasSection:
             with ``[cameras.pose]``).
         mount: A camera on the flange: its mount, as ``[mount]``.
         pose: A fixed camera: its pose in the base frame (where it is roughly).
+        capture: ``"together"``: it captures at the same time as the cell's other cameras at each pose of a
+            run; ``"alone"``: by itself, after them (a ToF or structured-light camera whose emitted light
+            would disturb the others' or be disturbed by theirs).
     """
 
     name: str = field(metadata={"max_len": 32, "doc": "the camera's name (letters, digits, _ and -)"})
     on: Literal["flange", "base"] = field(metadata={"doc": "where it is: carried by the arm, or fixed in the cell"})
     mount: MountSection | None = None
     pose: CameraPoseSection | None = None
+    capture: Literal["together", "alone"] = field(default="together", metadata={
+        "doc": "at each pose: 'together' with the other cameras, or 'alone' after them (ToF or structured-light "
+               "cameras whose emitted light would interfere with each other)"})
 
 
 @dataclass(frozen=True)
@@ -122,6 +131,9 @@ class CameraEntry:
         table: Its backend table as ``[camera]`` is: ``backend`` and the backend's own keys.
         mount: The ``[cameras.mount]`` table (flange cameras; None: the identity), raw as ``[mount]`` is.
         pose_base: A fixed camera's configured pose in the base frame (None for flange cameras).
+        capture: ``"together"`` or ``"alone"`` (``[[cameras]] capture``; ADR 0061).
+        mount_pose: A ``[[cameras]]`` camera on the flange: its ``[cameras.mount]`` as parsed
+            (``T_flange_camera``; the identity without one); None for fixed cameras and a ``[camera]`` table.
     """
 
     name: str
@@ -129,6 +141,13 @@ class CameraEntry:
     table: Mapping[str, Any]
     mount: Mapping[str, Any] | None = None
     pose_base: Pose | None = None
+    capture: Literal["together", "alone"] = "together"
+    mount_pose: Pose | None = None
+
+    def placement(self) -> CameraPlacement | None:
+        """Where the camera is configured to stand (its parsed mount or base pose), None when not parsed here."""
+        pose = self.pose_base if self.on == "base" else self.mount_pose
+        return None if pose is None else CameraPlacement(self.name, self.on, pose)
 
 
 def _entry(raw: object, index: int, source: str) -> CameraEntry:
@@ -156,8 +175,11 @@ def _entry(raw: object, index: int, source: str) -> CameraEntry:
                           key=f"{where}.pose")
     mount = raw.get("mount")
     table = {k: v for k, v in raw.items() if k not in _PLACE_KEYS}
+    mount_pose = None
+    if section.on == "flange":  # parsed once here: the builder and the capture of the cell's cameras read it
+        mount_pose = Pose.identity() if section.mount is None else section.mount.pose()
     return CameraEntry(name, section.on, table, mount if isinstance(mount, Mapping) else None,
-                       None if section.pose is None else section.pose.pose())
+                       None if section.pose is None else section.pose.pose(), section.capture, mount_pose)
 
 
 def parse_cameras(document: Mapping[str, Any], source: str) -> tuple[CameraEntry, ...]:

@@ -187,7 +187,8 @@ def _calibrate(args: argparse.Namespace, config: CellConfig, camera: Camera3D, a
     extra = OtherCameras(config, others) if others else None
     calibrator = Calibrator(config, camera if report is None else report.camera, arm,  # type: ignore[arg-type]
                             progress=progress_factory("poses", "pose", args.quiet),
-                            observer=_chain(live if report is None else report.observer(live), extra))
+                            observer=_chain(live if report is None else report.observer(live), extra),
+                            companion=extra)  # the other cameras start with the driven one at each pose
     try:
         with contextlib.ExitStack() as stack:
             if extra is not None:  # the other cameras stay connected for the plan, closed after it

@@ -73,10 +73,16 @@ class Tracker:
         nominal_mount: The configured ``T_flange_camera``.
         nominal_plane: The configured plane in the base frame (turned toward the camera at the first frame).
         settings: Noise, intervals, detector and windows (defaults: :class:`TrackSettings`).
+        fixed: A camera fixed in the base frame (ADR 0061): its frames are fed at the identity flange pose
+            and ``nominal_mount`` is its configured ``T_base_camera``. Its pose and the plane trade fully
+            (one view), so a change's size also says how the plane moved in the camera's own frame
+            (``view_tilt_deg``, ``view_shift_m``), the one thing that view measures (:meth:`view_plane`).
     """
 
-    def __init__(self, nominal_mount: Pose, nominal_plane: Plane, settings: TrackSettings | None = None) -> None:
+    def __init__(self, nominal_mount: Pose, nominal_plane: Plane, settings: TrackSettings | None = None, *,
+                 fixed: bool = False) -> None:
         self.settings = s = settings or TrackSettings()
+        self.fixed = fixed
         self.nominal_mount = nominal_mount
         self.nominal_plane = nominal_plane
         self._lever = float(np.linalg.norm(nominal_mount.translation))  # the mount's lever for the arm's turn noise
@@ -383,7 +389,22 @@ class Tracker:
             out["plane_tilt_deg"] = math.degrees(math.acos(min(1.0, float(p.normal @ q.normal))))
             out["plane_offset_m"] = float(q.offset_m - p.offset_m)  # of n.x + offset = 0
             out["plane_shift_m"] = float(p.offset_m - q.offset_m)  # moved along its normal, toward the camera
+        if self.fixed:  # what a fixed camera's one view measures: the plane in its own frame
+            a_view, b_view = self.view_plane(old), self.view_plane(new)
+            out["view_tilt_deg"] = math.degrees(math.acos(min(1.0, float(a_view.normal @ b_view.normal))))
+            out["view_shift_m"] = float(a_view.offset_m - b_view.offset_m)  # toward the camera
         return out
+
+    def view_plane(self, x: FloatArray | None = None) -> Plane:
+        """The plane in the camera's frame at parameters ``x`` (default: the estimate), normal toward the camera.
+
+        For a camera on the flange this is the view at the identity flange pose; for a fixed camera
+        (``fixed``) it is its view, whatever part of it the pose or the plane takes (they trade fully).
+        """
+        model = PlaneModel(self.nominal_mount, self.nominal_plane)
+        step = self._x if x is None else x
+        seen = model.plane(step).transformed(model.mount(step).inv())
+        return seen if seen.offset_m > 0 else Plane(-seen.normal, -seen.offset_m)
 
     def _check_resolved(self, t_s: float) -> ChangeEvent | None:
         """Mark the open change resolved once every parameter seen before it is seen again; the event if so."""

@@ -166,7 +166,12 @@ def test_load_every_camera_reads_the_file_once_and_gives_each_camera_its_configu
     path.write_text(THREE_CAMERAS)
     reads: list[object] = []
     real_read = config_module.read_config_text
-    monkeypatch.setattr(config_module, "read_config_text", lambda p: reads.append(p) or real_read(p))
+
+    def counted(p: Any) -> tuple[str, str]:
+        reads.append(p)
+        return real_read(p)
+
+    monkeypatch.setattr(config_module, "read_config_text", counted)
     configs = config_module.load_every_camera(path)
     assert len(reads) == 1
     assert [(c.camera_name, c.camera_key, c.camera_entry.on) for c in configs] == [
