@@ -20,8 +20,8 @@ from cellcal.devices.errors import (
     ProtocolError,
     VendorError,
 )
+from cellcal.drivers.o3r_json import clip, show
 
-from .config_values import clip, show
 from .inbox import DropLog, Inbox
 from .link import Receiver, connect
 from .pcic import (

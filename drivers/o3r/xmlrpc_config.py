@@ -21,9 +21,9 @@ from cellcal.devices.errors import (
     ProtocolError,
     VendorError,
 )
+from cellcal.drivers import o3r_json as config_values
+from cellcal.drivers.o3r_json import PortInfo
 
-from . import config_values
-from .config_values import PortInfo
 from .rpc_http import post
 
 RPC_PATH = "/api/rpc/v1/com.ifm.efector/"

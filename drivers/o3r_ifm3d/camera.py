@@ -25,7 +25,6 @@ from numpy.typing import NDArray
 from cellcal.devices.base import BackendContext
 from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import (
-    ConfigError,
     DeviceConnectionError,
     DeviceTimeoutError,
     MissingDependencyError,
@@ -34,6 +33,7 @@ from cellcal.devices.errors import (
 )
 from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
+from cellcal.drivers.o3r_json import firmware, port_info
 
 #: The O3R 3D head's range noise, 1-sigma at 1 m and normal incidence, metres: ifm's O3R222
 #: data sheet quotes a repeatability of < 7 mm at distances below 1 m (the figure the simulated
@@ -156,23 +156,9 @@ class O3RIfm3dCamera(Camera3D):
         """Read the port's PCIC port, type and state with ifm3dpy; switch its state if needed."""
         cfg = self.config
         node = self._call(lambda: self._o3r.get(["/ports"]), "get /ports")
-        ports = node.get("ports") if isinstance(node, dict) else None
-        if not isinstance(ports, dict):
-            raise ProtocolError(f"o3r-ifm3d {cfg.host}: get /ports answered no /ports object")
-        heads = _heads_3d(ports)
-        if cfg.port not in ports:  # one line naming what the VPU has, before any frame is asked for
-            names = ", ".join(sorted(str(k)[:16] for k in list(ports)[:16])) or "none"
-            raise ConfigError(f"O3R at {cfg.host} has no port {cfg.port[:16]!r} (ports: {names}); {heads}",
-                              key="camera.port")
-        try:
-            port = ports[cfg.port]
-            pcic, kind, state = int(port["data"]["pcicTCPPort"]), str(port["info"]["features"]["type"]), port["state"]
-        except (KeyError, TypeError, ValueError):
-            raise ProtocolError(f"o3r-ifm3d {cfg.host}: /ports/{cfg.port} lacks pcicTCPPort, type or state") from None
-        if kind != "3D":
-            article = "an" if kind[:1] in "AEIOU" else "a"
-            raise ConfigError(f"O3R at {cfg.host}: {cfg.port} is {article} {kind[:16]} port, not a 3D head; {heads}",
-                              key="camera.port")
+        # every value checked as the o3r backend checks it: a missing, 2D or IMU port is one line naming the heads
+        info = port_info(node, cfg.port, host=cfg.host, where=f"o3r-ifm3d {cfg.host} get(['/ports'])", kind="3D")
+        pcic, state = info.pcic_port, info.state
         want = "RUN" if cfg.trigger == "free_run" else "IDLE"
         if state != want:
             if not cfg.set_state:
@@ -181,7 +167,7 @@ class O3RIfm3dCamera(Camera3D):
             self._call(lambda: self._o3r.set({"ports": {cfg.port: {"state": want}}}), f"set state {want}")
             self._state_changed = True
         sw = self._call(lambda: self._o3r.get(["/device/swVersion"]), "get /device/swVersion")
-        self._firmware = str(sw.get("device", {}).get("swVersion", {}).get("firmware", ""))[:64]
+        self._firmware = firmware(sw, f"o3r-ifm3d {cfg.host} get(['/device/swVersion'])")
         return pcic
 
     def _call(self, fn: Any, what: str) -> Any:
@@ -284,14 +270,6 @@ class O3RIfm3dCamera(Camera3D):
                           firmware=self._firmware,
                           extra={"host": cfg.host, "port": cfg.port, "pcic_port": self._pcic_port,
                                  "trigger": cfg.trigger, "client": "ifm3dpy"})
-
-
-def _heads_3d(ports: dict[str, Any]) -> str:
-    """``its 3D heads: port2, port3`` of a ``/ports`` object (read leniently: for a message)."""
-    names = sorted(str(name)[:16] for name, node in list(ports.items())[:16]
-                   if isinstance(node, dict) and isinstance(node.get("info"), dict)
-                   and isinstance(node["info"].get("features"), dict) and node["info"]["features"].get("type") == "3D")
-    return f"its 3D heads: {', '.join(names)}" if names else "it has no 3D head"
 
 
 def _missing() -> MissingDependencyError:

@@ -69,7 +69,6 @@ from cellcal.devices.errors import (
 )
 from cellcal.devices.geometry.camera_model import pixel_grid_rays
 from cellcal.devices.types import Frame, Intrinsics
-from cellcal.drivers.o3r.config_values import firmware, port_info
 from cellcal.drivers.o3r.decode import FrameDecoder
 from cellcal.drivers.o3r.pcic import (
     TICKET_ASYNC_ERROR,
@@ -84,6 +83,7 @@ from cellcal.drivers.o3r.pcic import (
 )
 from cellcal.drivers.o3r.xmlrpc_config import parse_json_object
 from cellcal.drivers.o3r.xmlrpc_config import parse_reply as parse_rpc_reply
+from cellcal.drivers.o3r_json import firmware, port_info
 from cellcal.drivers.xarm.protocol import FrameSplitter, encode_request, parse_reply
 from cellcal.drivers.xarm.registers import decode_serials, decode_text, unpack_floats
 from cellcal.sims.o3r.encoder import FrameEncoder

@@ -591,3 +591,24 @@ def test_reader_that_dies_leaves_a_typed_error_for_every_call(monkeypatch: pytes
         stream.start(1.0)
     with pytest.raises(DeviceError, match="reader stopped on RuntimeError"):
         stream.next_frame(0.1, 0.0)
+
+
+# ---------------------------------------------------------------------- the same tree read by ifm3dpy
+@pytest.mark.parametrize(("patch", "pointer", "message"), BAD_VALUES[::3],
+                         ids=[f"{b[1].rsplit('/', 1)[1]}:{b[2].rsplit(' ', 1)[1]}" for b in BAD_VALUES[::3]])
+def test_the_ifm3dpy_backend_checks_the_tree_as_the_own_client_does(patch: dict[str, Any], pointer: str,
+                                                                     message: str) -> None:
+    pytest.importorskip("ifm3dpy.device", reason="ifm3dpy (the o3r-ifm3d extra) is not installed")
+    from cellcal.devices.registry import default_registry
+
+    doc = tree(50012)
+    doc["ports"]["port2"].update(patch)
+    server = xmlrpc_server(answering(http(xml_value(json.dumps(doc)))))
+    try:
+        cam = default_registry().create_camera({"backend": "o3r-ifm3d", "host": "127.0.0.1",
+                                                "xmlrpc_port": server.port, "port": "port2"})
+        with pytest.raises(ProtocolError) as err:
+            cam.connect(timeout=3.0)
+        assert str(err.value) == f"o3r-ifm3d 127.0.0.1 get(['/ports']): {pointer} {message}"
+    finally:
+        server.close()

@@ -12,8 +12,8 @@ import pytest
 from cellcal.devices.config import parse_section
 from cellcal.devices.errors import ConfigError, ProtocolError, VendorError
 from cellcal.drivers.o3r.camera import O3RConfig
-from cellcal.drivers.o3r.config_values import clip, firmware, pointer, port_info, show
 from cellcal.drivers.o3r.xmlrpc_config import MAX_DEPTH, parse_json_object, parse_reply
+from cellcal.drivers.o3r_json import clip, firmware, pointer, port_info, show
 
 WHERE = "O3R XML-RPC 10.0.0.1:80 get(['/ports'])"
 WHERE_RE = re.escape(WHERE)

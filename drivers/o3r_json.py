@@ -1,5 +1,8 @@
 """Values read from the O3R JSON configuration, checked against the documented tree (protocols.md A1).
 
+Shared by ifm's two backends, ``o3r`` (its own XML-RPC client) and ``o3r-ifm3d`` (ifm3dpy): the
+tree is the VPU's whichever client reads it.
+
 Every check names the JSON pointer of the value and shows it shortened, so a device that
 sends ``1e308`` as a port, a list as a state or a 300-digit number fails with one line.
 """
