@@ -253,6 +253,40 @@ def estimate_fixed_camera(plate_observations: Sequence[PlaneObservation], nomina
         raise CalibrationQualityError("observability", seen.rank, seen.n_parameters, seen.message())
     prior_info = np.zeros(len(fitted)) if prior_sigma is None else np.concatenate([np.zeros(6), prior_sigma**-2.0])
     x, fun = _solve(data, prior_info)
+    u = _uncertainty(data, observations, x, fun, prior_info, confidence, noise_test_level, max_interval_scale)
+    params = data.full(x)
+    camera = model.camera(params)
+    n_plate, cov = len(observations), u.covariance
+    return FixedCameraEstimate(
+        camera, cov[:6, :6], model.plate(params), cov[6:, 6:] if len(fitted) == 9 else None, params,
+        {FIXED_PARAMETERS[i]: u.noise.interval_z * math.sqrt(cov[i, i]) for i in fitted}, u.views[:n_plate],
+        u.views[n_plate] if measuring_plane is not None else None, u.chi2, u.dof, u.noise, seen, confidence,
+        "estimated" if estimate_plate else ("exact" if prior_sigma is None else "prior"), arm,
+        None if arm is None else _arm_common_covariance(arm, camera, data.flanges[1]), u.terms,
+        _camera_block(u.systematic, fitted))
+
+
+@dataclass(frozen=True)
+class _Uncertainty:
+    """What the solution's residuals and Jacobian say of it (:func:`_uncertainty`)."""
+
+    covariance: FloatArray  # 9x9, zero outside the fitted parameters
+    systematic: FloatArray  # the systematic terms' share, over the fitted parameters
+    terms: tuple[str, ...]
+    chi2: float
+    dof: int
+    noise: NoiseCheck
+    views: tuple[ViewResidual, ...]
+
+
+def _uncertainty(data: _Views, observations: Sequence[PlaneObservation], x: FloatArray, fun: FloatArray,
+                 prior_info: FloatArray, confidence: float, noise_test_level: float, max_interval_scale: float
+                 ) -> _Uncertainty:
+    """The solution's covariance: the noise's (Birge-scaled by the chi2 test) plus the common systematic terms'.
+
+    Raises:
+        CalibrationQualityError: Gate ``noise_model`` (:func:`check_noise`).
+    """
     jac = jacobian(data, x)
     info_data, info_prior = jac.T @ jac, np.diag(prior_info)
     n_plate = len(observations)
@@ -265,17 +299,10 @@ def estimate_fixed_camera(plate_observations: Sequence[PlaneObservation], nomina
                         max_interval_scale=max_interval_scale,
                         detail=f"largest residual at view {worst + 1} (chi2 {views[worst].chi2:.4g})")
     cov = np.zeros((9, 9))
+    fitted = data.free
     # Birge-scaled noise part, plus the common systematic terms' (never scaled: the data cannot tell them)
     cov[np.ix_(fitted, fitted)] = scaled_covariance(info_data, info_prior, noise.interval_scale) + sys_cov
-    params = data.full(x)
-    camera = model.camera(params)
-    return FixedCameraEstimate(
-        camera, cov[:6, :6], model.plate(params), cov[6:, 6:] if len(fitted) == 9 else None, params,
-        {FIXED_PARAMETERS[i]: noise.interval_z * math.sqrt(cov[i, i]) for i in fitted}, views[:n_plate],
-        views[n_plate] if measuring_plane is not None else None, chi2, dof, noise, seen, confidence,
-        "estimated" if estimate_plate else ("exact" if prior_sigma is None else "prior"), arm,
-        None if arm is None else _arm_common_covariance(arm, camera, data.flanges[1]), tuple(terms),
-        _camera_block(sys_cov, fitted))
+    return _Uncertainty(cov, sys_cov, tuple(terms), chi2, dof, noise, views)
 
 
 def _camera_block(cov: FloatArray, fitted: Sequence[int]) -> FloatArray:
