@@ -17,6 +17,10 @@ Defaults (on, all within the vendors' stated accuracy and the model's stated all
   a wiggle of 1 mm with the period ``c / (8 f)`` = 0.6246 m at f = 60 MHz (four-phase sampling of a
   not quite sinusoidal correlation: its 3rd and 5th harmonics alias to an error four times per
   unambiguous range ``c / (2 f)``), and a radial bow of 1 mm at the image corner.
+
+Beyond the bow, ``disparity_field_px`` / ``range_field_m`` add any smooth field of order 2 (linear
+terms: a camera whose depth tilts across the image); zero by default, drawn by the benchmarks that
+draw a camera from its stated allowance (every shape the allowance states, not the bow alone).
 """
 
 from __future__ import annotations
@@ -46,6 +50,11 @@ def radial_bow_coeffs(bow: float, width: int, height: int) -> tuple[float, ...]:
     return (0.0, 0.0, bow * a2 / (a2 + 1.0), 0.0, bow / (a2 + 1.0))
 
 
+def _plus(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
+    """Two fields' coefficients (the same terms) summed."""
+    return tuple(x + y for x, y in zip(a, b, strict=True))
+
+
 @dataclass(frozen=True)
 class SystematicConfig:
     """The ``[sim.systematic]`` table: the simulated cameras' systematic depth errors (module docstring)."""
@@ -73,7 +82,19 @@ class SystematicConfig:
         "ge": -0.05, "le": 0.05,
         "doc": "ToF: radial quadratic range field, m at the image corner (0 at the principal point)"})
 
+    disparity_field_px: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0), metadata={
+        "doc": "stereo: further smooth disparity field, px, the coefficients of u, v, u^2, uv, v^2 (u, v: the "
+        "pixel's offset from the principal point over half the image's width and height), added to the bow"})
+    range_field_m: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0), metadata={
+        "doc": "ToF: further smooth range field, m, the coefficients of u, v, u^2, uv, v^2 (as "
+        "disparity_field_px), added to the bow"})
+
     def __post_init__(self) -> None:
+        for key in ("disparity_field_px", "range_field_m"):
+            limit = 10.0 if key == "disparity_field_px" else 0.05
+            if any(not math.isfinite(c) or abs(c) > limit for c in getattr(self, key)):
+                raise ConfigError(f"each coefficient must be finite and within +-{limit:g}",
+                                  key=f"sim.systematic.{key}")
         if self.wiggle_period_m > 0.0 and 2.0 * math.pi * self.wiggle_amplitude_m >= 0.5 * self.wiggle_period_m:
             # the measured range must grow with the true one (and the correction stays a contraction)
             raise ConfigError(f"too large for the period {self.wiggle_period_m} m: 2 pi A / P must stay below 0.5",
@@ -89,7 +110,9 @@ class SystematicConfig:
         if not self.enabled:
             return SystematicError("stereo")
         return SystematicError("stereo", fb_error=self.fb_error, disparity_offset_px=self.disparity_offset_px,
-                               field_order=2, field_coeffs=radial_bow_coeffs(self.disparity_bow_px, width, height))
+                               field_order=2,
+                               field_coeffs=_plus(radial_bow_coeffs(self.disparity_bow_px, width, height),
+                                                  self.disparity_field_px))
 
     def tof(self, width: int, height: int) -> SystematicError:
         """The ToF camera's error (zero when disabled) for an image ``width`` x ``height``."""
@@ -100,7 +123,8 @@ class SystematicConfig:
                                wiggle_cos_m=self.wiggle_amplitude_m * math.cos(phase),
                                wiggle_sin_m=self.wiggle_amplitude_m * math.sin(phase),
                                wiggle_period_m=self.wiggle_period_m, field_order=2,
-                               field_coeffs=radial_bow_coeffs(self.range_bow_m, width, height))
+                               field_coeffs=_plus(radial_bow_coeffs(self.range_bow_m, width, height),
+                                                  self.range_field_m))
 
     @property
     def stated_allowance(self) -> dict[str, float | None]:

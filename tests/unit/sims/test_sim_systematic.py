@@ -155,6 +155,29 @@ def test_the_defaults_lie_within_the_stated_allowance_and_the_frames_carry_the_t
         assert ideal.measurement.allowance == (0.0, 0.0, 0.0)  # an ideal camera knows it is ideal
 
 
+def test_a_linear_tof_field_tilts_the_range_across_the_image() -> None:
+    """``range_field_m``: the coefficients of u, v, u^2, uv, v^2 (m), on top of the bow (here none)."""
+    pose = looking_down(0.6)
+    field = dataclasses.replace(NONE, range_field_m=(0.002, -0.001, 0.0, 0.0005, 0.0))
+    on = tof(field, pose, **EXACT_TOF).render(pose)
+    off = tof(SystematicConfig.off(), pose, **EXACT_TOF).render(pose)
+    cam = tof(field, pose, **EXACT_TOF)
+    intr = cam.config.intrinsics()
+    u, v = normalised_pixels(intr.width, intr.height, intr.cx, intr.cy)
+    ok = on.valid & off.valid
+    diff = (on.distance.astype(np.float64) - off.distance.astype(np.float64))[ok]
+    expected = (0.002 * u - 0.001 * v + 0.0005 * u * v)[ok]
+    np.testing.assert_allclose(diff, expected, atol=2e-6)  # float32 distances, no noise or rounding
+    assert diff.max() - diff.min() > 0.005  # +-2 mm in u, +-1 mm in v and the cross term: a tilt seen
+
+
+def test_a_stereo_field_adds_to_the_bow() -> None:
+    cfg = dataclasses.replace(NONE, disparity_bow_px=0.5, disparity_field_px=(0.1, 0.0, 0.2, 0.0, -0.1))
+    bow = radial_bow_coeffs(0.5, 640, 400)
+    assert cfg.stereo(640, 400).field_coeffs == pytest.approx(
+        (bow[0] + 0.1, bow[1], bow[2] + 0.2, bow[3], bow[4] - 0.1), abs=1e-15)
+
+
 def test_the_table_is_read_from_the_document() -> None:
     doc = {"sim": {"systematic": {"fb_error": 0.01, "range_offset_m": -0.002, "wiggle_phase_deg": 90.0}}}
     world = world_from_context(BackendContext(source="cell.toml", document=doc))
@@ -174,6 +197,9 @@ def test_the_table_is_read_from_the_document() -> None:
     ({"wiggle_amplitude_m": -0.001}, "wiggle_amplitude_m"),
     ({"wiggle_amplitude_m": 0.02, "wiggle_period_m": 0.2}, "wiggle_amplitude_m"),  # 2 pi A / P above 0.5
     ({"range_scale_error": float("nan")}, "range_scale_error"),
+    ({"range_field_m": [0.001, 0.0, 0.0]}, "range_field_m"),
+    ({"range_field_m": [0.06, 0.0, 0.0, 0.0, 0.0]}, "range_field_m"),
+    ({"disparity_field_px": [0.0, float("inf"), 0.0, 0.0, 0.0]}, "disparity_field_px"),
 ])
 def test_a_bad_key_or_value_is_one_line_naming_it(table: dict[str, object], key: str) -> None:
     with pytest.raises(ConfigError) as info:
