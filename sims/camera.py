@@ -30,6 +30,7 @@ from .camera_shell import SimCameraShell
 from .charuco import BoardTexture
 from .mixed_pixels import PixelReturns, blend_edges
 from .multipath import SurfacePoints, second_bounce
+from .placement import PLATE_FACE
 from .scene import Scene
 from .systematic import SystematicConfig
 from .tof import (
@@ -264,7 +265,7 @@ class SimCamera(SimCameraShell):
         h, w = self._intr.height, self._intr.width
         scene = self.world.scene_at(flange_pose)
         cast = self._cast(camera_pose, scene)
-        ret = self._returns(camera_pose, cast, scene)
+        ret = self._returns(camera_pose, cast, scene, flange_pose)
         d = self._measure(ret, cast)
         valid, conf = self._validity(d, ret.amplitude, cast)
         arte = self.world.artefacts
@@ -301,14 +302,22 @@ class SimCamera(SimCameraShell):
         cos_inc = np.where(hit, -np.einsum("ij,ij->i", normal, dirs), 0.0)
         return _Cast(np.where(hit, t, np.nan), cos_inc, hit, surface, normal, dirs)
 
-    def _returns(self, camera_pose: Pose, cast: _Cast, scene: Scene) -> PixelReturns:
-        """Effective range (m) and relative amplitude of each pixel's return, before noise."""
+    def _returns(self, camera_pose: Pose, cast: _Cast, scene: Scene, flange_pose: Pose | None = None
+                 ) -> PixelReturns:
+        """Effective range (m) and relative amplitude of each pixel's return, before noise (``flange_pose``: the
+        true ``T_base_flange`` the held plate is drawn at; None: the flange's now)."""
         arte = self.world.artefacts
         # A lone plane has one surface: no depth edge (its horizon is beyond the grazing limit), no multipath.
         edges = scene.has_edges
         rho = scene.reflectivity(cast.surface) if edges else scene.plane_reflectivity
         board = self._board_texture()
-        if board is not None:  # a ChArUco board printed on the plane ([sim.charuco])
+        plate = self.world.plate
+        if board is not None and board.config.on == "plate" and plate is not None:  # printed on the held plate
+            flange = self.world.true_flange_pose() if flange_pose is None else flange_pose
+            face = scene.solid_surface_ids(0)[PLATE_FACE]
+            rho = board.reflectivity(camera_pose, cast.hit & (cast.surface == face), rho,
+                                     board.config.pose_on_plate(flange @ plate.pose()))
+        elif board is not None and board.config.on == "plane":  # a ChArUco board printed on the plane ([sim.charuco])
             rho = board.reflectivity(camera_pose, cast.hit & (cast.surface == 0), rho)
         t_safe = np.where(cast.hit, cast.range_m, 1.0)
         ret = PixelReturns(cast.range_m, np.where(cast.hit, relative_amplitude(t_safe, cast.cos_incidence, rho), 0.0))

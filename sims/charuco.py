@@ -45,6 +45,9 @@ class CharucoConfig:
     supersample: int = field(default=3, metadata={"ge": 1, "le": 8, "doc": "sub-rays per pixel and axis"})
     texture_px_per_square: int = field(default=80, metadata={"ge": 10, "le": 400,
                                                              "doc": "texture resolution, px per square"})
+    on: Literal["plane", "plate"] = field(default="plane", metadata={
+        "doc": "where the board is printed: on the measuring plane (at center_m), or on the face of the plate the "
+               "arm holds ([sim.plate], centred on it, turned by yaw_deg about its normal): a fixed camera's board"})
 
     @property
     def size_m(self) -> tuple[float, float]:
@@ -72,6 +75,13 @@ class CharucoConfig:
         centre = centre - ((centre - plane_point_m) @ n) * n  # onto the plane
         w, h = self.size_m
         return Pose(Rotation.from_matrix(rot), centre - rot @ np.array([w / 2, h / 2, 0.0]))
+
+    def pose_on_plate(self, plate_in_base: Pose) -> Pose:
+        """``T_base_board``: the board centred on the held plate's face (``T_base_plate``; the face looks along the
+        plate's -z, so OpenCV's board z, into the print, is the plate's +z), turned by ``yaw_deg`` about it."""
+        turn = Pose.from_xyz_rpy(np.zeros(3), np.array([0.0, 0.0, math.radians(self.yaw_deg)]))
+        w, h = self.size_m
+        return plate_in_base @ turn @ Pose.from_xyz_rpy(np.array([-w / 2, -h / 2, 0.0]), np.zeros(3))
 
 
 def sub_rays(intrinsics: Intrinsics, s: int) -> FloatArray:
@@ -117,8 +127,8 @@ class BoardTexture:
         self._centre = self._rays.reshape(-1, self._n_sub, 3).mean(axis=1)  # about each pixel's centre ray
         self._pixel_rad = 1.0 / min(intrinsics.fx, intrinsics.fy)  # angular size of a pixel, rad
 
-    def reflectivity(self, camera_in_base: Pose, on_plane: NDArray[np.bool_], plane_rho: float | FloatArray
-                     ) -> FloatArray:
+    def reflectivity(self, camera_in_base: Pose, on_plane: NDArray[np.bool_], plane_rho: float | FloatArray,
+                     board_in_base: Pose | None = None) -> FloatArray:
         """Per-pixel reflectivity (H*W,): the board's print where sub-rays land on it, ``plane_rho`` elsewhere.
 
         Only pixels whose centre ray lands within a few footprints of the board trace their sub-rays.
@@ -127,8 +137,9 @@ class BoardTexture:
             camera_in_base: ``T_base_camera``.
             on_plane: (H*W,) pixels whose centre ray hits the measuring plane (not a box).
             plane_rho: The plane's reflectivity (scalar or per pixel).
+            board_in_base: Where the board is for this frame (a board on the held plate moves); None: where built.
         """
-        cam_in_board = self.board_in_base.inv() @ camera_in_base
+        cam_in_board = (self.board_in_base if board_in_base is None else board_in_base).inv() @ camera_in_base
         rot, origin = cam_in_board.rotation.as_matrix(), np.asarray(cam_in_board.translation, float)
         w, h = self.config.size_m
         # where each centre ray meets the board plane z = 0, and its footprint there (m)

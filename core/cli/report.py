@@ -25,7 +25,9 @@ def register(sub: Any) -> None:
                        "web browser (the path is printed when there is none). With --out FILE, render the report "
                        "again from DIR/report-data.json alone into one self-contained HTML file (needs the "
                        "'plots' extra for the pictures).")
-    p.add_argument("dir", metavar="DIR", type=path_arg, help="the run's output directory")
+    p.add_argument("dir", metavar="DIR", type=path_arg,
+                   help="the run's output directory (its report.html, or its one fixed camera's handeye-NAME.html), "
+                   "or a report page itself")
     p.add_argument("--out", metavar="FILE", type=path_arg, help="render the report from DIR's JSON into FILE")
     p.set_defaults(func=run)
 
@@ -42,16 +44,36 @@ def run(args: argparse.Namespace) -> int:
             say(f"cellcal: {note}")
         print(f"report written to {page}")
         return EXIT_OK
-    page = Path(args.dir) / REPORT_HTML_FILENAME
-    if not page.is_file():
+    page = _page_of(Path(args.dir), REPORT_HTML_FILENAME)
+    if page is None:
         load_report_data(args.dir)  # says what is missing when the data is not there either
         raise ConfigError(f"no {REPORT_HTML_FILENAME} in {args.dir}; 'cellcal report {args.dir} --out FILE' renders "
-                          "it from the report data", source=str(page))
+                          "it from the report data", source=str(Path(args.dir) / REPORT_HTML_FILENAME))
     if _open_in_browser(page.resolve()):
         print(f"report opened in a browser: {page}")
     else:
         print(f"no web browser found; the report is {page.resolve()}")
     return EXIT_OK
+
+
+def _page_of(path: Path, main_page: str) -> Path | None:
+    """The page to open: ``path`` itself if it is an HTML file, else DIR's ``report.html``, else its one
+    fixed camera's ``handeye-NAME.html`` (None when there is none).
+
+    Raises:
+        ConfigError: DIR holds no ``report.html`` but several camera pages: they are named.
+    """
+    from cellcal.devices.errors import ConfigError
+
+    if path.suffix == ".html" and path.is_file():
+        return path
+    if (path / main_page).is_file():
+        return path / main_page
+    pages = sorted(path.glob("handeye-*.html")) if path.is_dir() else []
+    if len(pages) > 1:
+        raise ConfigError(f"no {main_page} but {len(pages)} camera reports; name one: "
+                          + ", ".join(f"cellcal report {p}" for p in pages[:6]), source=str(path))
+    return pages[0] if pages else None
 
 
 def _open_in_browser(page: Path) -> bool:

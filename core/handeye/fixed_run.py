@@ -31,7 +31,7 @@ from cellcal.core.calibration.region import polygon_mask
 from cellcal.core.calibration.report import write_json_atomic
 from cellcal.core.geometry.planes import Plane
 from cellcal.core.handeye.fixed import FixedCameraEstimate, estimate_fixed_camera, fixed_observability
-from cellcal.core.handeye.fixed_plan import FixedObservability, plate_poses
+from cellcal.core.handeye.fixed_plan import FIXED_PARAMETERS, FixedObservability, plate_poses
 from cellcal.core.handeye.model import PlaneObservation, observation_from_pose, plane_covariance
 from cellcal.core.methods.fullframe.points import ExpectedPlane
 from cellcal.core.methods.measure import full_frame_document, measure_full_frame
@@ -45,7 +45,8 @@ from cellcal.devices.types import Intrinsics
 from cellcal.devices.version import cellcal_version
 
 __all__ = ["FIXED_SCHEMA", "FixedCalibrator", "check_fixed_plan", "check_plate_in_view", "fixed_document",
-           "fixed_filename", "fixed_plan", "plate_plane", "plate_region", "run_fixed_handeye"]
+           "fixed_filename", "fixed_plan", "plate_document", "plate_plane", "plate_region", "run_fixed_handeye",
+           "systematic_section"]
 
 #: Schema of ``DIR/handeye-NAME.json``.
 FIXED_SCHEMA = "cellcal.handeye-fixed/1"
@@ -171,9 +172,11 @@ class FixedCalibrator(Calibrator):
     """A calibrator that shows the plate to the fixed camera at the plan's poses and fits its face at each."""
 
     def __init__(self, config: CellConfig, camera: Camera3D, arm: SafeArm, poses: Sequence[Pose],
-                 progress: ProgressFactory | None = None) -> None:
+                 progress: ProgressFactory | None = None, left_out: Sequence[str] = ()) -> None:
         super().__init__(config, camera, arm, progress=progress)
         self.poses = list(poses)
+        #: The plan's poses left out before the run, one line each (:func:`fixed_plan`), for the result.
+        self.left_out = list(left_out)
         self.camera_base = _camera_base(config)
         #: The measuring plane as the camera saw it before the first move (:meth:`_table_view`).
         self.table: dict[str, Any] | None = None
@@ -250,7 +253,21 @@ def fixed_document(config: CellConfig, estimate: FixedCameraEstimate, header: di
             "configured_camera_base": _camera_base(config).to_dict(),
             "residuals": [{"pose": i + 1, "normal_rad": r.normal_rad, "offset_m": r.offset_m,
                            "whitened": [float(w) for w in r.whitened], "chi2": r.chi2}
-                          for i, r in enumerate(estimate.residuals)]}
+                          for i, r in enumerate(estimate.residuals)],
+            "systematic": systematic_section(estimate),
+            "arm_common_covariance": None if estimate.arm_common_covariance is None
+            else estimate.arm_common_covariance.tolist()}
+
+
+def systematic_section(estimate: FixedCameraEstimate) -> dict[str, Any]:
+    """The camera's systematic allowance in the result: its terms, their 6x6 part of the camera pose's covariance
+    and each pose parameter's share of its variance (1: all of it; 0 without terms)."""
+    total = np.diag(estimate.covariance)
+    sys_cov = estimate.systematic_covariance
+    part = np.zeros(6) if sys_cov is None else np.diag(sys_cov)
+    share = np.divide(part, total, out=np.zeros(6), where=total > 0)      # variance fractions, unitless
+    return {"terms": list(estimate.systematic_terms), "covariance": None if sys_cov is None else sys_cov.tolist(),
+            "variance_share": {k: float(v) for k, v in zip(FIXED_PARAMETERS[:6], share, strict=True)}}
 
 
 def measuring_plane_section(table: dict[str, Any] | None, estimate: FixedCameraEstimate) -> dict[str, Any] | None:
@@ -284,21 +301,31 @@ def run_fixed_handeye(calibrator: FixedCalibrator, out_dir: str | Path, *, resum
         CellcalError, KeyboardInterrupt: As :meth:`Calibrator.run`, and the estimate's refusals (gates
             ``observability`` and ``noise_model``); the journal stays for ``--resume``.
     """
-    config = calibrator.config
-    out = Path(out_dir) / fixed_filename(config.camera_name)
+    out = Path(out_dir) / fixed_filename(calibrator.config.camera_name)
     journal = journal_path(out)
     with OutputLock.for_directory(out.parent):
         measured = calibrator.run(journal=journal, resume=resume)
-        arm_model = calibrator.arm.arm_model()
-        estimate = estimate_from_poses(config, measured, arm_model)
-        header = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-                  "config_source": config.source, "method": "plate",
-                  "commanded_flange_poses": [p.to_dict() for p in calibrator.poses],
-                  "reported_flange_poses": [p["reported_flange_pose"] for p in measured["poses"]],
-                  "arm_model": arm_model.to_dict(),
-                  **({"resumed_poses": measured["resumed_poses"]} if "resumed_poses" in measured else {})}
-        document = fixed_document(config, estimate, header)
-        document["measuring_plane"] = measuring_plane_section(calibrator.table, estimate)
+        document = plate_document(calibrator, measured)
         write_json_atomic(out, document)
         remove_journal(journal)
+    return document
+
+
+def plate_document(calibrator: FixedCalibrator, measured: dict[str, Any], method: str = "plate") -> dict[str, Any]:
+    """The result document of the plate plan ``calibrator`` measured (``measured``: :meth:`Calibrator.run`'s).
+
+    Raises:
+        CalibrationQualityError: The estimate's refusals (gates ``observability`` and ``noise_model``).
+    """
+    config = calibrator.config
+    arm_model = calibrator.arm.arm_model()
+    estimate = estimate_from_poses(config, measured, arm_model)
+    header = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+              "config_source": config.source, "method": method,
+              "commanded_flange_poses": [p.to_dict() for p in calibrator.poses],
+              "reported_flange_poses": [p["reported_flange_pose"] for p in measured["poses"]],
+              "arm_model": arm_model.to_dict(), "left_out": list(calibrator.left_out),
+              **({"resumed_poses": measured["resumed_poses"]} if "resumed_poses" in measured else {})}
+    document = fixed_document(config, estimate, header)
+    document["measuring_plane"] = measuring_plane_section(calibrator.table, estimate)
     return document

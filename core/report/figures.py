@@ -25,12 +25,14 @@ from cellcal.core.report.calibrate_charts import (
     poses_figure,
     weighted_consensus,
 )
+from cellcal.core.report.fixed_charts import fixed_pose_figure, fixed_residuals_figure, fixed_sigma_figure
 from cellcal.core.report.poseimage import pose_image_figure
 from cellcal.core.report.style import CLASS_AXES, CLASS_COLORS, DPI, FAILED, IMAGE_FIGSIZE_IN, PANEL_AXES
 from cellcal.devices.errors import MissingDependencyError
 
 __all__ = ["CLASS_AXES", "CLASS_COLORS", "DPI", "FAILED", "IMAGE_FIGSIZE_IN", "PANEL_AXES",
-           "charuco_figure", "consistency_figure", "gate_rows", "handeye_mount_figure", "handeye_observability_figure",
+           "charuco_figure", "consistency_figure", "fixed_pose_figure", "fixed_residuals_figure",
+           "fixed_sigma_figure", "gate_rows", "handeye_mount_figure", "handeye_observability_figure",
            "handeye_residuals_figure", "matplotlib_figure", "monitor_figure", "pose_estimates", "pose_fit_figure",
            "pose_image_figure", "poses_figure", "weighted_consensus"]
 

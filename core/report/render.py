@@ -74,6 +74,10 @@ def _jobs(data: Mapping[str, Any]) -> list[tuple[str, str, str, tuple[Any, ...]]
                         "handeye_observability_figure", (doc, camera)))
         if (doc.get("charuco") or {}).get("views"):
             out.append(("handeye-charuco.png", "ChArUco board poses", "charuco_figure", (doc, camera)))
+    elif kind == "handeye-fixed":  # a fixed camera's run (ADR 0061): its own page, handeye-NAME.html
+        from cellcal.core.report.fixed_html import fixed_jobs
+
+        out += fixed_jobs(section, camera)
     elif kind == "monitor":
         for label, cam in (section.get("cameras") or {}).items():
             out.append((f"monitor-{_safe(label)}.png", f"camera {label}: tilt and height over time",
@@ -89,7 +93,8 @@ def _draw(job: tuple[str, str, str, tuple[Any, ...]]) -> bytes:
 
 
 #: The pictures drawn as plain images, without matplotlib (:data:`_jobs`' functions, ADR 0051).
-PLAIN_PICTURES = frozenset({"pose_image_figure", "pose_fit_figure", "poses_figure", "consistency_figure"})
+PLAIN_PICTURES = frozenset({"pose_image_figure", "pose_fit_figure", "poses_figure", "consistency_figure",
+                            "fixed_pose_figure", "fixed_residuals_figure", "fixed_sigma_figure"})
 
 
 def needs_matplotlib(data: Mapping[str, Any]) -> bool:
@@ -197,12 +202,15 @@ def _pictures_or_note(data: Mapping[str, Any], directory: Path, workers: int = M
 
 
 def load_report_data(directory: str | Path) -> dict[str, Any]:
-    """The report data of a run directory.
+    """The report data of a run directory (``DIR/report-data.json``), or of a data file named as such
+    (``DIR/handeye-NAME.report-data.json``, a fixed camera's).
 
     Raises:
         ConfigError: No report data there, too large, not JSON, or another schema (exit status 2).
     """
-    path = Path(directory) / REPORT_DATA_FILENAME
+    path = Path(directory)
+    if not (path.name.endswith(".json") and not path.is_dir()):
+        path = path / REPORT_DATA_FILENAME
     try:
         size = path.stat().st_size
     except OSError:
@@ -243,8 +251,10 @@ def _page(data: Mapping[str, Any], pics: list[Picture], note: str, directory: Pa
     Raises:
         ConfigError: The data is malformed (naming the file).
     """
+    from cellcal.core.report.fixed_html import FIXED_KIND, fixed_tables
+
     try:
-        return render_html(data, pics, note).encode("utf-8")
+        return render_html(data, pics, note, fixed_tables if data.get("kind") == FIXED_KIND else None).encode("utf-8")
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
         raise ConfigError(f"malformed report data: {type(exc).__name__}: {exc}",
                           source=str(directory / REPORT_DATA_FILENAME)) from None

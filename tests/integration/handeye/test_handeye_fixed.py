@@ -87,7 +87,7 @@ def test_dry_run_lists_every_move_and_what_the_plan_sees(capsys: pytest.CaptureF
 
 
 @pytest.mark.parametrize(("args", "plate", "words"), [
-    (["--method", "charuco"], {}, "camera 'above' is fixed"),
+    (["--method", "charuco", "--resume"], {}, "work with --method plane only"),
     (["--plan", "config"], {}, "camera 'above' is fixed"),
     ([], {"size_m": [0.01, 0.01]}, "outside camera 'above''s view at every pose"),
     ([], {"distance_m": 4.0}, "breaks the envelope"),
