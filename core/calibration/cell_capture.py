@@ -98,7 +98,8 @@ class OtherCameras:
         self.driven_together = self.modes.get(config.camera_name, "together") == "together"
         self.guards = {name: DeadlineGuard(f"camera backend '{cam.backend_name}' ({name})", GUARD_GRACE_S)
                        for name, cam in self.cameras.items()}
-        #: Per camera, the pose entries measured (``index``, poses, ``full_frame`` or ``error``, times).
+        #: Per camera, the pose entries measured (``index``, poses, ``full_frame`` or ``error``; ``capture``
+        #: mode, ``started_s``/``ended_s`` after the settle, ``timestamp``, ``fit_s``: seconds).
         self.poses: dict[str, list[dict[str, Any]]] = {name: [] for name in self.cameras}
         self._pending: dict[str, _Capture] = {}
         self._settled = math.nan
@@ -202,11 +203,14 @@ class OtherCameras:
         if ref is not None:
             seen = Plane.from_point_normal(ref.plane_point_m, ref.plane_normal).transformed(camera_pose.inv())
             search = ExpectedPlane(seen.oriented_toward_origin(), SEARCH_ANGLE_RAD, SEARCH_OFFSET_M)
+        t0 = time.perf_counter()
         try:
             _row, fit = measure_full_frame([frame], self.config.full_frame, expected_plane=search)
         except CalibrationError as exc:  # this camera at this pose: said in its result, the run goes on
             entry["error"] = str(exc)
             return entry
+        finally:
+            entry["fit_s"] = time.perf_counter() - t0  # the plane fit's wall time, seconds
         entry["full_frame"] = full_frame_document(fit, camera_pose, None, expected_plane=search)
         return entry
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from cellcal.core.cli.argtypes import path_arg
-from cellcal.core.cli.exits import EXIT_OK
+from cellcal.core.cli.exits import EXIT_FAILURE, EXIT_OK
 from cellcal.core.cli.options import add_config_option, load_cell
 from cellcal.core.cli.report import add_no_report_option
 from cellcal.core.cli.resumable import resume_command, run_resumable
@@ -73,7 +73,12 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--replay takes the configuration recorded in the file; drop --config")
     if args.replay:
         from cellcal.core.calibration.replay import replay_session
+        from cellcal.core.handeye.fixed_record import records_fixed_camera
 
+        if records_fixed_camera(args.replay):  # a fixed camera's recording (ADR 0061)
+            from cellcal.core.cli.handeye_fixed import replay_fixed
+
+            return replay_fixed(args)
         config, camera, arm = replay_session(args.replay)
     else:
         config, camera, arm = load_cell(args, allow_fixed=True), None, None
@@ -105,25 +110,34 @@ def run(args: argparse.Namespace) -> int:
 def _run_plane(args: argparse.Namespace, config: Any, camera: Any, arm: Any, poses: list[Any],
                report: Any) -> int:
     """``--method plane``: the journaled plan run (with ``--record`` / ``--replay``)."""
-    from cellcal.core.calibration.calibrator import build_devices
     from cellcal.core.calibration.replay import recorded_devices
     from cellcal.core.cli.progress import progress_factory
     from cellcal.core.handeye.run import plan_calibrator
+    from cellcal.devices.errors import CellcalError
 
+    others = None
     if not args.replay:
-        camera, arm = build_devices(config)
+        camera, arm, others = _devices(args, config)
     with contextlib.ExitStack() as stack:
         if args.record:  # the backend arm is recorded inside the safety wrapper, as by 'cellcal record'
             recorder = _recorder(stack, args, config)
             camera, arm = recorded_devices(recorder, camera, arm)
-        calibrator = plan_calibrator(config, camera, arm, poses, progress_factory("poses", "pose", args.quiet))
-        document = _run(args, calibrator, len(poses))
+        if others is not None:  # the other cameras on the flange stay connected for the plan, closed after it
+            others.connect(stack)
+        calibrator = plan_calibrator(config, camera, arm, poses, progress_factory("poses", "pose", args.quiet),
+                                     others=others)
+        try:
+            document = _run(args, calibrator, len(poses), others)
+        except CellcalError:  # e.g. the driven camera's estimate refused: the others' files are written
+            _print_others(others)
+            raise
         if args.record and isinstance(document, dict):
             recorder.log_result(document)
     if isinstance(document, int):
         return document
     with _tee(report, document):
         _print_result(args, document)
+        failed = _print_others(others)
         if args.record:
             print(f"session recorded to {args.record}")
         if args.replay:
@@ -132,7 +146,40 @@ def _run_plane(args: argparse.Namespace, config: Any, camera: Any, arm: Any, pos
             print(compare_with_recording(args.replay, document))
     if report is not None:
         report.write(quiet=args.quiet)
-    return EXIT_OK
+    return EXIT_FAILURE if failed else EXIT_OK
+
+
+def _devices(args: argparse.Namespace, config: Any) -> tuple[Any, Any, Any]:
+    """The driven camera, the arm and the cell's other cameras on the flange (None: none, or ``--record``).
+
+    Fixed cameras are left out, and said (each has ``cellcal handeye --camera NAME``).
+    """
+    from cellcal.core.calibration.build import build_cell
+    from cellcal.core.calibration.calibrator import build_devices
+    from cellcal.core.handeye.several import FlangeCameras, split_cell_cameras
+
+    if len(config.cameras) == 1:
+        return (*build_devices(config), None)
+    cameras, arm = build_cell(config)
+    camera = cameras.pop(config.camera_name)
+    flange, fixed = split_cell_cameras(config, cameras)
+    if fixed:
+        print(f"fixed camera(s) {', '.join(fixed)}: not part of a hand-eye run of the cameras on the flange "
+              "(each has its own: cellcal handeye --camera NAME)")
+    if flange and args.record:
+        print(f"camera(s) {', '.join(flange)} on the flange: not captured (--record records the driven camera "
+              f"'{config.camera_name}' alone)")
+        return camera, arm, None
+    return camera, arm, (FlangeCameras(config, flange) if flange else None)
+
+
+def _print_others(others: Any) -> bool:
+    """One line per other camera on the flange (its mount, or why none); whether any got no mount."""
+    if others is None:
+        return False
+    for outcome in others.outcomes:
+        print(outcome.line())
+    return any(o.document is None for o in others.outcomes)
 
 
 def _tee(report: Any, document: dict[str, Any]) -> Any:
@@ -165,6 +212,10 @@ def _run_charuco(args: argparse.Namespace, config: Any, poses: list[Any], report
     if args.resume or args.record or args.replay:
         raise ConfigError("--resume, --record and --replay work with --method plane only (board views are not "
                           "journaled or replayed)")
+    flange = [e.name for e in config.cameras if e.on == "flange" and e.name != config.camera_name]
+    if flange:
+        print(f"camera(s) {', '.join(flange)} on the flange: not captured (--method {args.method} runs the driven "
+              f"camera '{config.camera_name}'; --method plane captures every camera on the flange)")
     document = run_charuco(config, poses, args.out, method=args.method, plan_kind=args.plan,
                            progress=progress_factory("poses", "pose", args.quiet))
     with _tee(report, document):
@@ -181,11 +232,13 @@ def _recorder(stack: contextlib.ExitStack, args: argparse.Namespace, config: Any
     return open_recorder(stack, args.record, config, args.config)
 
 
-def _run(args: argparse.Namespace, calibrator: Any, n_poses: int) -> dict[str, Any] | int:
-    """Run the plan into ``DIR/handeye.json``; the document, or the exit status of an interrupted run."""
+def _run(args: argparse.Namespace, calibrator: Any, n_poses: int, others: Any = None) -> dict[str, Any] | int:
+    """Run the plan into ``DIR/handeye.json`` (and each other flange camera's ``DIR/handeye-NAME.json``); the
+    document, or the exit status of an interrupted run."""
     from cellcal.core.handeye.result import HANDEYE_FILENAME
     from cellcal.core.handeye.run import run_handeye
 
-    return run_resumable(lambda: run_handeye(calibrator, args.out, plan_kind=args.plan, resume=args.resume),
+    return run_resumable(lambda: run_handeye(calibrator, args.out, plan_kind=args.plan, resume=args.resume,
+                                             others=others),
                          calibrator, n_poses, Path(args.out) / HANDEYE_FILENAME,
                          resume_command("handeye", args, f"--plan {args.plan}"))

@@ -44,11 +44,12 @@ def run(args: argparse.Namespace) -> int:
             say(f"cellcal: {note}")
         print(f"report written to {page}")
         return EXIT_OK
-    page = _page_of(Path(args.dir), REPORT_HTML_FILENAME)
-    if page is None:
+    found = _page_of(Path(args.dir), REPORT_HTML_FILENAME)
+    if found is None:
         load_report_data(args.dir)  # says what is missing when the data is not there either
         raise ConfigError(f"no {REPORT_HTML_FILENAME} in {args.dir}; 'cellcal report {args.dir} --out FILE' renders "
                           "it from the report data", source=str(Path(args.dir) / REPORT_HTML_FILENAME))
+    page = found
     if _open_in_browser(page.resolve()):
         print(f"report opened in a browser: {page}")
     else:

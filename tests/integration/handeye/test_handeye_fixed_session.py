@@ -20,8 +20,6 @@ import numpy as np
 import pytest
 
 from cellcal.core.cli import main
-from cellcal.core.cli.app import build_parser
-from cellcal.core.cli.handeye_fixed import replay_fixed
 from cellcal.core.handeye.fixed_record import records_fixed_camera
 from cellcal.devices.pose import Pose
 from cellcal.devices.recording import read_recording
@@ -58,8 +56,7 @@ def test_record_then_replay_gives_the_identical_result(recorded: Path, tmp_path:
     first = json.loads((recorded / "handeye-above.json").read_text(encoding="utf-8"))
     assert len(recording.captures) == len(first["residuals"]) + 1 == 26
     capsys.readouterr()
-    args = build_parser().parse_args(["handeye", "--replay", str(mcap), "--out", str(tmp_path), "--quiet"])
-    assert replay_fixed(args) == 0
+    assert main(["handeye", "--replay", str(mcap), "--out", str(tmp_path), "--quiet"]) == 0  # as a user types it
     out = capsys.readouterr().out
     assert "replay: identical to the recorded result (25 plate poses" in out
     again = json.loads((tmp_path / "handeye-above.json").read_text(encoding="utf-8"))
