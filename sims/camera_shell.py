@@ -97,11 +97,12 @@ class SimCameraShell(Camera3D):
 
         The camera a run drives: ``flange @ world.mount`` (:meth:`SimWorld.on_flange`); a placed
         camera on the flange: ``flange @`` its own true mount; a fixed one: its true pose, whatever
-        the flange does.
+        the flange does (its ``[[sim.events]]`` pose once one naming it has come).
         """
         placed, own = self.placement, self._true_pose
         if placed is None or own is None:
             return self.world.on_flange(flange, self.world.mount)
+        own = self.world.moved.get(placed.name, own)  # a [[sim.events]] entry naming it moved it
         return own if placed.on == "base" else self.world.on_flange(flange, own)
 
     def camera_pose(self) -> Pose:

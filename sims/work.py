@@ -59,13 +59,22 @@ class WorkConfig:
 
 @dataclass(frozen=True)
 class EventConfig:
-    """One ``[[sim.events]]`` entry: at ``at_s`` a new true mount, a new true plane, or both."""
+    """One ``[[sim.events]]`` entry: at ``at_s`` a new true mount, a new true plane, or both.
+
+    ``camera`` names a camera of ``[[cameras]]``: the new mount is then that camera's new true pose in
+    its parent frame (``T_flange_camera`` on the flange, ``T_base_camera`` fixed: a knocked fixed
+    camera). Without it, the camera a run drives through ``[camera]``/``[mount]`` (``[sim.mount]``)
+    moves, as it always has.
+    """
 
     at_s: float = field(metadata={"ge": 0.0, "le": 1e7, "doc": "simulated seconds from the start"})
     mount_translation_m: tuple[float, float, float] | None = field(default=None, metadata={
-        "ge": -2.0, "le": 2.0, "doc": "new true camera origin in the flange frame, m"})
+        "ge": -2.0, "le": 2.0,
+        "doc": "new true camera origin in the flange frame (or, with camera naming a fixed one, the base frame), m"})
     mount_rpy_deg: tuple[float, float, float] | None = field(default=None, metadata={
-        "ge": -360.0, "le": 360.0, "doc": "new true mount roll, pitch, yaw, degrees"})
+        "ge": -360.0, "le": 360.0, "doc": "new true mount (or fixed camera's) roll, pitch, yaw, degrees"})
+    camera: str | None = field(default=None, metadata={
+        "max_len": 32, "doc": "the camera of [[cameras]] the new mount is for (default: the camera the run drives)"})
     plane_point_m: tuple[float, float, float] | None = field(default=None, metadata={
         "ge": -10.0, "le": 10.0, "doc": "a point on the new true plane, base frame, m"})
     plane_normal: tuple[float, float, float] | None = field(default=None, metadata={
@@ -79,6 +88,9 @@ class EventConfig:
                               "plane_normal", key="sim.events")
         if mount[0] != mount[1]:
             raise ConfigError("a new mount needs both mount_translation_m and mount_rpy_deg", key="sim.events")
+        if self.camera is not None and not any(mount):
+            raise ConfigError("camera names whose pose changes: give mount_translation_m and mount_rpy_deg",
+                              key="sim.events")
         if plane[0] != plane[1]:
             raise ConfigError("a new plane needs both plane_point_m and plane_normal", key="sim.events")
         if self.plane_normal is not None and float(np.linalg.norm(self.plane_normal)) < 1e-9:

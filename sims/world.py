@@ -205,6 +205,8 @@ class SimWorld:
         self.camera_truths: tuple[SimCameraTruth, ...] = ()
         #: The cameras built with a placement in this world, by name (:meth:`place_camera`).
         self.placed: dict[str, CameraPlacement] = {}
+        #: New true poses of placed cameras from ``[[sim.events]]`` naming them (a knocked camera), by name.
+        self.moved: dict[str, Pose] = {}
         #: How many cameras were built without one (the camera a run drives through ``[camera]``/``[mount]``).
         self.driven_cameras = 0
         #: The cell's cameras' names when the builder gave them (``BackendContext.camera_names``), else empty.
@@ -265,6 +267,10 @@ class SimWorld:
         Raises:
             ConfigError: One line naming the first entry too many and the placed cameras.
         """
+        for i, event in enumerate(self.events):
+            if event.camera is not None and self.cell_camera_names and event.camera not in self.cell_camera_names:
+                raise ConfigError(f"{event.camera!r} names no camera of the cell (its cameras: "
+                                  f"{', '.join(self.cell_camera_names)})", source=source, key=f"sim.events[{i}].camera")
         if self.cell_camera_names:  # the cell named its cameras: the truths must name them, exactly
             for i, truth in enumerate(self.camera_truths):
                 if truth.name not in self.cell_camera_names:
@@ -301,8 +307,10 @@ class SimWorld:
         while self.events and self.events[0].at_s <= now:
             event = self.events.pop(0)
             mount = event.mount()
-            if mount is not None:
-                self.mount = mount
+            if mount is not None and event.camera is not None and event.camera in self.placed:
+                self.moved[event.camera] = mount  # a placed camera's new true pose in its parent frame
+            elif mount is not None:
+                self.mount = mount  # the camera the run drives (unnamed, or named as the one not placed)
             if event.plane_point_m is not None and event.plane_normal is not None:
                 s = self.scene
                 self.scene = Scene(np.asarray(event.plane_point_m, dtype=np.float64),

@@ -3,7 +3,8 @@
 from cellcal.core.liveview.feed import MonitorFeed
 from cellcal.core.liveview.presence import linger, live_view_session, wait_for_viewer
 from cellcal.core.liveview.scenes import calibration_scenes, monitor_scene, pose_plane, track_scene
-from cellcal.core.liveview.server import HOST, LiveView, import_foxglove, open_live_view
+from cellcal.core.liveview.server import HOST, LiveView, camera_frame_id, camera_topics, import_foxglove, open_live_view
 
-__all__ = ["HOST", "LiveView", "MonitorFeed", "calibration_scenes", "import_foxglove", "linger",
+__all__ = ["HOST", "LiveView", "MonitorFeed", "calibration_scenes", "camera_frame_id", "camera_topics",
+           "import_foxglove", "linger",
            "live_view_session", "monitor_scene", "open_live_view", "pose_plane", "track_scene", "wait_for_viewer"]

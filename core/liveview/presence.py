@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 from cellcal.core.console import say
@@ -78,7 +78,7 @@ def linger(view: LiveView, seconds: float) -> None:
 
 @contextmanager
 def live_view_session(port: int | None, *, drift: bool = False, track: bool = False, wait_s: float | None = None,
-                      ) -> Iterator[LiveView | None]:
+                      cameras: Sequence[str] = ()) -> Iterator[LiveView | None]:
     """The live view of ``--viz-port`` for the block (None: no live view), stopped when the block ends.
 
     Args:
@@ -86,11 +86,12 @@ def live_view_session(port: int | None, *, drift: bool = False, track: bool = Fa
         drift: Also advertise the drift channel (the monitor).
         track: Also advertise the track channel (``cellcal track``).
         wait_s: ``--viz-wait``: first wait (at most this long) for a viewer to subscribe.
+        cameras: A cell's several cameras (each its own topics: :class:`LiveView`); empty: one camera.
 
     Raises:
         ConfigError: If foxglove-sdk is not installed or the port cannot be listened on.
     """
-    view = open_live_view(port, drift=drift, track=track)
+    view = open_live_view(port, drift=drift, track=track, cameras=cameras)
     if view is None:
         yield None
         return

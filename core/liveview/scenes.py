@@ -49,20 +49,23 @@ def calibration_scenes(record: PoseRecord, frames: Sequence[Frame], result: Full
                   plane_offset_m=offset, inlier_mask=_mask(result, frame)) for frame in frames]
 
 
-def track_scene(frame: Frame, result: FullFrameResult, flange: Pose, mount: Pose, values: Mapping[str, Any]
-                ) -> Scene:
+def track_scene(frame: Frame, result: FullFrameResult, flange: Pose | None, mount: Pose | None,
+                values: Mapping[str, Any], *, camera_frame_id: str = CAMERA_FRAME_ID) -> Scene:
     """The scene of one tracked frame: its cloud and plane at the read flange pose, the tracked mount.
 
     Args:
         frame: The frame.
         result: Its plane fit (camera frame).
-        flange: ``T_base_flange`` paired with the frame.
-        mount: The tracked ``T_flange_camera`` after the frame.
+        flange: ``T_base_flange`` paired with the frame (None: a fixed camera, placed in the base frame by
+            :meth:`~cellcal.core.liveview.server.LiveView.place_camera`).
+        mount: The tracked ``T_flange_camera`` after the frame (None: a fixed camera).
         values: The ``cellcal.Track`` message's values (outcome, chi2, mount, event).
+        camera_frame_id: The camera's frame id (one of several: ``camera_NAME``).
     """
     return Scene(frame, base_flange=flange, flange_camera=mount,
                  plane_normal=np.asarray(result.plane.normal, dtype=np.float64),
-                 plane_offset_m=float(result.plane.offset_m), inlier_mask=_mask(result, frame), track=values)
+                 plane_offset_m=float(result.plane.offset_m), inlier_mask=_mask(result, frame), track=values,
+                 camera_frame_id=camera_frame_id)
 
 
 def monitor_scene(frame: Frame, result: FullFrameResult, status: MonitorStatus, *,

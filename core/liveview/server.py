@@ -14,18 +14,26 @@ from cellcal.core.console import say
 from cellcal.core.liveview.sdklog import flush_sdk_log, route_sdk_logging
 from cellcal.core.liveview.subprotocol import SubprotocolRelay
 from cellcal.devices.errors import ConfigError
+from cellcal.devices.pose import Pose
 from cellcal.devices.recording.codec import dumps, seconds_to_ns
-from cellcal.devices.recording.foxglove import scene_messages
-from cellcal.devices.recording.scene import Scene
-from cellcal.devices.recording.schema import DRIFT_CHANNELS, SCENE_CHANNELS, SCENE_SCHEMAS, TRACK_CHANNELS
+from cellcal.devices.recording.foxglove import pose_json, scene_messages, stamp
+from cellcal.devices.recording.scene import BASE_FRAME_ID, CAMERA_FRAME_ID, Scene
+from cellcal.devices.recording.schema import (
+    DRIFT_CHANNELS,
+    SCENE_CHANNELS,
+    SCENE_SCHEMAS,
+    TOPIC_PLANE,
+    TOPIC_POINTS,
+    TOPIC_TF,
+    TRACK_CHANNELS,
+)
 
 if TYPE_CHECKING:
     from cellcal.core.calibration.calibrator import PoseRecord
     from cellcal.core.methods.fullframe import FullFrameResult
-    from cellcal.devices.pose import Pose
     from cellcal.devices.types import Frame
 
-__all__ = ["HOST", "LiveView", "import_foxglove", "open_live_view"]
+__all__ = ["HOST", "LiveView", "camera_frame_id", "camera_topics", "import_foxglove", "open_live_view"]
 
 #: The live view listens on the loopback interface only.
 HOST = "127.0.0.1"
@@ -37,6 +45,20 @@ RELEASE_TIMEOUT_S = 2.0
 MAX_CLIENTS = 8
 #: Messages the SDK queues per client before it drops the oldest data message (ADR 0039).
 MESSAGE_BACKLOG = 16
+
+
+def camera_frame_id(name: str) -> str:
+    """The frame id of camera ``name`` of a cell with several cameras (``camera_NAME``; one camera: ``camera``)."""
+    return f"{CAMERA_FRAME_ID}_{name}"
+
+
+def camera_topics(name: str) -> dict[str, str]:
+    """Camera ``name``'s own topics for its cloud and plane, by the one-camera topic they replace.
+
+    A viewer keeps the last message of a topic: each camera of several has its own, so that every
+    camera's cloud and plane are drawn at once (ADR 0061).
+    """
+    return {TOPIC_POINTS: f"/cameras/{name}/points", TOPIC_PLANE: f"/cameras/{name}/plane"}
 
 
 def import_foxglove() -> Any:
@@ -76,7 +98,10 @@ class LiveView:
     inliers green, outliers red), ``/cellcal/plane`` (``foxglove.SceneUpdate``: the fitted
     plane and its normal), ``/tf`` (``foxglove.FrameTransforms``: base, flange, camera) and,
     with ``drift=True``, ``/cellcal/drift`` (``cellcal.Drift``), with ``track=True`` ``/cellcal/track``
-    (``cellcal.Track``). A message reaches the clients
+    (``cellcal.Track``). With ``cameras`` (a cell's several cameras) each camera has its own cloud and
+    plane topics (:func:`camera_topics`) and frame id (:func:`camera_frame_id`); ``/tf`` holds each
+    camera's frame: under the flange with its mount, or under the base (:meth:`place_camera`) for a fixed
+    one. A message reaches the clients
     subscribed at the time it is published; the last scene of each camera is kept, so
     :meth:`republish` can show it to a client that subscribes later (ADR 0035).
 
@@ -90,16 +115,25 @@ class LiveView:
         port: TCP port (0: any free port; see :attr:`port`).
         drift: Also advertise the drift channel (the monitor).
         track: Also advertise the track channel (``cellcal track``).
+        cameras: The names of a cell's several cameras (their own topics); empty: one camera.
 
     Raises:
         ConfigError: If foxglove-sdk is not installed or the port cannot be listened on.
     """
 
-    def __init__(self, port: int, *, drift: bool = False, track: bool = False) -> None:
+    def __init__(self, port: int, *, drift: bool = False, track: bool = False, cameras: Sequence[str] = ()
+                 ) -> None:
         foxglove = import_foxglove()
         route_sdk_logging()
         self._context = foxglove.Context()
         topics = {**SCENE_CHANNELS, **(DRIFT_CHANNELS if drift else {}), **(TRACK_CHANNELS if track else {})}
+        #: Each camera's topics by its frame id (a cell's several cameras), and the fixed ones' T_base_camera.
+        self._routes = {camera_frame_id(name): camera_topics(name) for name in cameras}
+        self._fixed: dict[str, Pose] = {}
+        for route in self._routes.values():  # each camera's cloud and plane instead of the shared ones
+            topics.update({own: SCENE_CHANNELS[shared] for shared, own in route.items()})
+        if self._routes:
+            topics = {t: name for t, name in topics.items() if t not in (TOPIC_POINTS, TOPIC_PLANE)}
         self._subscriptions = _Subscriptions()
         self._last: dict[str, Scene] = {}
         self._channels = {topic: foxglove.Channel(topic, schema=foxglove.Schema(
@@ -159,11 +193,28 @@ class LiveView:
         self._last[scene.camera_frame_id] = scene
         self._send(scene)
 
+    def place_camera(self, frame_id: str, base_camera: Pose) -> None:
+        """Say that the camera of ``frame_id`` is fixed at ``T_base_camera``: its scenes add it to ``/tf``."""
+        self._fixed[frame_id] = base_camera
+
+    def _messages(self, scene: Scene) -> dict[str, dict[str, Any]]:
+        """The scene's messages by topic: on its camera's own topics, with a fixed camera's transform in ``/tf``."""
+        messages = scene_messages(scene)
+        fixed = self._fixed.get(scene.camera_frame_id)
+        if fixed is not None:
+            p = pose_json(fixed)
+            tf = messages.setdefault(TOPIC_TF, {"transforms": []})
+            tf["transforms"].append({"timestamp": stamp(scene.timestamp), "parent_frame_id": BASE_FRAME_ID,
+                                     "child_frame_id": scene.camera_frame_id, "translation": p["position"],
+                                     "rotation": p["orientation"]})
+        route = self._routes.get(scene.camera_frame_id, {})
+        return {route.get(topic, topic): payload for topic, payload in messages.items()}
+
     def _send(self, scene: Scene) -> None:
         if not any(channel.has_sinks() for channel in self._channels.values()):
             return
         log_time = seconds_to_ns(scene.timestamp) or None
-        for topic, payload in scene_messages(scene).items():
+        for topic, payload in self._messages(scene).items():
             channel = self._channels.get(topic)
             if channel is not None and channel.has_sinks():
                 channel.log(dumps(payload), log_time=log_time)
@@ -220,7 +271,8 @@ def _wait_until_released(port: int, deadline: float) -> None:
         time.sleep(0.002)
 
 
-def open_live_view(port: int | None, *, drift: bool = False, track: bool = False) -> LiveView | None:
+def open_live_view(port: int | None, *, drift: bool = False, track: bool = False, cameras: Sequence[str] = ()
+                   ) -> LiveView | None:
     """Start the live view of ``--viz-port`` (None: no live view) and say on stderr where to connect.
 
     Raises:
@@ -228,6 +280,6 @@ def open_live_view(port: int | None, *, drift: bool = False, track: bool = False
     """
     if port is None:
         return None
-    view = LiveView(port, drift=drift, track=track)
+    view = LiveView(port, drift=drift, track=track, cameras=cameras)
     say(f"live view: {view.url} (in Foxglove: Open connection, Foxglove WebSocket, this URL)")
     return view

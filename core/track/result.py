@@ -7,18 +7,34 @@ in ``unseen``; ``observable`` says it per parameter.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cellcal.core.geometry.planes import Plane
 from cellcal.core.track.state import TrackState, TrackStep
+from cellcal.devices.pose import Pose
+
+if TYPE_CHECKING:
+    from cellcal.core.track.estimator import Tracker
 
 #: Schema of ``track.json``; bump on any incompatible change.
 TRACK_SCHEMA = "cellcal.track/1"
+#: Schema of a fixed camera's ``track-NAME.json`` (ADR 0061): its view of the plane and how it moved.
+FIXED_TRACK_SCHEMA = "cellcal.track-fixed/1"
 TRACK_FILENAME = "track.json"
 FRAMES_FILENAME = "track.jsonl"
+
+
+def track_filenames(name: str | None) -> tuple[str, str]:
+    """A camera's document and rows: ``track.json`` / ``track.jsonl`` (None: the camera a one-camera cell has,
+    or the first on the flange of ``[[cameras]]``), else ``track-NAME.json`` / ``track-NAME.jsonl``."""
+    if name is None:
+        return TRACK_FILENAME, FRAMES_FILENAME
+    return f"track-{name}.json", f"track-{name}.jsonl"
 
 
 def _intervals(value: np.ndarray, sigma: np.ndarray, z: float) -> list[list[float] | None]:
@@ -86,16 +102,59 @@ def frame_row(step: TrackStep, t_s: float, **extra: Any) -> dict[str, Any]:
             "event": step.event.to_dict() if step.event else None, **extra}
 
 
-def write_track_json(out_dir: str | Path, doc: Mapping[str, Any]) -> Path:
-    """Write ``DIR/track.json`` atomically (temp file + rename; an earlier file stays until it is complete).
+def _facing(plane: Plane) -> Plane:
+    """The plane with its normal toward the frame's origin (the camera)."""
+    return plane if plane.offset_m > 0 else Plane(-plane.normal, -plane.offset_m)
+
+
+def fixed_track_document(tracker: Tracker, pose: Pose, counters: Mapping[str, int], meta: Mapping[str, Any]
+                         ) -> dict[str, Any]:
+    """A fixed camera's document (``cellcal.track-fixed/1``): its view of the plane and how far it moved.
+
+    One view of a plane measures its tilt and distance in the camera's frame (``view``) and nothing
+    else: a moved camera and a moved plane look alike, which the cameras on the arm tell apart
+    (:mod:`~cellcal.core.track.cell`). ``drift`` is the view against the configured plane seen from the
+    configured pose (``expected``); ``plane`` is the view taken to the base frame through the configured
+    pose (the plane in the base frame if the camera has not moved).
+
+    Args:
+        tracker: The camera's tracker (``Tracker(fixed=True)``).
+        pose: Its configured ``T_base_camera``.
+        counters: Frame counts by outcome.
+        meta: Run facts, copied under ``meta``.
+    """
+    view = tracker.view_plane()
+    expected = _facing(tracker.nominal_plane.transformed(pose.inv()))
+    tilt = math.degrees(math.acos(min(1.0, abs(float(view.normal @ expected.normal)))))
+    base = view.transformed(pose)
+    return {
+        "schema": FIXED_TRACK_SCHEMA,
+        "meta": dict(meta),
+        "counters": {str(k): int(v) for k, v in counters.items()},
+        "events": [e.to_dict() for e in tracker.state.events],
+        "change_unresolved": any(e.resolved_at_s is None for e in tracker.state.events),
+        "pose": {"frame": "base", "configured": pose.to_dict(),
+                 "note": "track does not re-estimate a fixed camera's pose (cellcal handeye --camera NAME does)"},
+        "view": {"frame": "camera", **view.to_dict()},
+        "expected": {"frame": "camera", **expected.to_dict()},
+        "drift": {"tilt_deg": tilt, "shift_m": float(expected.offset_m - view.offset_m)},
+        "plane": {"frame": "base", **base.to_dict(), "point_m": base.point_m.tolist()},
+        "frames_used": tracker.frames_used,
+    }
+
+
+def write_track_json(out_dir: str | Path, doc: Mapping[str, Any], filename: str = TRACK_FILENAME) -> Path:
+    """Write ``DIR/track.json`` (or ``filename``) atomically (temp file + rename; an earlier file stays until
+    it is complete).
 
     Raises:
         OutputError: If the directory cannot be created or written.
     """
     from cellcal.core.calibration.report import write_json_atomic
 
-    path: Path = write_json_atomic(Path(out_dir) / TRACK_FILENAME, doc)
+    path: Path = write_json_atomic(Path(out_dir) / filename, doc)
     return path
 
 
-__all__ = ["FRAMES_FILENAME", "TRACK_FILENAME", "TRACK_SCHEMA", "frame_row", "track_document", "write_track_json"]
+__all__ = ["FIXED_TRACK_SCHEMA", "FRAMES_FILENAME", "TRACK_FILENAME", "TRACK_SCHEMA", "fixed_track_document",
+           "frame_row", "track_document", "track_filenames", "write_track_json"]

@@ -12,7 +12,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, Any
@@ -29,7 +29,7 @@ from cellcal.core.methods.fullframe import FullFrameResult, check_gates, fit_ful
 from cellcal.core.track.decimate import auto_decimation, decimated
 from cellcal.core.track.estimator import Tracker
 from cellcal.core.track.pairing import PoseHistory, Skip
-from cellcal.core.track.result import FRAMES_FILENAME, frame_row, track_document, write_track_json
+from cellcal.core.track.result import fixed_track_document, frame_row, track_document, track_filenames, write_track_json
 from cellcal.core.track.state import TrackSettings, TrackState, TrackStep
 from cellcal.devices.arm import RobotArm
 from cellcal.devices.camera import Camera3D
@@ -45,6 +45,9 @@ from cellcal.devices.version import cellcal_version
 CLOCK_MISMATCH_S = 0.5
 #: Rows written to ``track.jsonl`` between flushes.
 FLUSH_EVERY = 30
+#: Frames a fixed camera keeps after a change before restarting: its one view never tells its pose from the
+#: plane, so waiting for the arm's work (``TrackSettings.change_window``) would not help.
+FIXED_CHANGE_FRAMES = 30
 
 StepCallback = Callable[["TrackProgress"], None]
 
@@ -94,6 +97,12 @@ def track_settings(config: CellConfig, arm: RobotArm | None = None) -> TrackSett
     return TrackSettings(arm_translation_sigma_m=he.arm_translation_sigma_m,
                          arm_rotation_sigma_rad=math.radians(he.arm_rotation_sigma_deg), confidence=he.confidence,
                          arm_accuracy=accuracy)
+
+
+def fixed_settings(settings: TrackSettings) -> TrackSettings:
+    """A fixed camera's tracker settings: no arm in its observations, and a short wait after a change."""
+    return replace(settings, arm_translation_sigma_m=0.0, arm_rotation_sigma_rad=0.0, arm_accuracy=None,
+                   change_window=FIXED_CHANGE_FRAMES)
 
 
 def observation(fit: FullFrameResult, flange: Pose) -> PlaneObservation:
@@ -169,11 +178,16 @@ class TrackRun:
         settings: The tracker's settings (default :func:`track_settings`).
         decimation: Fit every k-th pixel in each direction (:func:`~.decimate.decimated`; 1: all; None: chosen
             from the first frame by :func:`~.decimate.auto_decimation`, then kept).
+        name: The camera's name in ``[[cameras]]`` when it is tracked with others (in ``meta``); None: one camera.
+        filenames: Its document and rows (:func:`~.result.track_filenames`); default ``track.json``, ``track.jsonl``.
+        fixed_pose: A camera fixed in the base frame: its configured ``T_base_camera``. The arm is not read
+            for its frames; its tracker takes them at the identity flange pose (``Tracker(fixed=True)``).
     """
 
     def __init__(self, config: CellConfig, camera: Camera3D, arm: RobotArm, *, out_dir: str | Path | None,
                  now: Callable[[], float], on_progress: StepCallback | None = None,
-                 settings: TrackSettings | None = None, decimation: int | None = None) -> None:
+                 settings: TrackSettings | None = None, decimation: int | None = None, name: str | None = None,
+                 filenames: tuple[str, str] | None = None, fixed_pose: Pose | None = None) -> None:
         self.config = config
         self.camera = camera
         self.arm = arm
@@ -181,13 +195,24 @@ class TrackRun:
         self.now = now
         self.on_progress = on_progress
         self.decimation = decimation
+        self.name = name
+        self.fixed_pose = fixed_pose
+        self.filenames = filenames or track_filenames(None)
         settings = settings or track_settings(config, arm)
-        self.tracker = Tracker(config.mount.pose(), reference_plane(config, "cellcal track"), settings)
+        plane = reference_plane(config, "cellcal track")
         #: Whether the camera's view follows the arm's work, until a pair of frames decides it (ADR 0045).
-        self.view_check = ViewFollowsArm(config.mount.pose(), arm_translation_sigma_m=settings.arm_translation_sigma_m,
-                                         arm_rotation_sigma_rad=settings.arm_rotation_sigma_rad, what="frames at")
+        self.view_check: ViewFollowsArm | None = None
+        if fixed_pose is not None:
+            self.tracker = Tracker(fixed_pose, plane, fixed_settings(settings), fixed=True)
+        else:
+            self.tracker = Tracker(config.mount.pose(), plane, settings)
+            self.view_check = ViewFollowsArm(config.mount.pose(),
+                                             arm_translation_sigma_m=settings.arm_translation_sigma_m,
+                                             arm_rotation_sigma_rad=settings.arm_rotation_sigma_rad, what="frames at")
         self.history = PoseHistory()
         self.counters: collections.Counter[str] = collections.Counter()
+        #: Whether the last failure was the arm's (a run over several cameras then stops: the arm is shared).
+        self.arm_failed = False
         self._t0: float | None = None
         self._rows: IO[str] | None = None
         self._written = 0
@@ -200,31 +225,72 @@ class TrackRun:
             CellcalError: A device failed (the files written so far stay valid).
         """
         interrupted = False
-        self._open_rows()
+        self.start()
         try:
             index = 0
             while max_frames is None or index < max_frames:
-                t_s = self._frame(index)
+                t_s = self.frame(index)
                 index += 1
                 if duration_s is not None and t_s >= duration_s:
                     break
         except KeyboardInterrupt:
             interrupted = True
         except BaseException:
-            self._abandon_rows()  # a failed run: the earlier track.json / track.jsonl stay as they were
+            self.abandon()  # a failed run: the earlier track.json / track.jsonl stay as they were
             raise
+        return self.finish(interrupted)
+
+    # ------------------------------------------------------------------ steps (a run over several cameras)
+    def start(self) -> None:
+        """Open the frame rows (``track.jsonl.partial``)."""
+        self._open_rows()
+
+    def frame(self, index: int) -> float:
+        """Track one frame (:meth:`run`'s step); returns its time since the first frame, s.
+
+        Raises:
+            CellcalError: The camera or the arm failed (:attr:`arm_failed` says which).
+        """
+        if self.fixed_pose is not None:
+            return self._fixed_frame(index)
+        return self._frame(index)
+
+    def abandon(self) -> None:
+        """A failed run: close the rows unrenamed; earlier files stay as they were."""
+        self._abandon_rows()
+
+    def finish(self, interrupted: bool, failure: str | None = None) -> TrackOutcome:
+        """Close the rows and write the document; ``failure``: why the camera stopped early (kept in ``meta``)."""
         self._close_rows()
-        return self._finish(interrupted)
+        return self._finish(interrupted, failure)
+
+    @property
+    def t0(self) -> float | None:
+        """The time of the first frame (s since the epoch) the frames' ``t_s`` count from, or None."""
+        return self._t0
+
+    @t0.setter
+    def t0(self, value: float) -> None:
+        """Count from ``value`` (a run over several cameras: one origin for all), before the first frame."""
+        self._t0 = value
+
+    def _read_arm(self) -> Pose:
+        """The flange pose now; a failure marks :attr:`arm_failed` and is raised as it is."""
+        try:
+            return self.arm.get_pose()
+        except BaseException:
+            self.arm_failed = True
+            raise
 
     def _frame(self, index: int) -> float:
         """Read the arm, capture, read the arm, pair, fit, update; returns the frame's time, s."""
         timeout = self.camera.default_timeout_s
         t_before = self.now()
         if index > 0:  # before the first frame the clock may not run yet (a replay's is the frames' own)
-            self.history.add(t_before, self.arm.get_pose())
+            self.history.add(t_before, self._read_arm())
         frame = self.camera.capture(timeout)
         t_after = self.now()
-        self.history.add(t_after, self.arm.get_pose())
+        self.history.add(t_after, self._read_arm())
         t_frame = self._frame_time(frame, t_before, t_after)
         if self._t0 is None:
             self._t0 = t_frame
@@ -232,7 +298,19 @@ class TrackRun:
         paired = self.history.at(t_frame)
         if isinstance(paired, Skip):
             return self._skip(index, t_s, f"skipped: {paired.reason}")
-        started = time.perf_counter()
+        return self._update(index, t_s, frame, paired, time.perf_counter())
+
+    def _fixed_frame(self, index: int) -> float:
+        """A fixed camera's frame: capture, fit, update at the identity flange pose (the arm is not read)."""
+        t_before = self.now()
+        frame = self.camera.capture(self.camera.default_timeout_s)
+        t_frame = self._frame_time(frame, t_before, self.now())
+        if self._t0 is None:
+            self._t0 = t_frame
+        return self._update(index, t_frame - self._t0, frame, Pose.identity(), time.perf_counter())
+
+    def _update(self, index: int, t_s: float, frame: Frame, paired: Pose, started: float) -> float:
+        """Fit a paired frame's plane and feed the tracker; its row and progress."""
         try:
             if self.decimation is None:
                 self.decimation = auto_decimation(frame)
@@ -243,8 +321,9 @@ class TrackRun:
         except CalibrationError:
             return self._skip(index, t_s, "no plane", flange=paired)
         seen = observation(fit, paired)
-        # a camera whose view does not follow the arm ends the run (CalibrationQualityError, view_follows_arm)
-        self.view_check.add(ViewSample(f"{t_s:.1f} s", paired, seen.normal, seen.offset_m, seen.covariance))
+        if self.view_check is not None:
+            # a camera whose view does not follow the arm ends the run (CalibrationQualityError, view_follows_arm)
+            self.view_check.add(ViewSample(f"{t_s:.1f} s", paired, seen.normal, seen.offset_m, seen.covariance))
         step = self.tracker.update(t_s, seen, noise_shifts(fit))
         outcome = "accepted" if step.accepted else "held out"
         self._row(frame_row(step, t_s, index=index, fit_ms=round((time.perf_counter() - started) * 1e3, 2)), outcome)
@@ -272,7 +351,7 @@ class TrackRun:
         """``track.jsonl`` is written as ``track.jsonl.partial`` and renamed at the end: an earlier one stays whole."""
         if self.out_dir is None:
             return
-        path = self.out_dir / (FRAMES_FILENAME + ".partial")
+        path = self.out_dir / (self.filenames[1] + ".partial")
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self._rows = path.open("w", encoding="utf-8")
@@ -315,25 +394,31 @@ class TrackRun:
             rows.flush()
             os.fsync(rows.fileno())
             rows.close()
-            os.replace(self.out_dir / (FRAMES_FILENAME + ".partial"), self.out_dir / FRAMES_FILENAME)
+            os.replace(self.out_dir / (self.filenames[1] + ".partial"), self.out_dir / self.filenames[1])
         except OSError as exc:
             rows.close()
-            raise OutputError(f"cannot write {self.out_dir / FRAMES_FILENAME}: {exc.strerror or exc}",
+            raise OutputError(f"cannot write {self.out_dir / self.filenames[1]}: {exc.strerror or exc}",
                               errno=exc.errno) from None
 
-    def _finish(self, interrupted: bool) -> TrackOutcome:
+    def _finish(self, interrupted: bool, failure: str | None = None) -> TrackOutcome:
         state = self.tracker.state
-        meta = {"cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-                "config_source": self.config.source, "camera": self.config.camera_section.get("backend"),
-                "arm": self.config.arm_section.get("backend"), "interrupted": interrupted,
-                "decimation": self.decimation,
-                "duration_s": None if self._t0 is None else round(self.now() - self._t0, 6)}
+        meta: dict[str, Any] = {
+            "cellcal_version": cellcal_version(), "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+            "config_source": self.config.source, "camera": self.config.camera_section.get("backend"),
+            "arm": self.config.arm_section.get("backend"), "interrupted": interrupted, "decimation": self.decimation,
+            "duration_s": None if self._t0 is None else round(self.now() - self._t0, 6)}
+        if self.name is not None:  # a camera of [[cameras]] tracked with others: which, where, whether it failed
+            meta.update(camera_name=self.name, place="base" if self.fixed_pose is not None else "flange",
+                        failed=failure)
         counters = dict(self.counters)
-        document = track_document(state, counters, meta)
+        if self.fixed_pose is not None:
+            document = fixed_track_document(self.tracker, self.fixed_pose, counters, meta)
+        else:
+            document = track_document(state, counters, meta)
         if self.out_dir is not None:
-            write_track_json(self.out_dir, document)
+            write_track_json(self.out_dir, document, self.filenames[0])
         return TrackOutcome(document, state, counters, interrupted)
 
 
-__all__ = ["FrameClock", "ReadOnlyArm", "TrackOutcome", "TrackProgress", "TrackRun", "device_clock", "observation",
-           "track_settings"]
+__all__ = ["FIXED_CHANGE_FRAMES", "FrameClock", "ReadOnlyArm", "TrackOutcome", "TrackProgress", "TrackRun",
+           "device_clock", "fixed_settings", "observation", "track_settings"]
