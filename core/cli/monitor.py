@@ -213,11 +213,17 @@ def _camera_report(c: Any, capture: Any) -> dict[str, Any]:
 def _watch(args: argparse.Namespace, configs: list[tuple[str, CellConfig]], specs: Any, callback: Any,
            printer: _Printer) -> tuple[int, MonitorSummary]:
     """Watch the cameras until the run ends; the exit status and the summary."""
-    from cellcal.core.liveview import MonitorFeed, linger, live_view_session
+    from cellcal.core.liveview import MonitorFeed, camera_frame_id, linger, live_view_session
     from cellcal.core.monitor import Monitor, write_baselines
 
-    with live_view_session(getattr(args, "viz_port", None), drift=True, wait_s=getattr(args, "viz_wait", None)) as view:
-        feed = None if view is None else MonitorFeed(view, callback, [label for label, _ in configs])
+    labels = [label for label, _ in configs]
+    several = labels if len(labels) > 1 else []  # each camera on its own topics, its frame camera_LABEL in /tf
+    with live_view_session(getattr(args, "viz_port", None), drift=True, wait_s=getattr(args, "viz_wait", None),
+                           cameras=several) as view:
+        feed = None if view is None else MonitorFeed(view, callback, labels)
+        for label, config in configs if view is not None and several else ():
+            if config.camera_entry.on == "base" and config.camera_entry.pose_base is not None:
+                view.place_camera(camera_frame_id(label), config.camera_entry.pose_base)
         monitor = Monitor(specs, callback) if feed is None else Monitor(specs, feed.on_status, fit=feed.fit)
         printer.monitor = monitor
         if not args.quiet:

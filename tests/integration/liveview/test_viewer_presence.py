@@ -200,3 +200,40 @@ def test_wait_or_linger_without_a_port_is_one_line_and_exit_2(option: list[str],
     assert main(["calibrate", *option, "--out", str(tmp_path / "out")]) == 2
     assert capsys.readouterr().err.strip() == f"cellcal: error: {option[0]} needs --viz-port"
     assert not (tmp_path / "out").exists()
+
+
+def test_monitor_of_several_cameras_puts_each_on_its_own_topics_and_a_fixed_one_under_the_base() -> None:
+    """``monitor --viz-port`` on configs/sim_multi.toml: each camera's cloud and plane on its own topics (a viewer
+    keeps one message per topic), the fixed cameras' frames under ``base`` at their configured poses (ADR 0061)."""
+    from repo_paths import REPO_ROOT
+    from scipy.spatial.transform import Rotation
+
+    from cellcal.core.calibration.config import load_every_camera
+    from cellcal.devices.pose import Pose
+
+    multi = REPO_ROOT / "configs" / "sim_multi.toml"
+    poses = {c.camera_name: c.camera_entry.pose_base for c in load_every_camera(multi)}
+    labels = [f"sim_multi.{name}" for name in poses]
+    topics = {f"/cameras/{label}/{kind}" for label in labels for kind in ("points", "plane")}
+    port = free_port()
+    with _cellcal("monitor", "--config", str(multi), "--frames", "2", "--quiet", "--viz-port", str(port),
+                  "--viz-linger", "600") as proc:
+        _read_until(proc, "serving the last scene for")
+        with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
+            client.wait_for_channels({*topics, "/tf"})
+            assert not {"/camera/points", "/cellcal/plane"} & set(client.seen.channels)
+            client.subscribe_all()
+            client.collect(topics, timeout_s=LINE_TIMEOUT_S)
+            # the fixed cameras' scenes carry their frames (the monitor reads no arm: none for the wrist's)
+            seen = client.collect({"/tf"}, count=2, timeout_s=LINE_TIMEOUT_S)
+        _finish(proc, interrupt=True)
+    fixed = {t["child_frame_id"]: t for _, m in seen.messages["/tf"] for t in m["transforms"]
+             if t["parent_frame_id"] == "base" and t["child_frame_id"].startswith("camera_")}
+    for name, pose in poses.items():
+        if pose is None:
+            continue  # on the flange
+        t = fixed[f"camera_sim_multi.{name}"]
+        q, p = t["rotation"], t["translation"]
+        got = Pose(Rotation.from_quat([q["x"], q["y"], q["z"], q["w"]]), np.array([p["x"], p["y"], p["z"]]))
+        assert got.is_close(pose, atol_m=1e-9, atol_rad=1e-9)
+    assert len(fixed) == sum(p is not None for p in poses.values()) == 2
