@@ -44,6 +44,12 @@ VALUES = ("rot_x", "rot_y", "rot_z", "tx", "ty", "tz")
 DRAW_SYSTEMATIC = True
 
 
+def field_monomials(shapes: np.ndarray) -> list[float]:
+    """Coefficients of u, v, u^2, uv, v^2 of the field ``sum_k shapes[k] * FIELD_SHAPES[k]``."""
+    bow, u2, v2, uv, u, v = (float(c) for c in shapes)  # radial bow (u^2 + v^2) / 2, u^2, v^2, uv, u, v
+    return [u, v, bow / 2.0 + u2, uv, bow / 2.0 + v2]
+
+
 def seeded_document(camera: str, seed: int) -> tuple[dict, Pose]:
     """configs/sim_multi.toml with the cell's seed and a drawn truth for ``camera``; the document and the truth."""
     document = tomllib.loads(MULTI.read_text(encoding="utf-8"))
@@ -59,7 +65,9 @@ def seeded_document(camera: str, seed: int) -> tuple[dict, Pose]:
         scale, offset, field = DEFAULT_ALLOWANCES["tof"]
         document["sim"]["systematic"] = {
             "range_offset_m": float(rng.normal(0.0, offset)), "range_scale_error": float(rng.normal(0.0, scale)),
-            "range_bow_m": float(rng.normal(0.0, field)),
+            # the field as the allowance states it: six smooth shapes (radial bow, u^2, v^2, uv, u, v; each 1 at
+            # the image corner), each coefficient at field / sqrt(6) (FIELD_SHAPES), as monomials u, v, u^2, uv, v^2
+            "range_bow_m": 0.0, "range_field_m": field_monomials(rng.normal(0.0, field / math.sqrt(6.0), 6)),
             "wiggle_amplitude_m": float(abs(rng.normal(0.0, DEFAULT_WIGGLE[0]))),
             "wiggle_phase_deg": float(rng.uniform(0.0, 360.0))}
     document["sim"]["cameras"] = [c for c in document["sim"].get("cameras", []) if c["name"] != camera] + [
