@@ -20,20 +20,21 @@ interval, as the driven camera's (``summarize_poses``). Each camera's result is
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from cellcal.core.calibration.calibrator import GUARD_GRACE_S, connect_guarded
+from cellcal.core.calibration.calibrator import GUARD_GRACE_S, PoseObserver, connect_guarded
 from cellcal.core.calibration.config import CellConfig
 from cellcal.core.calibration.record import PoseRecord
 from cellcal.core.calibration.report import summarize_poses, write_json_atomic
 from cellcal.core.geometry.planes import Plane
+from cellcal.core.methods.fullframe import FullFrameResult
 from cellcal.core.methods.fullframe.points import ExpectedPlane
 from cellcal.core.methods.measure import full_frame_document, measure_full_frame
 from cellcal.devices.arm_model import ArmModel
@@ -60,7 +61,7 @@ def camera_result_filename(name: str) -> str:
     return f"result-{name}.json"
 
 
-@dataclass
+@dataclasses.dataclass
 class _Capture:
     """One camera's capture at one pose: its frame or error, and when it ran (``time.perf_counter()`` s)."""
 
@@ -103,6 +104,9 @@ class OtherCameras:
         self.poses: dict[str, list[dict[str, Any]]] = {name: [] for name in self.cameras}
         self._pending: dict[str, _Capture] = {}
         self._settled = math.nan
+        #: Per camera, a pose observer shown each of its frames with its own plane (e.g. the live view's),
+        #: called on the run's thread; the record is the driven camera's with its measurements left out.
+        self.observers: dict[str, PoseObserver] = {}
 
     def connect(self, stack: contextlib.ExitStack) -> None:
         """Connect every other camera, closed by ``stack`` (each under its deadline, as the calibrator's)."""
@@ -204,14 +208,18 @@ class OtherCameras:
             seen = Plane.from_point_normal(ref.plane_point_m, ref.plane_normal).transformed(camera_pose.inv())
             search = ExpectedPlane(seen.oriented_toward_origin(), SEARCH_ANGLE_RAD, SEARCH_OFFSET_M)
         t0 = time.perf_counter()
+        fit: FullFrameResult | None = None
         try:
             _row, fit = measure_full_frame([frame], self.config.full_frame, expected_plane=search)
         except CalibrationError as exc:  # this camera at this pose: said in its result, the run goes on
             entry["error"] = str(exc)
-            return entry
         finally:
             entry["fit_s"] = time.perf_counter() - t0  # the plane fit's wall time, seconds
-        entry["full_frame"] = full_frame_document(fit, camera_pose, None, expected_plane=search)
+        observer = self.observers.get(name)
+        if observer is not None:  # its own plane only: not the driven camera's measurements
+            observer(dataclasses.replace(record, measurements=[]), [frame], fit)
+        if fit is not None:
+            entry["full_frame"] = full_frame_document(fit, camera_pose, None, expected_plane=search)
         return entry
 
     def capture_document(self) -> dict[str, Any]:

@@ -160,7 +160,9 @@ def run(args: argparse.Namespace) -> int:
         return _calibrate(args, config, camera, arm, None, others)
     from cellcal.core.liveview import linger, live_view_session
 
-    with live_view_session(args.viz_port, wait_s=getattr(args, "viz_wait", None)) as view:
+    # a cell's several cameras: each on its own topics with its frame camera_NAME in /tf (ADR 0061)
+    names = [config.camera_name, *others] if others else []
+    with live_view_session(args.viz_port, wait_s=getattr(args, "viz_wait", None), cameras=names) as view:
         status = _calibrate(args, config, camera, arm, view, others)
         if view is not None and getattr(args, "viz_linger", None) and status != EXIT_INTERRUPTED:
             linger(view, args.viz_linger)
@@ -183,8 +185,15 @@ def _calibrate(args: argparse.Namespace, config: CellConfig, camera: Camera3D, a
         from cellcal.core.report.runs import CalibrationReport
 
         report = CalibrationReport(config, camera, args.out)
-    live = None if view is None else view.observe_pose(config.mount.pose())
     extra = OtherCameras(config, others) if others else None
+    live = None if view is None else view.observe_pose(config.mount.pose(), config.camera_name if extra else None)
+    if view is not None and extra is not None:  # every camera drawn in the one scene
+        from cellcal.core.liveview import camera_frame_id
+
+        for name, (on, pose) in extra.places.items():
+            if on == "base":
+                view.place_camera(camera_frame_id(name), pose)
+            extra.observers[name] = view.observe_pose(pose if on == "flange" else None, name)
     calibrator = Calibrator(config, camera if report is None else report.camera, arm,  # type: ignore[arg-type]
                             progress=progress_factory("poses", "pose", args.quiet),
                             observer=_chain(live if report is None else report.observer(live), extra),

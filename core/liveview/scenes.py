@@ -33,20 +33,23 @@ def _mask(result: FullFrameResult | None, frame: Frame) -> np.ndarray | None:
 
 
 def calibration_scenes(record: PoseRecord, frames: Sequence[Frame], result: FullFrameResult | None,
-                       mount: Pose) -> list[Scene]:
+                       mount: Pose | None, *, camera_frame_id: str = CAMERA_FRAME_ID) -> list[Scene]:
     """One scene per frame of a measured plan pose.
 
     Args:
         record: The pose's record (the arm's reported flange pose).
         frames: The frames captured there.
         result: The pose's full-frame fit (plane and inlier mask), or None.
-        mount: ``T_flange_camera``.
+        mount: ``T_flange_camera``; None: a fixed camera (placed by
+            :meth:`~cellcal.core.liveview.server.LiveView.place_camera`).
+        camera_frame_id: The camera's frame (a cell's several cameras: ``camera_NAME``).
     """
     plane = pose_plane(record, result)
     normal, offset = (None, None) if plane is None else (np.asarray(plane.normal, dtype=np.float64),
                                                            float(plane.offset_m))
-    return [Scene(frame, base_flange=record.reported, flange_camera=mount, plane_normal=normal,
-                  plane_offset_m=offset, inlier_mask=_mask(result, frame)) for frame in frames]
+    flange = None if mount is None else record.reported
+    return [Scene(frame, base_flange=flange, flange_camera=mount, plane_normal=normal, plane_offset_m=offset,
+                  inlier_mask=_mask(result, frame), camera_frame_id=camera_frame_id) for frame in frames]
 
 
 def track_scene(frame: Frame, result: FullFrameResult, flange: Pose | None, mount: Pose | None,

@@ -220,12 +220,19 @@ class LiveView:
                 channel.log(dumps(payload), log_time=log_time)
                 self.message_counts[topic] += 1
 
-    def observe_pose(self, mount: Pose) -> Any:
-        """A :data:`~cellcal.core.calibration.calibrator.PoseObserver` publishing each pose's scenes."""
+    def observe_pose(self, mount: Pose | None, camera: str | None = None) -> Any:
+        """A :data:`~cellcal.core.calibration.calibrator.PoseObserver` publishing each pose's scenes.
+
+        Args:
+            mount: ``T_flange_camera``; None: a fixed camera, already placed (:meth:`place_camera`).
+            camera: A cell's camera name (its frame ``camera_NAME`` and its own topics); None: the one camera.
+        """
         from cellcal.core.liveview.scenes import calibration_scenes
 
+        frame_id = CAMERA_FRAME_ID if camera is None else camera_frame_id(camera)
+
         def observer(record: PoseRecord, frames: Sequence[Frame], result: FullFrameResult | None) -> None:
-            for scene in calibration_scenes(record, frames, result, mount):
+            for scene in calibration_scenes(record, frames, result, mount, camera_frame_id=frame_id):
                 self.publish(scene)
 
         return observer

@@ -237,3 +237,31 @@ def test_monitor_of_several_cameras_puts_each_on_its_own_topics_and_a_fixed_one_
         got = Pose(Rotation.from_quat([q["x"], q["y"], q["z"], q["w"]]), np.array([p["x"], p["y"], p["z"]]))
         assert got.is_close(pose, atol_m=1e-9, atol_rad=1e-9)
     assert len(fixed) == sum(p is not None for p in poses.values()) == 2
+
+
+def test_calibrate_of_several_cameras_draws_every_camera_in_one_scene(tmp_path: Path) -> None:
+    """``calibrate --viz-port`` on configs/sim_multi.toml: the driven camera and the others captured at each pose
+    on their own topics, the driven one under the flange, the fixed ones under base at their poses."""
+    from repo_paths import REPO_ROOT
+
+    multi = REPO_ROOT / "configs" / "sim_multi.toml"
+    names = ("wrist", "above", "side45")
+    topics = {f"/cameras/{name}/{kind}" for name in names for kind in ("points", "plane")}
+    port = free_port()
+    with _cellcal("calibrate", "--config", str(multi), "--out", str(tmp_path / "out"), "--quiet", "--viz-port",
+                  str(port), "--viz-linger", "600") as proc:
+        _read_until(proc, "serving the last scene for")
+        with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
+            client.wait_for_channels({*topics, "/tf"})
+            assert not {"/camera/points", "/cellcal/plane"} & set(client.seen.channels)
+            client.subscribe_all()
+            client.collect(topics, timeout_s=LINE_TIMEOUT_S)
+            seen = client.collect({"/tf"}, count=3, timeout_s=LINE_TIMEOUT_S)
+        _finish(proc, interrupt=True)
+    parents = {t["child_frame_id"]: t["parent_frame_id"] for _, m in seen.messages["/tf"] for t in m["transforms"]}
+    assert parents["camera_wrist"] == "flange" and parents["flange"] == "base"
+    assert parents["camera_above"] == "base" and parents["camera_side45"] == "base"
+    for name in names:
+        (_, cloud), *_ = seen.messages[f"/cameras/{name}/points"]
+        assert cloud["frame_id"] == f"camera_{name}"
+    assert (tmp_path / "out" / "result-above.json").is_file()
