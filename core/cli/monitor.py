@@ -221,9 +221,10 @@ def _watch(args: argparse.Namespace, configs: list[tuple[str, CellConfig]], spec
     with live_view_session(getattr(args, "viz_port", None), drift=True, wait_s=getattr(args, "viz_wait", None),
                            cameras=several) as view:
         feed = None if view is None else MonitorFeed(view, callback, labels)
-        for label, config in configs if view is not None and several else ():
-            if config.camera_entry.on == "base" and config.camera_entry.pose_base is not None:
-                view.place_camera(camera_frame_id(label), config.camera_entry.pose_base)
+        for label, config in configs if several else ():
+            pose = config.camera_entry.pose_base
+            if view is not None and config.camera_entry.on == "base" and pose is not None:
+                view.place_camera(camera_frame_id(label), pose)
         monitor = Monitor(specs, callback) if feed is None else Monitor(specs, feed.on_status, fit=feed.fit)
         printer.monitor = monitor
         if not args.quiet:
