@@ -84,6 +84,8 @@ class NativeHost:
         self.default_timeout_s = float(default_timeout_s)
         self.on_crash = on_crash
         self.calls = 0
+        #: Replies received to the calls made (a value, an object or an error); a call that overran has none.
+        self.answered = 0
         self._proc: subprocess.Popen[bytes] | None = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()
@@ -257,11 +259,14 @@ class NativeHost:
                     with contextlib.suppress(OSError):  # a worker gone by now is found by the next read
                         conn.send_bytes(pickle.dumps((0, p.DROP, payload[0], "", (), {})))
                 continue
+            self.answered += 1
             if kind == p.VALUE:
                 return payload
             if kind == p.REF:
                 return RemoteObject(self, int(payload[0]), str(payload[1]))
-            raise p.rebuild_error(str(payload[0]), str(payload[1]))
+            extra = payload[2:4] if len(payload) == 4 and isinstance(payload[2], tuple) \
+                and isinstance(payload[3], dict) else ()
+            raise p.rebuild_error(str(payload[0]), str(payload[1]), *extra)
 
     # ------------------------------------------------------------ a dead worker
     def _kill(self) -> None:

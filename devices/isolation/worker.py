@@ -108,7 +108,7 @@ class Worker:
             else:
                 raise ValueError(f"unknown operation {op!r}")
         except Exception as exc:  # everything the library raises goes back to the caller, typed by name
-            return seq, p.ERROR, (type(exc).__name__, str(exc)[:p.MAX_ERROR_CHARS])
+            return seq, p.ERROR, p.error_payload(exc)
         if p.is_plain(value):
             return seq, p.VALUE, value
         new = self.next_handle

@@ -2,7 +2,9 @@
 
 For users who want ifm's supported library; the own PCIC client (backend ``o3r``)
 stays the default and the fallback. ifm3dpy is imported in ``_connect`` only; where it
-is missing the backend says so in one line (:class:`MissingDependencyError`).
+is missing the backend says so in one line (:class:`MissingDependencyError`). ifm3dpy runs in a
+worker process unless ``isolate = false`` (docs/adr/0063-camera-workers.md): a crash in it is a
+:class:`~cellcal.devices.errors.NativeCrashError`, frames come back through shared memory.
 
 ifm3dpy hands out XYZ in ifm's *user* frame; this backend returns it in the camera's
 optical frame (the :class:`Frame` contract) by undoing TOF_INFO's extrinsicOpticToUser,
@@ -23,7 +25,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.base import BackendContext
-from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import (
     DeviceConnectionError,
     DeviceTimeoutError,
@@ -31,6 +32,7 @@ from cellcal.devices.errors import (
     ProtocolError,
     VendorError,
 )
+from cellcal.devices.isolation.camera import IsolatableCamera
 from cellcal.devices.measurement import MeasurementModel
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 from cellcal.drivers.o3r_json import firmware, port_info
@@ -77,6 +79,9 @@ class O3RIfm3dConfig:
         "ge": 0.01, "le": 600.0, "doc": "longest wait for the first frame after a state change, s"})
     clock_tolerance_s: float = field(default=30.0, metadata={
         "ge": 0.001, "le": 1e9, "doc": "device clock this far from host time is not Unix time (receive time used), s"})
+    isolate: bool = field(default=True, metadata={
+        "doc": "run ifm3dpy in a worker process, so a crash in it is an error and not the end of cellcal; "
+               "false runs it in-process (a debugger)"})
 
 
 @dataclass
@@ -88,7 +93,7 @@ class _Latest:
     received_epoch: float = 0.0
 
 
-class O3RIfm3dCamera(Camera3D):
+class O3RIfm3dCamera(IsolatableCamera):
     """ifm O3R 3D head over ifm3dpy's ``O3R`` and ``FrameGrabber``.
 
     ``trigger = "free_run"`` wants the port in RUN (``capture`` returns the newest frame
@@ -104,6 +109,7 @@ class O3RIfm3dCamera(Camera3D):
 
     backend_name = "o3r-ifm3d"
     Config = O3RIfm3dConfig
+    native_library = "ifm3dpy"
 
     def __init__(self, config: O3RIfm3dConfig | None = None, context: BackendContext | None = None) -> None:
         super().__init__()
@@ -132,6 +138,14 @@ class O3RIfm3dCamera(Camera3D):
 
     # ------------------------------------------------------------------ connect / close
     def _connect(self, timeout: float) -> None:
+        if self.config.isolate:
+            if self.unavailable_reason() is not None:  # said here, before a worker is started for nothing
+                raise _missing()
+            cfg = self.config
+            # a head switched to another state takes a while for its first frame (the worker's capture waits)
+            self._start_worker(f"o3r-ifm3d {cfg.host} {cfg.port}", timeout,
+                               max(self.default_timeout_s, cfg.first_frame_timeout_s), cfg.first_frame_timeout_s)
+            return
         try:
             from ifm3dpy import deserialize
             from ifm3dpy.device import O3R
@@ -182,6 +196,7 @@ class O3RIfm3dCamera(Camera3D):
             raise DeviceConnectionError(f"o3r-ifm3d {self.config.host} {what}: {text}") from None
 
     def _close(self) -> None:
+        self._stop_worker()
         fg, self._fg = self._fg, None
         if fg is not None:
             fg.stop().wait_for(2000)
@@ -210,6 +225,8 @@ class O3RIfm3dCamera(Camera3D):
                 self._cond.wait(left)
 
     def _capture(self, timeout: float) -> Frame:
+        if self._worker is not None:
+            return self._worker.capture(timeout)
         if self._state_changed:  # a head that just switched state takes a while for its first frame
             timeout = max(timeout, self.config.first_frame_timeout_s)
         if self.config.trigger == "software":
@@ -259,12 +276,16 @@ class O3RIfm3dCamera(Camera3D):
         return o3r_measurement_model()
 
     def _intrinsics(self) -> Intrinsics:
+        if self._worker is not None:
+            return self._worker.intrinsics()
         if self._intr is None:
             self._capture(max(self.default_timeout_s, self.config.first_frame_timeout_s))
         assert self._intr is not None
         return self._intr
 
     def _info(self) -> DeviceInfo:
+        if self._worker is not None:
+            return self._worker.info()
         cfg = self.config
         return DeviceInfo(backend=self.backend_name, vendor="ifm electronic", model="O3R 3D head (ifm3dpy)",
                           firmware=self._firmware,

@@ -4,7 +4,8 @@ Stereo or ToF depth (uint16 mm, Z-depth) aligned to one socket, turned into radi
 distance and optical-frame XYZ (metres) with the device's own calibration, with the
 pixel-aligned grey image of the same capture as ``Frame.amplitude``; the measurement model
 (baseline, focal length, subpixel bits, filters) read from the device (:mod:`.model`).
-``depthai`` is imported only in :meth:`OakCamera._connect`. Design: docs/adr/0015-vendor-drivers.md.
+``depthai`` is imported only in :meth:`OakCamera._connect`, in a worker process unless
+``isolate = false`` (docs/adr/0063-camera-workers.md). Design: docs/adr/0015-vendor-drivers.md.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cellcal.devices.base import BackendContext
-from cellcal.devices.camera import Camera3D
 from cellcal.devices.errors import (
     DeviceConnectionError,
     DeviceError,
@@ -32,6 +32,7 @@ from cellcal.devices.errors import (
     UsbBackendMissingError,
 )
 from cellcal.devices.geometry.camera_model import pixel_grid_rays
+from cellcal.devices.isolation.camera import IsolatableCamera
 from cellcal.devices.measurement import UNKNOWN_MODEL, MeasurementModel
 from cellcal.devices.types import DeviceInfo, Frame, Intrinsics
 from cellcal.drivers._blocking import BoundedCaller
@@ -65,6 +66,9 @@ class OakConfig:
         amplitude: ``"image"``: ``Frame.amplitude`` is the grey image of the same capture,
             pixel-aligned with the depth (see :class:`OakCamera`); ``"none"``: zeros, and
             no image crosses the link (saves USB bandwidth).
+        isolate: Run depthai in a worker process, so a crash in it is an error and not the end of
+            cellcal, frames through shared memory (ADR 0063); ``false`` runs it in-process, for a
+            debugger and for tests that mock depthai.
     """
 
     device_id: str = field(default="", metadata={"max_len": 256})
@@ -79,6 +83,7 @@ class OakConfig:
     timeout_s: float = field(default=10.0, metadata={"ge": 0.01, "le": 600})
     queue_size: int = field(default=4, metadata={"ge": 1, "le": 64})
     amplitude: Literal["none", "image"] = "image"
+    isolate: bool = True
 
     def __post_init__(self) -> None:
         if self.depth_source == "stereo" and self.align_socket not in ("CAM_A", *MONO_STEREO_SOCKETS):
@@ -110,7 +115,7 @@ def depth_to_xyz(depth_mm: NDArray[Any], rays_over_z: NDArray[np.float64]
     return xyz.astype(np.float32), distance.astype(np.float32), valid
 
 
-class OakCamera(Camera3D):
+class OakCamera(IsolatableCamera):
     """A Luxonis OAK stereo or ToF camera over depthai v3.
 
     Pipeline (built in :meth:`_connect`):
@@ -173,9 +178,14 @@ class OakCamera(Camera3D):
     :class:`~cellcal.drivers._blocking.BoundedCaller` worker joined with the connect
     timeout. Every queue read is ``MessageQueue.get(timedelta)`` (None on timeout). A
     closed queue or a closed device means the device is gone: :class:`DeviceConnectionError`.
+
+    With ``isolate = true`` (the default) all of the above runs in a worker process
+    (:class:`~cellcal.devices.isolation.camera.IsolatableCamera`); a crash of depthai there is a
+    :class:`~cellcal.devices.errors.NativeCrashError` and ``connect()`` starts a new worker.
     """
 
     backend_name: ClassVar[str] = "oak"
+    native_library: ClassVar[str] = "depthai"
     Config: ClassVar[type[OakConfig]] = OakConfig
 
     def __init__(self, config: OakConfig, context: BackendContext | None = None):
@@ -247,6 +257,11 @@ class OakCamera(Camera3D):
 
     # ------------------------------------------------------------ life cycle
     def _connect(self, timeout: float) -> None:
+        if self.config.isolate:
+            if self.unavailable_reason() is not None:  # said here, before a worker is started for nothing
+                raise MissingDependencyError("depthai", "oak")
+            self._start_worker(f"oak {self.config.device_id or '(first)'}", timeout, self.config.timeout_s)
+            return
         try:
             import depthai as dai
         except ImportError:
@@ -358,6 +373,8 @@ class OakCamera(Camera3D):
             log.warning("%s; using the [camera.model] table", exc)
 
     def _measurement_model(self) -> MeasurementModel:
+        if self._worker is not None and self._worker.model is not None:
+            return self._worker.model
         return self._model
 
     def _read_intrinsics(self, calib: Any, socket: Any) -> Intrinsics:
@@ -387,6 +404,7 @@ class OakCamera(Camera3D):
         return Intrinsics.from_opencv(cfg.width, cfg.height, k, [])
 
     def _close(self) -> None:
+        self._stop_worker()
         for action in (lambda: self._pipeline.stop(), lambda: self._queue.close(), lambda: self._device.close()):
             with contextlib.suppress(Exception):
                 action()
@@ -394,12 +412,16 @@ class OakCamera(Camera3D):
         self._caller.join(2.0)
 
     def _info(self) -> DeviceInfo:
+        if self._worker is not None:
+            return self._worker.info()
         return DeviceInfo(backend="oak", vendor="Luxonis", model=self._identity.get("product") or
                           self._identity.get("platform", "OAK"), serial=self._identity.get("id", ""),
                           extra={"platform": self._identity.get("platform", ""),
                                  "depth_source": self.config.depth_source, "socket": self.config.align_socket})
 
     def _intrinsics(self) -> Intrinsics:
+        if self._worker is not None:
+            return self._worker.intrinsics()
         assert self._intr is not None
         return self._intr
 
@@ -410,6 +432,8 @@ class OakCamera(Camera3D):
         return 0.5 / self.config.fps
 
     def _capture(self, timeout: float) -> Frame:
+        if self._worker is not None:
+            return self._worker.capture(timeout)
         dai = self._dai
         gone = (RuntimeError, dai.MessageQueue.QueueException)
         what = "depth frame" if self.config.amplitude == "none" else "depth + image pair"

@@ -139,7 +139,7 @@ def oak_factory(mocker: Any) -> Iterator[Callable[[], Camera3D]]:
     mocker.patch.object(dai, "Device", side_effect=fake.open)
     mocker.patch.object(dai, "Pipeline", side_effect=fake.make_pipeline)
     yield lambda: test_oak.OakCamera.from_config({"backend": "oak", "device_id": test_oak.DEVICE_ID,
-                                                  "width": test_oak.W, "height": test_oak.H})
+                                                  "width": test_oak.W, "height": test_oak.H, "isolate": False})
 
 
 def test_oak_backend_passes_the_kit(oak_factory: Callable[[], Camera3D]) -> None:

@@ -35,7 +35,7 @@ def test_a_typo_in_a_nested_table_names_the_near_key_of_that_table() -> None:
         parse_section(SimConfig, {"charuco": {"square_size_m": 0.03}}, where="sim", source="cell.toml")
     assert _message(info) == (
         "cell.toml: key 'sim.charuco.square_size_m': unknown key; did you mean 'square_m'? (expected one of: "
-        "center_m, dark_reflectivity, dictionary, light_reflectivity, marker_ratio, square_m, squares, "
+        "center_m, dark_reflectivity, dictionary, light_reflectivity, marker_ratio, on, square_m, squares, "
         "supersample, texture_px_per_square, yaw_deg)")
 
 
@@ -49,7 +49,7 @@ def test_a_key_near_nothing_gets_the_list_without_a_guess() -> None:
         parse_section(SimConfig, {"charuco": {"zzz": 1}}, where="sim", source="cell.toml")
     assert _message(info) == (
         "cell.toml: key 'sim.charuco.zzz': unknown key; expected one of: center_m, dark_reflectivity, dictionary, "
-        "light_reflectivity, marker_ratio, square_m, squares, supersample, texture_px_per_square, yaw_deg")
+        "light_reflectivity, marker_ratio, on, square_m, squares, supersample, texture_px_per_square, yaw_deg")
 
 
 def test_the_cli_prints_the_guess_as_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -287,7 +287,8 @@ def oak(mocker: Any) -> FakeOak:
 
 
 def connected(**config: Any) -> Any:
-    cam = OakCamera.from_config({"backend": "oak", "device_id": DEVICE_ID, "width": W, "height": H, **config})
+    cam = OakCamera.from_config({"backend": "oak", "device_id": DEVICE_ID, "width": W, "height": H,
+                                 "isolate": False, **config})  # the mocked depthai is in this process
     cam.connect(timeout=5.0)
     return cam
 

@@ -114,7 +114,7 @@ def test_connect_timeout_bounded_and_late_device_closed(oak: FakeOak, mocker: An
         return oak.device
 
     mocker.patch.object(dai, "Device", side_effect=slow_open)
-    cam = OakCamera.from_config({"device_id": DEVICE_ID})
+    cam = OakCamera.from_config({"device_id": DEVICE_ID, "isolate": False})
     cam._caller.join = lambda timeout: None
     with pytest.raises(DeviceTimeoutError, match="did not finish within"):
         cam.connect(timeout=1.0)   # room for a loaded machine to reach the open before the budget ends
@@ -128,6 +128,6 @@ def test_connect_timeout_bounded_and_late_device_closed(oak: FakeOak, mocker: An
 
 def test_missing_extra_names_it(mocker: Any) -> None:
     mocker.patch.dict(sys.modules, {"depthai": None})
-    cam = OakCamera.from_config({})
+    cam = OakCamera.from_config({"isolate": False})
     with pytest.raises(MissingDependencyError, match=r"cellcal\[oak\]"):
         cam.connect(timeout=1.0)

@@ -88,7 +88,7 @@ def test_sequence_mismatch_is_a_frame_sync_error(oak: FakeOak) -> None:
 # ---------------------------------------------------------------- ToF
 def test_tof_board_pairs_depth_with_the_amplitude_output_undistorted(oak: FakeOak) -> None:
     cam = OakCamera.from_config({"depth_source": "tof", "align_socket": "CAM_A", "width": W, "height": H,
-                                 "distortion": "none"})
+                                 "distortion": "none", "isolate": False})
     with cam:
         (tof,) = oak.nodes_of(dai.node.ToF)
         (sync,) = oak.nodes_of(dai.node.Sync)
