@@ -38,7 +38,8 @@ SUMMARIES = {
     "board": "write the ChArUco board of [handeye] charuco_* as a page to print",
     "monitor": "watch cameras for drift of the measuring plane (tilt, height)",
     "track": "keep the mount and the plane calibrated from the cell's normal work",
-    "serve": "run the cell's calibration service over HTTP (runs, calibration, pixel_to_base, events)",
+    "serve": "run the cell's calibration service over HTTP, XML-RPC and OPC UA (runs, calibration, pixel_to_base, "
+             "events, history, metrics)",
     "report": "open a run's report (DIR/report.html) or render it again from its JSON",
     "study": "Monte Carlo accuracy study of every method on the simulated cell",
     "record": "run the calibration plan and record the session to an MCAP file or a ROS 2 bag",

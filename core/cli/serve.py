@@ -1,4 +1,5 @@
-"""``cellcal serve``: the cell's calibration service over HTTP (FastAPI under uvicorn, one worker).
+"""``cellcal serve``: the cell's calibration service over HTTP (FastAPI under uvicorn, one worker), with
+XML-RPC for robot programs and OPC UA for a PLC on ports of their own when asked.
 
 Binds 127.0.0.1 unless ``--host`` says otherwise; any other address needs a token (from
 ``--token-file F`` or the environment's ``CELLCAL_SERVE_TOKEN``, never the command line),
@@ -20,7 +21,8 @@ from cellcal.devices.errors import ConfigError
 
 __all__ = ["DEFAULT_PORT", "TOKEN_ENV", "is_loopback", "read_token", "register", "run"]
 
-HELP = "run the cell's calibration service over HTTP (runs, calibration, pixel_to_base, events)"
+HELP = ("run the cell's calibration service over HTTP, XML-RPC and OPC UA (runs, calibration, pixel_to_base, "
+        "events, history, metrics)")
 #: The port served by default.
 DEFAULT_PORT = 8470
 #: The environment variable holding the token (when there is no --token-file).
@@ -52,6 +54,20 @@ def register(sub: Any) -> None:
                    help="output directory: each camera's runs write into DIR/<cell>/<camera>/ (default: %(default)s)")
     p.add_argument("--rate", metavar="N", type=real(gt=0, le=1e6), default=None,
                    help="requests a second each client may make (bursts of as many); beyond: 429")
+    p.add_argument("--opcua-port", metavar="N", type=integer(ge=0, le=65535), default=None,
+                   help="also serve OPC UA on port N (same host; 0: any free port, said on stdout); default: off")
+    p.add_argument("--opcua-writable", action="store_true",
+                   help="let OPC UA clients call StartRun and CancelRun (else they are refused: read-only)")
+    p.add_argument("--opcua-cert", metavar="F", type=path_arg,
+                   help="the OPC UA server's certificate: Basic256Sha256 SignAndEncrypt only, sessions log in with "
+                   "the token (needed for a non-loopback --host)")
+    p.add_argument("--opcua-key", metavar="F", type=path_arg, help="the private key of --opcua-cert (PEM or DER)")
+    p.add_argument("--history", metavar="URL",
+                   help="the history database: sqlite:///PATH or postgresql://user@host:port/db (default: "
+                   "OUT/cellcal-history.sqlite)")
+    p.add_argument("--xmlrpc-port", metavar="N", type=integer(ge=0, le=65535), default=None,
+                   help="also serve XML-RPC for robot programs at http://HOST:N/RPC2 (0: any free port, said on "
+                   "stdout); default: off")
     p.add_argument("--print-openapi", action="store_true",
                    help="print the HTTP API's OpenAPI schema (JSON) and exit (docs/service/openapi-v1.json is it)")
     p.set_defaults(func=run)
@@ -122,15 +138,29 @@ def run(args: argparse.Namespace) -> int:
     if token is None and not is_loopback(args.host):
         raise ConfigError(f"--host {args.host} is not loopback: give a token with --token-file or {TOKEN_ENV} "
                           "(every state-changing request will need it)")
+    xmlrpc: Any = None
+    opcua, security, opcua_port = None, None, getattr(args, "opcua_port", None)
+    if opcua_port is not None:
+        from cellcal.core.service.opcua_nodes import opcua_security
+
+        security = opcua_security(is_loopback(args.host), args.opcua_cert, args.opcua_key, token)  # refused: exit 2
     from cellcal.core.service import Service
     from cellcal.core.service.http import create_app
 
-    service = Service(args.config or [None], args.out)
+    service = Service(args.config or [None], args.out, history=_history_url(args))
     options = {} if args.rate is None else {"rate_per_s": args.rate, "burst": max(1, int(args.rate))}
     app = create_app(service, token=token, **options)
     try:
+        if opcua_port is not None:
+            opcua = _start_opcua(service, args, security)
+        if args.xmlrpc_port is not None:
+            xmlrpc = _start_xmlrpc(service, args.host, args.xmlrpc_port, token, options)
         _serve(app, args.host, args.port, service)
     finally:
+        if xmlrpc is not None:
+            xmlrpc.close()
+        if opcua is not None:
+            opcua.stop()
         service.close()  # a run still in progress (the server stopped otherwise) is cancelled, its arm stopped
         for stopped in service.stopped:
             done = stopped.to_dict()
@@ -138,6 +168,46 @@ def run(args: argparse.Namespace) -> int:
                 f"at {done['progress']['poses_done']}/{done['progress']['poses_total']} poses"
                 + ("; the arm was told to stop" if stopped.state == "cancelled" else ""))
     return EXIT_OK
+
+
+def _start_opcua(service: Any, args: argparse.Namespace, security: Any) -> Any:
+    """Start the OPC UA face (asyncua, its own thread); says once where it listens."""
+    try:
+        from cellcal.core.service.opcua import OpcUaFace
+    except ImportError as exc:
+        from cellcal.devices.errors import MissingDependencyError
+
+        raise MissingDependencyError(exc.name or "asyncua", "serve") from None
+    face = OpcUaFace(service, args.host, args.opcua_port, writable=args.opcua_writable, security=security)
+    face.start()
+    print(f"cellcal serve: OPC UA on {face.endpoint} ({'writable' if face.writable else 'read-only'}; security "
+          f"{'None' if security is None else 'Basic256Sha256 SignAndEncrypt'})", flush=True)
+    return face
+
+
+def _history_url(args: argparse.Namespace) -> str:
+    """``--history``, else the SQLite file beside the output (``OUT/cellcal-history.sqlite``, OUT made if new)."""
+    if args.history:
+        return str(args.history)
+    from cellcal.core.service.history import DEFAULT_FILENAME, sqlite_url
+
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot make the output directory: {exc.strerror or exc}", source=str(args.out)) from None
+    return sqlite_url(os.path.abspath(os.path.join(args.out, DEFAULT_FILENAME)))  # HistoryStore.beside(OUT)
+
+
+def _start_xmlrpc(service: Any, host: str, port: int, token: str | None, options: dict[str, Any]) -> Any:
+    """Start the XML-RPC face (its own thread); says once where it listens."""
+    from cellcal.core.service.xmlrpc import XmlRpcFace
+
+    try:
+        face = XmlRpcFace(service, host, port, token=token, **options).start()
+    except OSError as exc:
+        raise ConfigError(f"cannot serve XML-RPC on {host}:{port}: {exc.strerror or exc}") from None
+    print(f"cellcal serve: XML-RPC on {face.url} (rpc_factory(\"xmlrpc\", \"{face.url}\"))", flush=True)
+    return face
 
 
 def _serve(app: Any, host: str, port: int, service: Any) -> None:

@@ -1,5 +1,6 @@
 """The service core over one or several cells: runs one at a time per cell, their cancellation, the current
-calibration per camera and ``pixel_to_base``. Every face (HTTP now) is a thin adapter over :class:`Service`.
+calibration per camera and ``pixel_to_base``, its history and metrics (:mod:`.recorder`). Every face (HTTP,
+XML-RPC) is a thin adapter over :class:`Service`.
 
 Each camera's runs write into ``OUT/<cell>/<camera>/`` (``result.json``, ``handeye.json``,
 ``depthcal.json``, their reports). A run holds the cell's lock ``OUT/<cell>/.cellcal.lock``
@@ -11,6 +12,7 @@ lock as the command does.
 from __future__ import annotations
 
 import contextlib
+import logging
 import re
 import threading
 import time
@@ -27,9 +29,12 @@ from cellcal.core.calibration.outlock import OutputLock
 from cellcal.core.service.calibration import CameraCalibration, read_calibration
 from cellcal.core.service.errors import BusyError, NotFoundError, RequestError
 from cellcal.core.service.events import EventBus
+from cellcal.core.service.history import HistoryStore
 from cellcal.core.service.planepoint import MAX_PIXELS, pixel_to_base, quaternion_matrix
-from cellcal.core.service.runs import KINDS, Builder, Run, RunOptions, execute
+from cellcal.core.service.recorder import ObservedBus, Recorder, abandon_stale_runs
+from cellcal.core.service.runs import KINDS, Builder, Outcome, Run, RunOptions, execute
 from cellcal.devices.errors import CellcalError, ConfigError, OutputError
+from cellcal.devices.version import cellcal_version
 
 __all__ = ["MAX_RUNS_KEPT", "CellService", "PixelsOnPlane", "Service"]
 
@@ -41,6 +46,8 @@ CLOSE_WAIT_S = 60.0
 RECHECK_S = 1.0
 #: A cell or camera name usable as a directory name and in a URL.
 NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -89,9 +96,11 @@ class CellService:
         out_dir: The service's output directory (the cell writes into ``out_dir/<cell>``).
         bus: Where its events go.
         build: ``config -> (camera, SafeArm)`` (default: the configuration's backends).
+        recorder: Told of each run's start and end and of each calibration put into use (None: nobody).
     """
 
-    def __init__(self, configs: Sequence[CellConfig], out_dir: Path, bus: EventBus, build: Builder | None = None):
+    def __init__(self, configs: Sequence[CellConfig], out_dir: Path, bus: EventBus, build: Builder | None = None,
+                 recorder: Recorder | None = None):
         self.name = configs[0].cell.name
         if not NAME.fullmatch(self.name):
             raise ConfigError(f"cell name {self.name!r} cannot name a directory and a URL (letters, digits, '_', "
@@ -103,6 +112,7 @@ class CellService:
         self.directory = out_dir / self.name
         self.bus = bus
         self._build = build or _default_build
+        self.recorder = recorder
         self._lock = threading.Lock()
         self._active: Run | None = None
         self._calibrations: dict[str, tuple[Any, CameraCalibration | None, float]] = {}
@@ -176,16 +186,34 @@ class CellService:
             self.bus.publish("run.state" if data["state"] != last[0] else "run.progress", data)
             last[0] = data["state"]
 
+        def settle(r: Run, outcome: Outcome) -> None:  # before the run shows its end
+            calibration = None
+            if outcome.state == "ok":
+                self._calibrations.pop(r.camera, None)
+                try:
+                    calibration = self._read(r.camera, seen=False)
+                except CellcalError as exc:
+                    log.warning("run %s: its calibration cannot be read: %s", r.id, exc)
+            if self.recorder is not None:
+                self.recorder.run_ended(r, outcome, calibration)
+            self._free(lock)
+
         try:
-            execute(run, config, self._build, changed)
+            if self.recorder is not None:
+                self.recorder.run_started(run, config.source)
+            execute(run, config, self._build, changed, settle)
         finally:
-            lock.release()
-            with self._lock:
-                self._active = None
+            self._free(lock)
             if run.state == "ok":
-                self._calibrations.pop(run.camera, None)
                 self.bus.publish("calibration.changed", {"cell": self.name, "camera": run.camera,
                                                          "kind": run.kind, "run": run.id})
+
+    def _free(self, lock: OutputLock) -> None:
+        """The cell's lock released and its run slot freed (idempotent)."""
+        if lock.held:
+            lock.release()
+        with self._lock:
+            self._active = None
 
     def cancel(self, run: Run) -> None:
         """Ask ``run`` to stop at its next safe point (the arm told to stop there).
@@ -205,6 +233,10 @@ class CellService:
         Raises:
             NotFoundError: Unknown camera. ConfigError: A result file that cannot be read.
         """
+        return self._read(camera, seen=True)
+
+    def _read(self, camera: str, seen: bool) -> CameraCalibration | None:
+        """:meth:`calibration`; ``seen``: a newly read one is told to the recorder as put into use."""
         config = self.camera_config(camera)
         directory = self.directory / camera
         cached = self._calibrations.get(camera)
@@ -217,6 +249,8 @@ class CellService:
             return cached[1]
         calibration = read_calibration(directory, lambda: _configured_intrinsics(config))
         self._calibrations[camera] = (stamp, calibration, now)
+        if seen and calibration is not None and self.recorder is not None:
+            self.recorder.calibration_seen(self.name, camera, calibration)
         return calibration
 
     def pixel_to_base(self, camera: str, pixels: Any, flange_pose: Any) -> PixelsOnPlane:
@@ -267,16 +301,22 @@ class Service:
         configs: Configuration files, one cell each (None: the packaged ``sim.toml``).
         out_dir: Where the cells write (``out_dir/<cell>/<camera>/``).
         build: ``config -> (camera, SafeArm)`` for every run (default: the configuration's backends).
-        bus: The event bus (default: a new one).
+        bus: The event bus (default: a new :class:`ObservedBus`, whose events are recorded and counted).
+        history: The history store, or its URL (``sqlite:///PATH``, ``postgresql://...``), closed by
+            :meth:`close`; None: no history kept.
+
+    Attributes:
+        metrics: The service's Prometheus metrics (None without prometheus-client).
+        history: The history store (None: none kept).
 
     Raises:
-        ConfigError: A configuration that does not validate, or two with the same cell name.
+        ConfigError: A configuration that does not validate, two with the same cell name, or an unusable history.
     """
 
     def __init__(self, configs: Sequence[str | Path | None], out_dir: str | Path, *, build: Builder | None = None,
-                 bus: EventBus | None = None) -> None:
+                 bus: EventBus | None = None, history: HistoryStore | str | None = None) -> None:
         self.out_dir = Path(out_dir)
-        self.bus = bus or EventBus()
+        self.bus = bus or ObservedBus()
         self.cells: dict[str, CellService] = {}
         for path in configs or [None]:
             cell = CellService(load_every_camera(path), self.out_dir, self.bus, build)
@@ -284,6 +324,15 @@ class Service:
                 raise ConfigError(f"two configurations name cell {cell.name!r}: give each cell once",
                                   source=str(path) if path is not None else None)
             self.cells[cell.name] = cell
+        self.history = HistoryStore(history) if isinstance(history, str) else history
+        self.metrics = _metrics(self.cells)
+        self.recorder = Recorder(self.bus, self.history, self.metrics)
+        for cell in self.cells.values():
+            cell.recorder = self.recorder
+            if self.history is not None:
+                marked = abandon_stale_runs(self.history, cell.name, list(cell.configs), cell.directory)
+                if marked:
+                    log.warning("history: %d run(s) of cell %s were left running; marked failed", marked, cell.name)
         self._runs: OrderedDict[str, Run] = OrderedDict()
         self._lock = threading.Lock()
         self.closed = False
@@ -355,4 +404,14 @@ class Service:
         for run in active:
             run.done.wait(wait_s)
         self.bus.close()
+        self.recorder.close()
         return active
+
+
+def _metrics(cells: Mapping[str, CellService]) -> Any:
+    """The service's metrics, or None when prometheus-client (the ``serve`` extra) is not installed."""
+    try:
+        from cellcal.core.service.metrics import ServiceMetrics
+    except ImportError:
+        return None
+    return ServiceMetrics(cells, cellcal_version())

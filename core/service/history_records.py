@@ -97,8 +97,8 @@ class AppliedRecord:
     Attributes:
         id: Its number in this store.
         camera: The camera it belongs to.
-        what: ``mount`` (camera in the flange/tool frame), ``plane`` (the work plane in the camera
-            frame) or ``camera_base`` (camera in the base frame).
+        what: ``mount`` (camera in the flange/tool frame), ``plane`` (the work plane; the service stores it in the
+            base frame, its document saying ``"frame": "base"``) or ``camera_base`` (camera in the base frame).
         value: The pose or plane as JSON data (metres, radians, as the caller wrote it).
         covariance: Its covariance as JSON data (SI units squared), if given.
         run_id: The run that produced it, if any.

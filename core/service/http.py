@@ -5,7 +5,8 @@ Its OpenAPI schema is served at ``/v1/openapi.json`` (a copy is kept in
 ``{"error": "<one line>"}``: 400 malformed JSON, 401 a state-changing request without the
 token (when one is set), 404 no such cell, camera or run, 409 the cell is busy or the run
 has ended, 413 a body over the bound, 422 a value of the wrong type or out of range, 429
-too many requests. Imported only when the service is served (fastapi is the ``serve`` extra).
+too many requests. The history's routes and ``/metrics`` are :mod:`.http_history`'s. Imported only
+when the service is served (fastapi is the ``serve`` extra).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from contextlib import asynccontextmanager
 from typing import Any
 
 import numpy as np
-from fastapi import FastAPI, Request, Security
+from fastapi import FastAPI, Query, Request, Security
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
@@ -30,6 +31,7 @@ from starlette.requests import ClientDisconnect
 from cellcal.core.service import schemas
 from cellcal.core.service.cell import PixelsOnPlane, Service
 from cellcal.core.service.errors import RequestError, ServiceError
+from cellcal.core.service.http_history import CalibrationAtOut, add_history_routes, calibration_at
 from cellcal.core.service.httpguard import (
     DEFAULT_BURST,
     DEFAULT_RATE_PER_S,
@@ -218,10 +220,15 @@ def _add_routes(app: FastAPI, service: Service) -> None:
         """Cancel a run: it stops at its next safe point (before the next move) and tells the arm to stop."""
         return _json(service.cancel_run(run_id).to_dict(), 202)
 
-    @app.get(f"{v}/cells/{{cell}}/cameras/{{camera}}/calibration", response_model=schemas.CalibrationOut,
+    @app.get(f"{v}/cells/{{cell}}/cameras/{{camera}}/calibration",
+             response_model=schemas.CalibrationOut | CalibrationAtOut,
              responses={**_ERRORS, 409: {"model": schemas.ErrorOut}}, tags=["calibration"])
-    async def calibration(cell: str, camera: str) -> Response:
-        """The camera's current calibration (404 before its first result)."""
+    async def calibration(cell: str, camera: str, at: str | None = Query(
+            None, max_length=64, description="ISO 8601 time with a zone: the calibration in use then, from the "
+            "history (the mount and the plane applied last at or before it)")) -> Response:
+        """The camera's current calibration (404 before its first result), or with ``at`` the one in use then."""
+        if at is not None:
+            return _json(await run_in_threadpool(calibration_at, service, cell, camera, at))
         found = await run_in_threadpool(service.cell(cell).calibration, camera)
         if found is None:
             return _error(404, f"camera {camera!r} of cell {cell!r} has no calibration yet (run calibrate or handeye)")
@@ -304,6 +311,10 @@ def create_app(service: Service, *, token: str | None = None, max_body_bytes: in
                   "calibration per camera, pixel_to_base and events. Errors: {\"error\": \"<one line>\"}.")
     _install_error_handlers(app)
     _add_routes(app, service)
+    add_history_routes(app, service, API_PREFIX)  # /v1/history/..., /metrics
+    from cellcal.core.service.status import add_status_routes  # the status page (/) and the reports
+
+    add_status_routes(app, service)
     app.state.service = service
     guarded = RateLimit(BodyLimit(_Auth(app, token), max_body_bytes), TokenBucket(rate_per_s, burst))
     guarded.fastapi = app  # type: ignore[attr-defined]  # the routes and their schema, behind the guards

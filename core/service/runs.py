@@ -21,7 +21,7 @@ from typing import Any
 
 from cellcal.devices.errors import ConfigError
 
-__all__ = ["KINDS", "STATES", "Progress", "Run", "RunCancelled", "RunOptions", "execute", "plan_size"]
+__all__ = ["KINDS", "STATES", "Outcome", "Progress", "Run", "RunCancelled", "RunOptions", "execute", "plan_size"]
 
 #: The kinds of run the service starts.
 KINDS = ("calibrate", "handeye", "depthcal")
@@ -85,6 +85,7 @@ class Run:
         result: The result document of a run that ended ``ok``.
         result_file, report_file: Where the result and the report were written (None: not written).
         cancel_requested: Whether a cancel was asked (a run past its last move still ends ``ok``).
+        history_id: Its number in the service's history store (None: no history kept, or not written).
     """
 
     cell: str
@@ -101,6 +102,7 @@ class Run:
     result_file: Path | None = None
     report_file: Path | None = None
     cancel_requested: bool = False
+    history_id: int | None = None
     created_utc: str = field(default_factory=_now)
     started_utc: str | None = None
     finished_utc: str | None = None
@@ -269,40 +271,70 @@ def plan_size(kind: str, config: Any, options: RunOptions) -> int:
         return 0  # the run itself says why
 
 
-def execute(run: Run, config: Any, build: Builder, changed: Callable[[Run], None]) -> None:
-    """Run ``run`` to its end on this thread: its state, result or error set, ``changed`` called on each change.
+@dataclass(frozen=True)
+class Outcome:
+    """How a run ended, before anyone is told (see ``settle`` of :func:`execute`).
 
-    Never raises: a failure is the run's ``failed`` state with its one-line error; a cancel its
-    ``cancelled`` state (the arm told to stop by the calibrator).
+    Attributes:
+        state: ``ok``, ``failed`` or ``cancelled``.
+        error: The one-line reason of a run that did not end ``ok``.
+        result: The result document of a run that ended ``ok``.
+        result_file, report_file: Where its result and report were written.
+        finished_utc: When it ended (ISO 8601).
     """
+
+    state: str
+    error: str | None = None
+    result: dict[str, Any] | None = None
+    result_file: Path | None = None
+    report_file: Path | None = None
+    finished_utc: str = field(default_factory=_now)
+
+
+def _outcome(run: Run, config: Any, build: Builder, changed: Callable[[Run], None]) -> Outcome:
+    """Run the kind's library function to its end; how it ended (never raises)."""
     from cellcal.devices.errors import CellcalError
 
-    with run.lock:
-        run.state, run.started_utc = "running", _now()
-        run.poses_total = plan_size(run.kind, config, run.options)
-    changed(run)
     try:
         def progress(total: int) -> Progress:
             return Progress(run, total, changed)
 
         document, result_file, page = _KIND_FUNCTIONS[run.kind](config, run.out_dir, run.options, build, progress)
     except RunCancelled:
-        _finish(run, "cancelled", error="cancelled: the arm was told to stop; poses measured so far are in the "
-                "journal (options.resume continues the run)")
+        return Outcome("cancelled", "cancelled: the arm was told to stop; poses measured so far are in the journal "
+                       "(options.resume continues the run)")
     except CellcalError as exc:
-        _finish(run, "failed", error=str(exc).replace("\n", " "))
+        return Outcome("failed", str(exc).replace("\n", " "))
     except Exception as exc:  # a bug: the run fails with one line, the service stays up
-        _finish(run, "failed", error=f"internal error: {type(exc).__name__}: {exc}".replace("\n", " "))
-    else:
-        with run.lock:
-            run.result, run.result_file, run.report_file = document, Path(result_file), page
-        _finish(run, "ok")
+        return Outcome("failed", f"internal error: {type(exc).__name__}: {exc}".replace("\n", " "))
+    return Outcome("ok", result=document, result_file=Path(result_file), report_file=page)
+
+
+def execute(run: Run, config: Any, build: Builder, changed: Callable[[Run], None],
+            settle: Callable[[Run, Outcome], None] | None = None) -> None:
+    """Run ``run`` to its end on this thread: its state, result or error set, ``changed`` called on each change.
+
+    Never raises: a failure is the run's ``failed`` state with its one-line error; a cancel its
+    ``cancelled`` state (the arm told to stop by the calibrator).
+
+    Args:
+        run: The run (``queued``).
+        config: The camera's configuration.
+        build: ``config -> (camera, SafeArm)``.
+        changed: Called after each change of the run (its state, its progress).
+        settle: Called with the outcome before the run shows it (its history written, the cell freed),
+            so whoever sees the run ended also sees what followed; it must not raise.
+    """
     with run.lock:
-        run.result = run.result if run.state == "ok" else None
+        run.state, run.started_utc = "running", _now()
+        run.poses_total = plan_size(run.kind, config, run.options)
+    changed(run)
+    outcome = _outcome(run, config, build, changed)
+    if settle is not None:
+        settle(run, outcome)
+    with run.lock:
+        run.state, run.error, run.finished_utc = outcome.state, outcome.error, outcome.finished_utc
+        if outcome.state == "ok":
+            run.result, run.result_file, run.report_file = outcome.result, outcome.result_file, outcome.report_file
     run.done.set()
     changed(run)
-
-
-def _finish(run: Run, state: str, error: str | None = None) -> None:
-    with run.lock:
-        run.state, run.error, run.finished_utc = state, error, _now()
