@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import pickle
+import queue
 import signal
 import socket
 import subprocess
@@ -25,6 +26,54 @@ T = TypeVar("T")
 MAX_OUTPUT_LINE = 500
 #: Seconds the worker gets to tear its objects down at close before it is killed.
 CLOSE_TIMEOUT_S = 4.0
+#: Seconds a thread other than the main one waits for the spawner thread to start its worker.
+SPAWN_TIMEOUT_S = 30.0
+
+
+def _spawn(start: Callable[[], T]) -> T:
+    """``start()`` (a worker's ``Popen``) on a thread that lives as long as the process.
+
+    The worker asks Linux to SIGKILL it when its parent dies (``PR_SET_PDEATHSIG``), and the parent
+    Linux means is the *thread* that forked it. A worker forked by a short-lived thread (a
+    ``DeadlineGuard`` call off the main thread: every run of ``cellcal serve``) was killed as soon
+    as that call returned. The main thread forks its workers itself; another thread hands the
+    fork to one daemon thread that ends only with the process.
+    """
+    global _SPAWNER
+    if threading.current_thread() is threading.main_thread():
+        return start()
+    done = threading.Event()
+    value: list[T] = []
+    error: list[BaseException] = []
+
+    def job() -> None:
+        try:
+            value.append(start())
+        except BaseException as exc:  # handed back to the caller as it is
+            error.append(exc)
+        finally:
+            done.set()
+
+    with _SPAWNER_LOCK:
+        if _SPAWNER is None or not _SPAWNER.is_alive():
+            _SPAWNER = threading.Thread(target=_serve_spawns, name="cellcal worker spawner", daemon=True)
+            _SPAWNER.start()
+    _SPAWNS.put(job)
+    if not done.wait(SPAWN_TIMEOUT_S):  # Popen returns in milliseconds: a stuck spawner is a failed start
+        raise OSError(f"the worker spawner did not start the process within {SPAWN_TIMEOUT_S:g} s")
+    if error:
+        raise error[0]
+    return value[0]
+
+
+def _serve_spawns() -> None:
+    while True:
+        _SPAWNS.get()()
+
+
+_SPAWNS: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+_SPAWNER: threading.Thread | None = None
+_SPAWNER_LOCK = threading.Lock()
 
 
 class RemoteObject:
@@ -110,10 +159,10 @@ class NativeHost:
         parent.setblocking(True)
         child.setblocking(True)
         try:
-            self._proc = subprocess.Popen(
-                [sys.executable, "-m", "cellcal.devices.isolation.worker", str(child.fileno())],
-                pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT, close_fds=True)
+            command = [sys.executable, "-m", "cellcal.devices.isolation.worker", str(child.fileno())]
+            self._proc = _spawn(lambda: subprocess.Popen(command, pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL,
+                                                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                                         close_fds=True))
         except OSError as exc:
             parent.close()
             raise DeviceConnectionError(f"{self.name}: cannot start the {self.library} worker process: {exc}") from None
