@@ -33,6 +33,7 @@ from cellcal.core.service.history import HistoryStore
 from cellcal.core.service.planepoint import MAX_PIXELS, pixel_to_base, quaternion_matrix
 from cellcal.core.service.recorder import ObservedBus, Recorder, abandon_stale_runs
 from cellcal.core.service.runs import KINDS, Builder, Outcome, Run, RunOptions, execute
+from cellcal.core.service.watch import Watches
 from cellcal.devices.errors import CellcalError, ConfigError, OutputError
 from cellcal.devices.version import cellcal_version
 
@@ -115,12 +116,48 @@ class CellService:
         self.recorder = recorder
         self._lock = threading.Lock()
         self._active: Run | None = None
+        #: The tracking or monitoring session that has the cell (:mod:`.watch`), if any: no run meanwhile.
+        self.watch: Any = None
         self._calibrations: dict[str, tuple[Any, CameraCalibration | None, float]] = {}
 
     @property
     def active(self) -> Run | None:
         """The run in progress, if any."""
         return self._active
+
+    @property
+    def builder(self) -> Builder:
+        """``config -> (camera, SafeArm)``: how the cell's devices are built (runs, tracking, monitoring)."""
+        return self._build
+
+    def occupy(self, holder: Any, what: str) -> OutputLock:
+        """Take the cell for a tracking or monitoring session ``holder`` (doing ``what``) as a run takes it: its
+        lock held until :meth:`vacate`, no run meanwhile.
+
+        Raises:
+            BusyError: A run or another session has the cell, or another process holds its lock.
+        """
+        with self._lock:
+            if self._active is not None:
+                raise BusyError(f"cell {self.name!r} is running {self._active.kind} run {self._active.id}: {what} "
+                                "waits for its end")
+            if self.watch is not None:
+                raise BusyError(f"cell {self.name!r} is {self.watch.kind}ing already (stop it first)")
+            lock = OutputLock.for_directory(self.directory)
+            try:
+                lock.acquire()
+            except OutputError as exc:
+                raise BusyError(str(exc)) from None
+            self.watch = holder
+        return lock
+
+    def vacate(self, holder: Any, lock: OutputLock) -> None:
+        """The cell freed by the session ``holder`` (its lock released; idempotent)."""
+        if lock.held:
+            lock.release()
+        with self._lock:
+            if self.watch is holder:
+                self.watch = None
 
     def camera_config(self, camera: str) -> CellConfig:
         """The configuration of ``camera`` (NotFoundError naming the cell's cameras)."""
@@ -161,6 +198,9 @@ class CellService:
             if self._active is not None:
                 raise BusyError(f"cell {self.name!r} is running {self._active.kind} run {self._active.id}: one run "
                                 "at a time per cell")
+            if self.watch is not None:
+                raise BusyError(f"cell {self.name!r} is {self.watch.kind}ing: stop it first (one run, tracking or "
+                                "monitoring at a time per cell)")
             lock = OutputLock.for_directory(self.directory)
             try:
                 lock.acquire()
@@ -336,6 +376,8 @@ class Service:
         self._runs: OrderedDict[str, Run] = OrderedDict()
         self._lock = threading.Lock()
         self.closed = False
+        #: The cells' tracking and monitoring sessions (:mod:`.watch`).
+        self.watches = Watches(self)
         #: The runs :meth:`close` found in progress and cancelled.
         self.stopped: list[Run] = []
 
@@ -403,6 +445,7 @@ class Service:
                 self.cells[run.cell].cancel(run)
         for run in active:
             run.done.wait(wait_s)
+        self.watches.close()  # tracking and monitoring stopped, their files written
         self.bus.close()
         self.recorder.close()
         return active

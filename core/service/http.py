@@ -32,6 +32,7 @@ from cellcal.core.service import schemas
 from cellcal.core.service.cell import PixelsOnPlane, Service
 from cellcal.core.service.errors import RequestError, ServiceError
 from cellcal.core.service.http_history import CalibrationAtOut, add_history_routes, calibration_at
+from cellcal.core.service.http_watch import add_watch_routes
 from cellcal.core.service.httpguard import (
     DEFAULT_BURST,
     DEFAULT_RATE_PER_S,
@@ -58,7 +59,9 @@ EVENT_KEEPALIVE_S = 15.0
 #: Batches of more pixels than this are mapped off the event loop.
 _INLINE_PIXELS = 2000
 #: Requests that move the arm or change state: they need the token when one is set.
-STATE_CHANGING = re.compile(r"/v1/cells/[^/]+/runs|/v1/runs/[^/]+/cancel")
+STATE_CHANGING = re.compile(r"/v1/cells/[^/]+/(runs|track|monitor|track/stop|monitor/stop)|/v1/runs/[^/]+/cancel")
+#: ``DELETE`` requests that change state (stopping tracking or monitoring): they need the token too.
+STOPPING = re.compile(r"/v1/cells/[^/]+/(track|monitor)")
 _ERRORS: dict[int | str, dict[str, Any]] = {code: {"model": schemas.ErrorOut} for code in (400, 404, 413, 422, 429)}
 _bearer = HTTPBearer(auto_error=False, description="the service's token (when one is set): needed by every request "
                      "that moves the arm or changes state")
@@ -72,7 +75,9 @@ class _Auth:
         self.token = token
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http" and scope["method"] == "POST" and STATE_CHANGING.fullmatch(scope["path"]):
+        method, path = scope.get("method"), scope.get("path", "")
+        if scope["type"] == "http" and ((method == "POST" and STATE_CHANGING.fullmatch(path))
+                                        or (method == "DELETE" and STOPPING.fullmatch(path))):
             header = next((v.decode("latin-1") for k, v in scope.get("headers", ()) if k == b"authorization"), None)
             why = check_bearer(header, self.token)
             if why is not None:
@@ -257,7 +262,9 @@ def _add_routes(app: FastAPI, service: Service) -> None:
     @app.get(f"{v}/events", tags=["service"], response_class=StreamingResponse,
              responses={200: {"content": {"text/event-stream": {}},
                               "description": "server-sent events: run.state, run.progress, run.cancel_requested, "
-                                             "calibration.changed, events_lost"}})
+                                             "calibration.changed, track.state, track.change, "
+                                             "track.camera_failed, monitor.state, monitor.drift, drift.<kind>, "
+                                             "history.failed, events_lost"}})
     async def events() -> StreamingResponse:
         """The service's events as server-sent events (a slow reader loses the oldest and gets events_lost)."""
         return StreamingResponse(_event_stream(service), media_type="text/event-stream",
@@ -312,6 +319,7 @@ def create_app(service: Service, *, token: str | None = None, max_body_bytes: in
     _install_error_handlers(app)
     _add_routes(app, service)
     add_history_routes(app, service, API_PREFIX)  # /v1/history/..., /metrics
+    add_watch_routes(app, service, API_PREFIX)  # /v1/cells/{cell}/track, /v1/cells/{cell}/monitor
     from cellcal.core.service.status import add_status_routes  # the status page (/) and the reports
 
     add_status_routes(app, service)

@@ -40,8 +40,9 @@ CONTENT_TYPE = CONTENT_TYPE_LATEST
 #: An event published on the bus whose type starts with this is a drift event of the kind that follows
 #: (``drift.mount``, ``drift.plane``, ``drift.started``...), for the camera its data names.
 DRIFT_PREFIX = "drift."
-#: Drift kinds whose series exist (at zero) from the start: the tracker's change events.
-DRIFT_KINDS = ("mount", "plane")
+#: Drift kinds whose series exist (at zero) from the start: the tracker's changes told apart (``mount``,
+#: ``plane``; ``mount_or_plane`` when neither alone explains one) and the monitor's drift (``monitor``).
+DRIFT_KINDS = ("mount", "plane", "monitor")
 #: Upper bounds of the run-duration histogram's buckets, seconds.
 RUN_BUCKETS_S = (1.0, 5.0, 15.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0, 3600.0)
 #: Longest label value kept (a longer camera name or kind from an event is cut).
@@ -155,7 +156,7 @@ class ServiceMetrics:
         self.drift = Counter("cellcal_drift_events", "drift events published, by kind", ["cell", "camera", "kind"],
                              registry=r)
         self.fitted = Counter("cellcal_frames_fitted", "frames whose full-frame fit passed every gate (in the "
-                              "results of the service's runs)", ["cell", "camera"], registry=r)
+                              "results of the service's runs, and tracked)", ["cell", "camera"], registry=r)
         self.refused = Counter("cellcal_frames_refused", "frames whose full-frame fit failed a gate (the first "
                                "failed)", ["cell", "camera", "gate"], registry=r)
         self.history_failures = Counter("cellcal_history_failures", "history writes that failed (the service "

@@ -38,11 +38,13 @@ from cellcal.core.service.opcua_nodes import (
     NAMESPACE,
     ROOT_ID,
     USERNAME,
+    WATCH_VARIABLES,
     OpcUaSecurity,
     camera_values,
     cell_id,
     variable_id,
 )
+from cellcal.core.service.watch import watch_values
 from cellcal.devices.errors import CellcalError, ConfigError
 
 __all__ = ["APPLICATION_URI", "POLL_S", "STOP_WAIT_S", "OpcUaFace"]
@@ -60,6 +62,8 @@ STOP_WAIT_S = 10.0
 APPLICATION_URI = f"{NAMESPACE}:server"
 _TYPES = {"Boolean": ua.VariantType.Boolean, "String": ua.VariantType.String, "Double": ua.VariantType.Double,
           "UInt32": ua.VariantType.UInt32}
+#: Events after which a cell's tracking and monitoring variables are written again.
+_WATCH_EVENTS = ("track.", "monitor.", "drift.")
 _STATUS = {RequestError: StatusCodes.BadInvalidArgument, NotFoundError: StatusCodes.BadNotFound,
            BusyError: StatusCodes.BadInvalidState}
 
@@ -216,6 +220,8 @@ class OpcUaFace:
                                            ua.QualifiedName(camera, self._ns))
                 for var, (kind, _) in CAMERA_VARIABLES.items():
                     await self._variable(cam, cell_id(name, camera), var, kind, _blank(kind))
+                for var, value in watch_values(self.service.watches, name, camera).items():
+                    await self._variable(cam, cell_id(name, camera), var, WATCH_VARIABLES[var][0], value)
         return server
 
     async def _variable(self, parent: Any, owner: str, name: str, kind: str, value: Any) -> None:
@@ -319,6 +325,14 @@ class OpcUaFace:
                 await self._run_values(event.data)
             elif event.type == "calibration.changed":
                 next_poll = 0.0  # read its files now
+            elif event.type.startswith(_WATCH_EVENTS) and event.data.get("cell") in self.service.cells:
+                await self._watch_values(str(event.data["cell"]))
+
+    async def _watch_values(self, cell: str) -> None:
+        """The cell's cameras' tracking and monitoring variables, from its sessions now."""
+        for camera in self.service.cells[cell].configs:
+            values = watch_values(self.service.watches, cell, camera)
+            await self._write(cell_id(cell, camera), values, WATCH_VARIABLES)
 
     async def _run_values(self, run: Any) -> None:
         cell = run.get("cell")

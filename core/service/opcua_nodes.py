@@ -30,7 +30,7 @@ from cellcal.devices.errors import ConfigError
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["CAMERA_VARIABLES", "CELL_VARIABLES", "NAMESPACE", "ROOT_ID", "USERNAME", "OpcUaSecurity",
+__all__ = ["CAMERA_VARIABLES", "CELL_VARIABLES", "NAMESPACE", "ROOT_ID", "USERNAME", "WATCH_VARIABLES", "OpcUaSecurity",
            "camera_values", "cell_id", "mount_values", "opcua_security", "plane_values", "variable_id"]
 
 #: The namespace URI of every node the service adds.
@@ -56,6 +56,16 @@ CAMERA_VARIABLES: dict[str, tuple[str, str]] = {
     **{f"Mount{a}HalfWidth": ("Double", f"95 % half-width of Mount{a}, m") for a in "XYZ"},
     **{f"Mount{a}HalfWidth": ("Double", f"95 % half-width of Mount{a}, rad (0: the configured mount)")
        for a in ("Roll", "Pitch", "Yaw")},
+}
+#: A camera's tracking and monitoring variables (:func:`~cellcal.core.service.watch.watch_values`): name -> (OPC UA
+#: type, what it is); written as the sessions' events come.
+WATCH_VARIABLES: dict[str, tuple[str, str]] = {
+    "TrackState": ("String", "the cell's tracking: idle (none yet), starting, running, stopping, stopped or failed"),
+    "MonitorState": ("String", "the cell's monitoring: idle, starting, running, stopping, stopped or failed"),
+    "TrackFrames": ("UInt32", "frames of this camera the latest tracking session has taken"),
+    "ChangeOpen": ("Boolean", "tracking: a change of the mount or the plane is detected and not re-estimated yet"),
+    "DriftEvents": ("UInt32", "drift events of this camera in the latest tracking and monitoring sessions"),
+    "LastDrift": ("String", "the latest drift event, one line ('' before one)"),
 }
 #: A cell's variables: name -> (OPC UA type, what it is).
 CELL_VARIABLES: dict[str, tuple[str, str]] = {

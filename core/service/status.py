@@ -75,8 +75,21 @@ def _run(service: Service, run: Any) -> dict[str, Any]:
     return info
 
 
+def _watch(service: Service, cell: str, kind: str) -> dict[str, Any] | None:
+    """The cell's latest tracking or monitoring session in short (None before one): state, per camera its frames,
+    open change, drift events and the last one in words."""
+    found = service.watches.latest(cell, kind)
+    if found is None:
+        return None
+    data = found.to_dict()
+    keep = ("frames", "change_open", "drift_events", "last_drift", "failed")
+    return {"id": data["id"], "state": data["state"], "error": data["error"],
+            "cameras": {name: {k: values.get(k) for k in keep} for name, values in data["cameras"].items()}}
+
+
 def status_document(service: Service) -> dict[str, Any]:
-    """JSON form of what the page shows: the service's state, each cell's run in progress or latest, its cameras.
+    """JSON form of what the page shows: the service's state, each cell's run in progress or latest, its tracking
+    and monitoring (``track``, ``monitor``: None before a session), its cameras.
 
     A camera's ``calibration.values`` are the OPC UA face's variables (``PlaneTiltX``, rad; ``PlaneHeight``, m;
     ``MountX``, m; ``MountRoll``, rad; each with its 95 % ``...HalfWidth``).
@@ -88,6 +101,7 @@ def status_document(service: Service) -> dict[str, Any]:
         latest = cell.active or (mine[-1] if mine else None)
         cells.append({"name": name, "active_run": None if cell.active is None else cell.active.id,
                       "run": None if latest is None else _run(service, latest),
+                      "track": _watch(service, name, "track"), "monitor": _watch(service, name, "monitor"),
                       "cameras": [_camera(service, name, camera) for camera in cell.configs]})
     return {"status": service.health()["status"], "cells": cells}
 

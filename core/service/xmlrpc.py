@@ -12,7 +12,10 @@ The standard library's HTTP server on its own port (``cellcal serve --xmlrpc-por
 - ``pixel_to_base(camera, u, v, flange_pose)`` -> ``[x, y, z, sigma_x, sigma_y, sigma_z]``, metres, base frame;
   ``flange_pose`` is a UR pose ``p[x, y, z, rx, ry, rz]`` (m, rotation vector in rad) as a list of 6 or the
   struct URScript sends for a pose;
-- ``cancel_run([token,] run_id)`` -> the run's state struct.
+- ``cancel_run([token,] run_id)`` -> the run's state struct;
+- ``track_start([token,] [cell[, options]])``, ``track_stop([token,] [cell])``, ``track_state([cell])`` -> the
+  session's struct (``state``, ``frames``, ``change_open``, ``drift_events``, ``last_drift``); the same for
+  ``monitor_*``; ``cell`` may be left out (or "") when the service has one cell.
 
 ``camera`` is ``<cell>/<camera>``, or the camera's name alone when one cell has it. When the service
 has a token, the methods that change state take it as their first argument. A request body over
@@ -42,6 +45,7 @@ from cellcal.core.service.cell import CellService, Service
 from cellcal.core.service.errors import NotFoundError, RequestError, ServiceError
 from cellcal.core.service.httpguard import DEFAULT_BURST, DEFAULT_RATE_PER_S, TokenBucket, one_line
 from cellcal.core.service.runs import Run
+from cellcal.core.service.watch import ACTIVITIES
 from cellcal.devices.errors import CellcalError
 
 __all__ = ["FAULT_CODES", "MAX_BODY_BYTES", "RPC_PATH", "XmlRpcFace", "XmlRpcMethods", "parse_call"]
@@ -67,7 +71,7 @@ FAULT_CODES = {400: "malformed request (not an XML-RPC call, or XML it refuses)"
                422: "wrong arguments (number, type or value)",
                500: "internal error (a bug; the service keeps running)"}
 #: Methods that change state (they take the token first when one is set).
-STATE_CHANGING = frozenset({"start_run", "cancel_run"})
+STATE_CHANGING = frozenset({"start_run", "cancel_run", "track_start", "track_stop", "monitor_start", "monitor_stop"})
 
 
 def parse_call(body: bytes) -> tuple[str, tuple[Any, ...]]:
@@ -140,6 +144,10 @@ class XmlRpcMethods:
             "start_run": (2, 3, self.start_run), "run_state": (1, 1, self.run_state),
             "run_status": (1, 1, self.run_status), "plane": (1, 1, self.plane),
             "pixel_to_base": (4, 4, self.pixel_to_base), "cancel_run": (1, 1, self.cancel_run)}
+        for kind in ACTIVITIES:  # track_start([cell[, options]]), track_stop([cell]), track_state([cell]); monitor_*
+            self._methods.update({f"{kind}_start": (0, 2, self._watch_call(kind, "start")),
+                                  f"{kind}_stop": (0, 1, self._watch_call(kind, "stop")),
+                                  f"{kind}_state": (0, 1, self._watch_call(kind, "state"))})
 
     def call(self, method: str, params: tuple[Any, ...]) -> Any:
         """The result of ``method(*params)``.
@@ -194,6 +202,35 @@ class XmlRpcMethods:
                    RequestError(f"cells {', '.join(c.name for c in having)} have a camera {name!r}: give "
                                 "'<cell>/<camera>'"))
         return having[0], name
+
+    def _cell(self, name: Any) -> str:
+        """A cell's name, or the only cell's when none is given ("" or no argument)."""
+        if name is None or name == "":
+            if len(self.service.cells) != 1:
+                raise RequestError(f"the service has {len(self.service.cells)} cells: name one "
+                                   f"({', '.join(sorted(self.service.cells))})")
+            return next(iter(self.service.cells))
+        if not isinstance(name, str):
+            raise RequestError("cell must be a string: the cell's name")
+        return self.service.cell(name).name
+
+    def _watch_call(self, kind: str, action: str) -> Callable[..., dict[str, Any]]:
+        """``<kind>_start(cell, options)``, ``<kind>_stop(cell)``, ``<kind>_state(cell)``: the session's summary
+        (``state``, ``frames``, ``change_open``, ``drift_events``, ``last_drift``...; no nil)."""
+
+        def call(cell: Any = None, options: Any = None) -> dict[str, Any]:
+            name = self._cell(cell)
+            watches = self.service.watches
+            if action == "start":
+                if options is not None and not isinstance(options, dict):
+                    raise RequestError("options must be a struct (camera, duration_s, max_frames, baseline)")
+                return watches.start(name, kind, options).summary()
+            if action == "stop":
+                watches.stop(name, kind)
+            found = watches.latest(name, kind)
+            return {"kind": kind, "cell": name, "state": "idle"} if found is None else found.summary()
+
+        return call
 
     def start_run(self, kind: Any, camera: Any, options: Any = None) -> str:
         """Start a ``kind`` run (calibrate, handeye, depthcal) on ``camera`` (``options``: a struct of

@@ -33,6 +33,7 @@ from cellcal.core.service.opcua_nodes import (  # noqa: E402
     NAMESPACE,
     ROOT_ID,
     USERNAME,
+    WATCH_VARIABLES,
     OpcUaSecurity,
     camera_values,
 )
@@ -93,7 +94,8 @@ def test_calibrate_over_opcua_progress_plane_and_pixel_to_base(make_service: Any
             names = {(await n.read_browse_name()).Name for n in await cell.get_children()}
             assert names == {*CELL_VARIABLES, "StartRun", "CancelRun", "PixelToBase", CAMERA}
             camera = client.get_node(ua.NodeId(f"{CELL}/{CAMERA}", ns))
-            assert {(await n.read_browse_name()).Name for n in await camera.get_children()} == set(CAMERA_VARIABLES)
+            assert {(await n.read_browse_name()).Name for n in await camera.get_children()} == \
+                {*CAMERA_VARIABLES, *WATCH_VARIABLES}
             assert await value(client, ns, f"{CELL}.RunState") == "idle"
             assert await value(client, ns, f"{CELL}/{CAMERA}.Calibrated") is False
 
