@@ -166,6 +166,13 @@ def _inline_refs(schema: dict[str, Any]) -> dict[str, Any]:
 
 
 def _add_routes(app: FastAPI, service: Service) -> None:
+    """The ``/v1/`` routes, in the order the OpenAPI schema lists them."""
+    _cell_routes(app, service)
+    _run_routes(app, service)
+    _camera_routes(app, service)
+
+
+def _cell_routes(app: FastAPI, service: Service) -> None:
     v = API_PREFIX
 
     @app.get(f"{v}/health", response_model=schemas.HealthOut, tags=["service"])
@@ -188,6 +195,10 @@ def _add_routes(app: FastAPI, service: Service) -> None:
     async def cameras(cell: str) -> Response:
         """The cell's cameras."""
         return _json(service.cell(cell).describe()["cameras"])
+
+
+def _run_routes(app: FastAPI, service: Service) -> None:
+    v = API_PREFIX
 
     @app.post(f"{v}/cells/{{cell}}/runs", status_code=202, response_model=schemas.RunOut,
               responses={**_ERRORS, 401: {"model": schemas.ErrorOut}, 409: {"model": schemas.ErrorOut}},
@@ -224,6 +235,11 @@ def _add_routes(app: FastAPI, service: Service) -> None:
     async def cancel(run_id: str) -> Response:
         """Cancel a run: it stops at its next safe point (before the next move) and tells the arm to stop."""
         return _json(service.cancel_run(run_id).to_dict(), 202)
+
+
+def _camera_routes(app: FastAPI, service: Service) -> None:
+    """A camera's calibration and ``pixel_to_base``, and the event stream."""
+    v = API_PREFIX
 
     @app.get(f"{v}/cells/{{cell}}/cameras/{{camera}}/calibration",
              response_model=schemas.CalibrationOut | CalibrationAtOut,
