@@ -23,10 +23,10 @@ from cellcal.core.cli import main
 from cellcal.core.handeye.fixed_record import records_fixed_camera
 from cellcal.devices.pose import Pose
 from cellcal.devices.recording import read_recording
+from tests.support.browser import chromium_page
 
 REPO = Path(__file__).resolve().parents[3]
 MULTI = REPO / "configs" / "sim_multi.toml"
-CHROMIUM = Path("/usr/bin/chromium")
 
 
 def truth(name: str) -> Pose:
@@ -123,20 +123,10 @@ def test_the_page_is_rendered_again_from_its_data_alone(recorded: Path, tmp_path
 
 
 def test_every_picture_loads_in_a_real_browser(recorded: Path) -> None:
-    if not CHROMIUM.exists():
-        pytest.skip(f"{CHROMIUM} is not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
     messages: list[str] = []
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, timeout=60_000)
-        try:
-            page = browser.new_page()
-            page.on("console", lambda msg: messages.append(f"{msg.type}: {msg.text}"))
-            page.on("pageerror", lambda exc: messages.append(f"pageerror: {exc}"))
-            page.goto((recorded / "handeye-above.html").resolve().as_uri(), wait_until="load", timeout=60_000)
-            widths = page.eval_on_selector_all("img", "imgs => imgs.map(i => [i.complete, i.naturalWidth])")
-        finally:
-            browser.close()
+    with chromium_page(messages) as page:
+        page.goto((recorded / "handeye-above.html").resolve().as_uri(), wait_until="load", timeout=60_000)
+        widths = page.eval_on_selector_all("img", "imgs => imgs.map(i => [i.complete, i.naturalWidth])")
     assert len(widths) == 3 and all(complete and width > 0 for complete, width in widths), widths
     assert not [m for m in messages if m.startswith(("error", "pageerror"))], messages
 

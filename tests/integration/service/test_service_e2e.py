@@ -30,7 +30,9 @@ from conftest import WAIT_S
 from repo_paths import REPO_ROOT
 from scipy.spatial.transform import Rotation
 from test_serve_cli import serve
-from test_status_page import CHROMIUM, wait_for
+from test_status_page import wait_for
+
+from tests.support.browser import chromium_page, require_browser
 
 CELL, CAMERA = "track-sim", "camera"
 #: When the sim's camera is knocked, s of simulated time (sim_track.toml: 45 s).
@@ -136,35 +138,26 @@ def _calibrate_and_map(client: httpx.Client, rpc: xmlrpc.client.ServerProxy) -> 
     assert values[:3] == pytest.approx(point, abs=1e-12) and values[3:] == pytest.approx(sigma, rel=1e-9)
 
 
-def _page(base: str, sync_api: Any, during: Any) -> tuple[str, str, list[str]]:
+def _page(base: str, during: Any) -> tuple[str, str, list[str]]:
     """Open the status page in headless chromium, run ``during()``, wait until the page shows the knock."""
     messages: list[str] = []
-    with sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, timeout=60_000)
-        try:
-            page = browser.new_page()
-            page.on("console", lambda msg: messages.append(f"{msg.type}: {msg.text}"))
-            page.on("pageerror", lambda exc: messages.append(f"pageerror: {exc}"))
-            page.goto(base + "/", wait_until="load", timeout=60_000)
-            page.wait_for_function("() => document.getElementById('connection').textContent === 'live'",
-                                   timeout=60_000)
-            assert page.inner_text(f"#track-{CELL}") == "Tracking: none yet."
-            during()
-            page.wait_for_function(f"() => {{ const c = document.querySelector('#track-{CELL} .last-drift'); "
-                                   "return c !== null && c.textContent.includes('change detected'); }",
-                                   timeout=60_000)
-            shown = page.inner_text(f"#track-{CELL} .last-drift")
-            events = page.inner_text("#events")
-        finally:
-            browser.close()
+    with chromium_page(messages) as page:
+        page.goto(base + "/", wait_until="load", timeout=60_000)
+        page.wait_for_function("() => document.getElementById('connection').textContent === 'live'",
+                               timeout=60_000)
+        assert page.inner_text(f"#track-{CELL}") == "Tracking: none yet."
+        during()
+        page.wait_for_function(f"() => {{ const c = document.querySelector('#track-{CELL} .last-drift'); "
+                               "return c !== null && c.textContent.includes('change detected'); }",
+                               timeout=60_000)
+        shown = page.inner_text(f"#track-{CELL} .last-drift")
+        events = page.inner_text("#events")
     return shown, events, messages
 
 
 def test_calibrate_map_track_a_knock_and_count_it_over_every_face(tmp_path: Path) -> None:
     pytest.importorskip("asyncua")
-    if not CHROMIUM.exists():
-        pytest.skip(f"{CHROMIUM} is not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
+    require_browser()  # before the service starts: skipped, saying which, without chromium or playwright
     began = time.monotonic()
     proc = serve("--config", str(_config(tmp_path)), "--port", "0", "--opcua-port", "0", "--xmlrpc-port", "0",
                  "--out", str(tmp_path / "out"))
@@ -185,7 +178,7 @@ def test_calibrate_map_track_a_knock_and_count_it_over_every_face(tmp_path: Path
                 busy = client.post(f"/cells/{CELL}/runs", json={"kind": "calibrate", "camera": CAMERA})
                 assert busy.status_code == 409 and "tracking" in busy.json()["error"]
 
-            shown, page_events, messages = _page(base, sync_api, start_tracking)
+            shown, page_events, messages = _page(base, start_tracking)
             assert reader.knock.wait(WAIT_S), reader.events  # the knock over SSE, within WAIT_S at most
             kind, change = reader.events[-1]
             assert kind == "track.change" and change["camera"] == CAMERA and change["stage"] == "detected"

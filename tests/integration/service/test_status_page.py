@@ -20,8 +20,8 @@ import pytest
 from conftest import WAIT_S, serving, sim_config
 
 from cellcal.core.service import Service
+from tests.support.browser import chromium_page, require_browser
 
-CHROMIUM = Path("/usr/bin/chromium")
 RUN = {"kind": "calibrate", "camera": "camera", "options": {"report": True}}
 
 
@@ -113,9 +113,7 @@ OBSERVE = """() => {
 def test_the_status_page_follows_a_run_in_headless_chromium(tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
     pytest.importorskip("asyncua")
-    if not CHROMIUM.exists():
-        pytest.skip(f"{CHROMIUM} is not installed (apt-get install chromium)")
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
+    require_browser()  # before the service starts: skipped, saying which, without chromium or playwright
     config = sim_config(tmp_path, settle_s=0.3)  # poses a few tenths of a second apart: each one a DOM change
     proc = _serve("--config", str(config), "--port", "0", "--opcua-port", "0", "--out", str(tmp_path / "out"))
     messages: list[str] = []
@@ -126,32 +124,24 @@ def test_the_status_page_follows_a_run_in_headless_chromium(tmp_path: Path) -> N
         assert "OPC UA on opc.tcp://127.0.0.1:" in opcua_line and "read-only; security None" in opcua_line
         assert "listening on http://127.0.0.1:" in http_line, http_line
         base = http_line.split("listening on ")[1].split()[0].removesuffix("/v1/")
-        with sync_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True, timeout=60_000)
-            try:
-                page = browser.new_page()
-                page.on("console", lambda msg: messages.append(f"{msg.type}: {msg.text}"))
-                page.on("pageerror", lambda exc: messages.append(f"pageerror: {exc}"))
-                page.on("request", lambda req: requests.append(req.url))
-                page.goto(base + "/", wait_until="load", timeout=60_000)
-                page.wait_for_function("() => document.getElementById('connection').textContent === 'live'",
-                                       timeout=60_000)
-                assert page.inner_text("#cell-paper-sim .run") == "No run yet."
-                page.evaluate(OBSERVE)
-                with httpx.Client(base_url=base + "/v1", timeout=WAIT_S) as client:
-                    run_id = client.post("/cells/paper-sim/runs", json=RUN).json()["id"]
-                    final = wait_for(client, run_id)
-                page.wait_for_function("() => document.querySelector('#cell-paper-sim .run-report') !== null",
-                                       timeout=60_000)
-                seen = page.evaluate("() => window.__seen")
-                marker = page.evaluate("() => window.__marker")
-                shown = page.inner_text("#cell-paper-sim .run-state"), page.inner_text("#cell-paper-sim .run-progress")
-                report = page.evaluate("() => fetch(document.querySelector('#cell-paper-sim .run-report').href)"
-                                       ".then(r => r.status)")
-                events = page.inner_text("#events")
-                height = page.inner_text("#cell-paper-sim .plane-height")
-            finally:
-                browser.close()
+        with chromium_page(messages, requests) as page:
+            page.goto(base + "/", wait_until="load", timeout=60_000)
+            page.wait_for_function("() => document.getElementById('connection').textContent === 'live'",
+                                   timeout=60_000)
+            assert page.inner_text("#cell-paper-sim .run") == "No run yet."
+            page.evaluate(OBSERVE)
+            with httpx.Client(base_url=base + "/v1", timeout=WAIT_S) as client:
+                run_id = client.post("/cells/paper-sim/runs", json=RUN).json()["id"]
+                final = wait_for(client, run_id)
+            page.wait_for_function("() => document.querySelector('#cell-paper-sim .run-report') !== null",
+                                   timeout=60_000)
+            seen = page.evaluate("() => window.__seen")
+            marker = page.evaluate("() => window.__marker")
+            shown = page.inner_text("#cell-paper-sim .run-state"), page.inner_text("#cell-paper-sim .run-progress")
+            report = page.evaluate("() => fetch(document.querySelector('#cell-paper-sim .run-report').href)"
+                                   ".then(r => r.status)")
+            events = page.inner_text("#events")
+            height = page.inner_text("#cell-paper-sim .plane-height")
         opcua_state = _opcua_state(opcua_line.split("OPC UA on ")[1].split()[0])
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=WAIT_S)
