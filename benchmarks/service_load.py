@@ -46,6 +46,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from tests.support.serve_process import start_serve
+
 RSS_TARGET_B = 200e6
 VISIBLE_TARGET_S = 0.5
 CELL = "paper-sim"
@@ -61,16 +64,7 @@ def _config(tmp: Path, settle_s: float) -> Path:
 
 
 def _serve(tmp: Path, config: Path) -> tuple[subprocess.Popen[str], str]:
-    command = [sys.executable, "-m", "cellcal.core.cli", "serve", "--config", str(config), "--port", "0",
-               "--out", str(tmp / "out"), "--rate", "1e6"]
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
-                            text=True)
-    assert proc.stdout is not None
-    line = proc.stdout.readline()
-    if "listening on" not in line:
-        proc.kill()
-        raise SystemExit(f"cellcal serve did not start: {line}{proc.communicate()[1]}")
-    return proc, line.split("listening on ")[1].split()[0].rstrip("/")
+    return start_serve("--config", str(config), "--port", "0", "--out", str(tmp / "out"), "--rate", "1e6")
 
 
 def _status_kb(pid: int, key: str) -> int:

@@ -38,6 +38,9 @@ from typing import Any  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from tests.support.serve_process import start_serve  # noqa: E402
+
 BATCH = 100_000
 BATCH_TARGET_S = 0.050
 RATE_TARGET_PER_S = 500.0
@@ -90,17 +93,8 @@ def _cpu_s(pid: int) -> float | None:
 
 
 def _serve(out: Path, core: int | None) -> tuple[subprocess.Popen[str], str]:
-    command = [sys.executable, "-m", "cellcal.core.cli", "serve", "--port", "0", "--out", str(out), "--rate", "1e6"]
-    if core is not None:
-        command = ["taskset", "-c", str(core), *command] if _has_taskset() else command
-    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
-                            text=True)
-    assert proc.stdout is not None
-    line = proc.stdout.readline()
-    if "listening on" not in line:
-        proc.kill()
-        raise SystemExit(f"cellcal serve did not start: {line}{proc.communicate()[1]}")
-    return proc, line.split("listening on ")[1].split()[0].rstrip("/")
+    prefix = ("taskset", "-c", str(core)) if core is not None and _has_taskset() else ()
+    return start_serve("--port", "0", "--out", str(out), "--rate", "1e6", prefix=prefix)
 
 
 def _has_taskset() -> bool:
