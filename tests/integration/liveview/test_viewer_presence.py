@@ -202,6 +202,23 @@ def test_wait_or_linger_without_a_port_is_one_line_and_exit_2(option: list[str],
     assert not (tmp_path / "out").exists()
 
 
+def _several_cameras_scene(command: list[str], names: list[str], tf_messages: int) -> Any:
+    """Run ``cellcal COMMAND --viz-port N --viz-linger 600``, then read the lingering scene of a cell's cameras: one
+    message on each camera's own topics (none on the one camera's shared ones) and ``tf_messages`` on ``/tf``."""
+    topics = {f"/cameras/{name}/{kind}" for name in names for kind in ("points", "plane")}
+    port = free_port()
+    with _cellcal(*command, "--viz-port", str(port), "--viz-linger", "600") as proc:
+        _read_until(proc, "serving the last scene for")
+        with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
+            client.wait_for_channels({*topics, "/tf"})
+            assert not {"/camera/points", "/cellcal/plane"} & set(client.seen.channels)
+            client.subscribe_all()
+            client.collect(topics, timeout_s=LINE_TIMEOUT_S)
+            seen = client.collect({"/tf"}, count=tf_messages, timeout_s=LINE_TIMEOUT_S)
+        _finish(proc, interrupt=True)
+    return seen
+
+
 def test_monitor_of_several_cameras_puts_each_on_its_own_topics_and_a_fixed_one_under_the_base() -> None:
     """``monitor --viz-port`` on configs/sim_multi.toml: each camera's cloud and plane on its own topics (a viewer
     keeps one message per topic), the fixed cameras' frames under ``base`` at their configured poses (ADR 0061)."""
@@ -214,19 +231,8 @@ def test_monitor_of_several_cameras_puts_each_on_its_own_topics_and_a_fixed_one_
     multi = REPO_ROOT / "configs" / "sim_multi.toml"
     poses = {c.camera_name: c.camera_entry.pose_base for c in load_every_camera(multi)}
     labels = [f"sim_multi.{name}" for name in poses]
-    topics = {f"/cameras/{label}/{kind}" for label in labels for kind in ("points", "plane")}
-    port = free_port()
-    with _cellcal("monitor", "--config", str(multi), "--frames", "2", "--quiet", "--viz-port", str(port),
-                  "--viz-linger", "600") as proc:
-        _read_until(proc, "serving the last scene for")
-        with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
-            client.wait_for_channels({*topics, "/tf"})
-            assert not {"/camera/points", "/cellcal/plane"} & set(client.seen.channels)
-            client.subscribe_all()
-            client.collect(topics, timeout_s=LINE_TIMEOUT_S)
-            # the fixed cameras' scenes carry their frames (the monitor reads no arm: none for the wrist's)
-            seen = client.collect({"/tf"}, count=2, timeout_s=LINE_TIMEOUT_S)
-        _finish(proc, interrupt=True)
+    # the fixed cameras' scenes carry their frames (the monitor reads no arm: none for the wrist's)
+    seen = _several_cameras_scene(["monitor", "--config", str(multi), "--frames", "2", "--quiet"], labels, 2)
     fixed = {t["child_frame_id"]: t for _, m in seen.messages["/tf"] for t in m["transforms"]
              if t["parent_frame_id"] == "base" and t["child_frame_id"].startswith("camera_")}
     for name, pose in poses.items():
@@ -245,19 +251,9 @@ def test_calibrate_of_several_cameras_draws_every_camera_in_one_scene(tmp_path: 
     from repo_paths import REPO_ROOT
 
     multi = REPO_ROOT / "configs" / "sim_multi.toml"
-    names = ("wrist", "above", "side45")
-    topics = {f"/cameras/{name}/{kind}" for name in names for kind in ("points", "plane")}
-    port = free_port()
-    with _cellcal("calibrate", "--config", str(multi), "--out", str(tmp_path / "out"), "--quiet", "--viz-port",
-                  str(port), "--viz-linger", "600") as proc:
-        _read_until(proc, "serving the last scene for")
-        with FoxgloveClient(f"ws://127.0.0.1:{port}") as client:
-            client.wait_for_channels({*topics, "/tf"})
-            assert not {"/camera/points", "/cellcal/plane"} & set(client.seen.channels)
-            client.subscribe_all()
-            client.collect(topics, timeout_s=LINE_TIMEOUT_S)
-            seen = client.collect({"/tf"}, count=3, timeout_s=LINE_TIMEOUT_S)
-        _finish(proc, interrupt=True)
+    names = ["wrist", "above", "side45"]
+    seen = _several_cameras_scene(["calibrate", "--config", str(multi), "--out", str(tmp_path / "out"), "--quiet"],
+                                  names, 3)
     parents = {t["child_frame_id"]: t["parent_frame_id"] for _, m in seen.messages["/tf"] for t in m["transforms"]}
     assert parents["camera_wrist"] == "flange" and parents["flange"] == "base"
     assert parents["camera_above"] == "base" and parents["camera_side45"] == "base"
